@@ -19,10 +19,16 @@ Public API
 from __future__ import annotations
 
 import hashlib
+import logging
+import os
+import warnings
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.io
 import scipy.sparse
+import trimesh
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
@@ -30,9 +36,14 @@ __all__ = [
     "SurfaceError",
     "SurfaceWarning",
     "Surface",
+    "load_surface",
+    "validate_surface",
+    "normalize_area",
     "SurfaceSamples",
     "sample_surface",
 ]
+
+logger = logging.getLogger(__name__)
 
 # Neighbourhood size for point-cloud normal estimation (PCA) and area estimation.
 _CLOUD_NEIGHBOURS = 16
@@ -321,12 +332,16 @@ class Surface:
         phi = (np.arange(_VORONOI_DIRECTIONS) + 0.5) * (2 * np.pi / _VORONOI_DIRECTIONS)
         directions = np.stack([np.cos(phi), np.sin(phi)], axis=1)  # (D, 2)
         half_square = 0.5 * np.einsum("nkc,nkc->nk", q, q)  # (N, k)
-        projection = np.einsum("nkc,dc->ndk", q, directions)  # (N, D, k)
         cap = 0.5 * distance[:, -1]  # clip where no neighbour bounds the cell (rim of an open cloud)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            radius = np.where(projection > 0, half_square[:, None, :] / projection, np.inf).min(axis=2)
-        radius = np.minimum(radius, cap[:, None])
-        return 0.5 * (radius**2).sum(axis=1) * (2 * np.pi / _VORONOI_DIRECTIONS)
+        areas = np.empty(len(points))
+        for start in range(0, len(points), 2048):  # chunks keep the (chunk, D, k) temporaries small
+            chunk = slice(start, start + 2048)
+            projection = np.einsum("nkc,dc->ndk", q[chunk], directions)  # (n, D, k)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                bound = np.where(projection > 0, half_square[chunk, None, :] / projection, np.inf)
+            radius = np.minimum(bound.min(axis=2), cap[chunk, None])
+            areas[chunk] = 0.5 * (radius**2).sum(axis=1) * (2 * np.pi / _VORONOI_DIRECTIONS)
+        return areas
 
 
 def _as_float_array(values, what: str, name: str) -> np.ndarray:
@@ -345,6 +360,390 @@ def _unit_rows(vectors: np.ndarray) -> np.ndarray:
     vectors = np.asarray(vectors, dtype=np.float64)
     length = np.linalg.norm(vectors, axis=1, keepdims=True)
     return np.divide(vectors, length, out=np.zeros_like(vectors), where=length > 0)
+
+
+# ====================================================================== reading
+_MESH_EXTENSIONS = (".ply", ".obj", ".off", ".stl")
+_CLOUD_EXTENSIONS = (".npy", ".xyz", ".txt")
+# PLY vertex properties that are geometry or colour, not per-vertex fields.
+_PLY_NON_FIELDS = {"x", "y", "z", "nx", "ny", "nz", "red", "green", "blue", "alpha"}
+
+
+def load_surface(path: str | os.PathLike, repair: bool = False, fields: Sequence[str] | None = None) -> Surface:
+    """Read a mesh or a point cloud and validate it (see :func:`validate_surface`).
+
+    Formats (by extension, case-insensitive):
+
+    - ``.ply .obj .off .stl`` — read with trimesh, ``process=False`` (and ``maintain_order=True`` for OBJ),
+      so vertices keep their order in the file: for correspondence the vertex index is the label. A PLY
+      without faces is a point cloud, with its ``nx ny nz`` normals if present. Extra PLY vertex
+      properties (other than position, normal and colour) become fields. STL stores every triangle with
+      its own three corners, so its vertices are merged by exact position, numbered in order of first
+      appearance (the original numbering of an STL file's source cannot be recovered).
+    - ``.mat`` — the layout of the ZerNet authors' release (MATLAB v5, via scipy.io.loadmat): ``X`` (V, 3)
+      positions, ``F`` (T, 3) **1-based** triangle indices (any integer type, e.g. uint16; without ``F``
+      the file is a point cloud), and every other array with V rows, e.g. ``J2m`` (V, 1), becomes a field
+      (a (V, 1) column becomes shape (V,)).
+    - ``.npy`` (numpy array) and ``.xyz`` / ``.txt`` (whitespace-separated text, ``#`` comments) — point
+      clouds of shape (N, 3), or (N, 6) with normals in the last three columns.
+
+    Args:
+        path: the file.
+        repair: passed to :func:`validate_surface` (merge duplicate vertices, drop degenerate faces).
+        fields: names of per-vertex fields to keep (for .mat and PLY); ``None`` keeps all. A requested
+            name the file does not have is an error.
+
+    Returns:
+        the validated :class:`Surface`, ``name`` set to the path.
+
+    Raises:
+        SurfaceError: missing file, unknown extension, unreadable file, or any validation error; the
+            message names the file.
+    """
+    name = os.fspath(path)
+    if not os.path.isfile(name):
+        raise SurfaceError(f"{name}: no such file")
+    extension = os.path.splitext(name)[1].lower()
+    if extension in _MESH_EXTENSIONS:
+        surface = _load_trimesh(name, extension)
+    elif extension == ".mat":
+        surface = _load_mat(name)
+    elif extension in _CLOUD_EXTENSIONS:
+        surface = _load_cloud_array(name, extension)
+    else:
+        known = ", ".join(_MESH_EXTENSIONS + (".mat",) + _CLOUD_EXTENSIONS)
+        raise SurfaceError(f"{name}: unknown surface file extension {extension!r} (known: {known})")
+
+    if fields is not None:
+        wanted = [str(key) for key in fields]
+        missing = [key for key in wanted if key not in surface.fields]
+        if missing:
+            raise SurfaceError(
+                f"{name}: requested field(s) {missing} not in the file (it has {sorted(surface.fields)})"
+            )
+        surface = Surface(surface.vertices, surface.faces, surface.normals,
+                          {key: surface.fields[key] for key in wanted}, name)
+    return validate_surface(surface, repair=repair)
+
+
+def _load_trimesh(name: str, extension: str) -> Surface:
+    """Read PLY/OBJ/OFF/STL with trimesh, keeping the file's vertex order."""
+    options = {"maintain_order": True} if extension == ".obj" else {}
+    try:
+        loaded = trimesh.load(name, process=False, **options)
+        if isinstance(loaded, trimesh.Scene) and not any(
+            isinstance(geometry, trimesh.PointCloud) for geometry in loaded.geometry.values()
+        ):
+            # Several meshes in one file: trimesh's own concatenation (applies the scene transforms).
+            loaded = trimesh.load(name, process=False, force="mesh", **options)
+    except Exception as error:  # trimesh raises many types for a malformed file
+        raise SurfaceError(f"{name}: cannot read the file: {type(error).__name__}: {error}") from error
+
+    raw = loaded.metadata.get("_ply_raw", {}).get("vertex", {}).get("data", {}) if extension == ".ply" else {}
+    raw = raw if isinstance(raw, Mapping) else {}
+    if isinstance(loaded, trimesh.PointCloud):
+        vertices = np.asarray(loaded.vertices, dtype=np.float64)
+        normals = None
+        if all(key in raw for key in ("nx", "ny", "nz")):
+            normals = np.concatenate([np.asarray(raw[key], dtype=np.float64).reshape(-1, 1)
+                                      for key in ("nx", "ny", "nz")], axis=1)
+        return Surface(vertices, None, normals, _ply_fields(raw, len(vertices)), name)
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise SurfaceError(f"{name}: the file holds a {type(loaded).__name__}, not a mesh or a point cloud")
+
+    vertices = np.asarray(loaded.vertices, dtype=np.float64)
+    faces = np.asarray(loaded.faces, dtype=np.int64)
+    if extension == ".stl":
+        vertices, faces, _, _ = _merge_coincident(vertices, faces, None, {})
+    # File normals of a mesh are not kept: the face orientation defines the normals (vertex_normals()).
+    return Surface(vertices, faces, None, _ply_fields(raw, len(vertices)), name)
+
+
+def _ply_fields(raw: Mapping, n_vertices: int) -> dict[str, np.ndarray]:
+    """Per-vertex PLY properties other than position, normal and colour: (N,) float64 arrays (or (N, C)
+    for list properties of fixed length)."""
+    fields = {}
+    for key, values in raw.items():
+        values = np.asarray(values)
+        if key in _PLY_NON_FIELDS or values.dtype == object or len(values) != n_vertices:
+            continue
+        values = values.astype(np.float64).reshape(n_vertices, -1)
+        fields[key] = values[:, 0] if values.shape[1] == 1 else values
+    return fields
+
+
+def _load_mat(name: str) -> Surface:
+    """Read the authors' MATLAB layout: X (V, 3), F (T, 3) 1-based, per-vertex fields."""
+    try:
+        content = scipy.io.loadmat(name)
+    except NotImplementedError as error:  # MATLAB v7.3 files are HDF5
+        raise SurfaceError(f"{name}: MATLAB v7.3 (HDF5) files are not supported; save with -v7: {error}") from error
+    except Exception as error:
+        raise SurfaceError(f"{name}: cannot read the .mat file: {type(error).__name__}: {error}") from error
+    arrays = {key: value for key, value in content.items() if not key.startswith("__")}
+    if "X" not in arrays:
+        raise SurfaceError(f"{name}: no vertex array 'X' in the .mat file (keys: {sorted(arrays)})")
+    vertices = np.asarray(arrays.pop("X"))
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise SurfaceError(f"{name}: 'X' must have shape (V, 3), got {vertices.shape}")
+    faces = None
+    if "F" in arrays:
+        one_based = np.asarray(arrays.pop("F"))
+        if one_based.ndim != 2 or one_based.shape[1] != 3:
+            raise SurfaceError(f"{name}: 'F' must have shape (T, 3), got {one_based.shape}")
+        if one_based.size and one_based.min() < 1:
+            bad = int(np.argwhere(one_based < 1)[0, 0])
+            raise SurfaceError(
+                f"{name}: face {bad} = {one_based[bad].tolist()} has an index below 1, but 'F' holds "
+                "1-based (MATLAB) vertex indices"
+            )
+        # uint16 would wrap around on "- 1" for an index of 0; convert first.
+        faces = one_based.astype(np.int64) - 1
+    n = vertices.shape[0]
+    fields = {}
+    for key, value in arrays.items():
+        value = np.asarray(value)
+        if value.ndim in (1, 2) and value.shape[0] == n and np.issubdtype(value.dtype, np.number):
+            fields[key] = value[:, 0] if value.ndim == 2 and value.shape[1] == 1 else value
+    return Surface(vertices, faces, None, fields, name)
+
+
+def _load_cloud_array(name: str, extension: str) -> Surface:
+    """Read an (N, 3) or (N, 6) array (positions, then normals) from .npy or text."""
+    try:
+        if extension == ".npy":
+            array = np.load(name, allow_pickle=False)
+        else:
+            array = np.loadtxt(name, dtype=np.float64, comments="#", ndmin=2)
+    except Exception as error:
+        raise SurfaceError(f"{name}: cannot read the point cloud: {type(error).__name__}: {error}") from error
+    array = np.asarray(array)
+    if array.ndim != 2 or array.shape[1] not in (3, 6):
+        raise SurfaceError(f"{name}: a point cloud array must have shape (N, 3) or (N, 6), got {array.shape}")
+    normals = array[:, 3:6] if array.shape[1] == 6 else None
+    return Surface(array[:, :3], None, normals, {}, name)
+
+
+# ====================================================================== validation
+def validate_surface(surface: Surface, repair: bool = False) -> Surface:
+    """Check a surface and, if asked, repair what can be repaired.
+
+    Checks, each failing with a :class:`SurfaceError` that names ``surface.name`` and the element:
+
+    ================================  ==================================================================
+    problem                           with ``repair=True``
+    ================================  ==================================================================
+    no vertices; mesh with no faces   error
+    NaN or infinite coordinate        error (the position is unknown: nothing to repair with)
+    given normals: wrong count,       error
+    non-finite or zero
+    field with a wrong length         error (names the field, expected N, got M)
+    face index out of range           error (a corrupt file; dropping faces would hide it)
+    duplicate vertices (exactly       merged into the lowest-numbered copy; later copies are removed,
+    the same position)                the remaining vertices keep their relative order, faces, fields
+                                      and normals are remapped (fields/normals of the kept copy win).
+                                      This renumbers vertices, so correspondence by vertex index changes.
+    degenerate faces (a repeated      dropped (after merging, so faces collapsed by the merge go too)
+    index) and zero-area faces
+    (area <= 1e-12 · bbox diagonal²)
+    non-manifold edge (shared by      error even with ``repair=True``: which faces to drop is a
+    more than two faces)              modelling decision the user must make
+    ================================  ==================================================================
+
+    Vertices that no face uses are kept (so vertex indices and fields stay aligned) and reported with a
+    :class:`SurfaceWarning`. Repairs are logged at INFO level on the ``zernet.surface`` logger.
+
+    Args:
+        surface: the surface to check.
+        repair: apply the repairs above instead of raising for them.
+
+    Returns:
+        ``surface`` itself when nothing needed repair, otherwise a repaired copy.
+    """
+    name = surface.name
+    vertices, faces, normals, fields = surface.vertices, surface.faces, surface.normals, dict(surface.fields)
+    n = len(vertices)
+    if n == 0:
+        raise SurfaceError(f"{name}: empty surface: 0 vertices")
+    if faces is not None and len(faces) == 0:
+        raise SurfaceError(f"{name}: empty mesh: 0 faces (for a point cloud, set faces=None)")
+
+    finite = np.isfinite(vertices).all(axis=1)
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        raise SurfaceError(
+            f"{name}: vertex {bad[0]} has a non-finite coordinate {vertices[bad[0]].tolist()} "
+            f"({len(bad)} such vertices); NaN or infinite positions cannot be repaired"
+        )
+    if normals is not None:
+        if len(normals) != n:
+            raise SurfaceError(f"{name}: normals: expected {n} rows (one per vertex), got {len(normals)}")
+        length = np.linalg.norm(normals, axis=1)
+        bad = np.flatnonzero(~np.isfinite(length) | (length == 0))
+        if len(bad):
+            raise SurfaceError(f"{name}: normal of vertex {bad[0]} is {normals[bad[0]].tolist()} "
+                               f"({len(bad)} such normals); normals must be finite and non-zero")
+    for key, value in fields.items():
+        count = value.shape[0] if value.ndim else None
+        if count != n:
+            raise SurfaceError(f"{name}: field {key!r}: expected {n} values (one per vertex), got "
+                               f"{count if count is not None else 'a scalar'}")
+
+    if faces is not None:
+        out_of_range = (faces < 0) | (faces >= n)
+        if out_of_range.any():
+            face, corner = (int(i) for i in np.argwhere(out_of_range)[0])
+            raise SurfaceError(
+                f"{name}: face {face} = {faces[face].tolist()} refers to vertex {faces[face, corner]}, but "
+                f"valid indices are 0..{n - 1} ({int(out_of_range.any(axis=1).sum())} such faces)"
+            )
+
+    repaired = False
+    # Duplicate vertices (exact). +0.0 turns -0.0 into 0.0 so that the byte-wise row comparison agrees.
+    _, first, inverse, counts = np.unique(vertices + 0.0, axis=0, return_index=True, return_inverse=True,
+                                          return_counts=True)
+    if (counts > 1).any():
+        inverse = inverse.reshape(-1)
+        duplicate = np.flatnonzero(first[inverse] != np.arange(n))
+        original = first[inverse[duplicate[0]]]
+        if not repair:
+            raise SurfaceError(
+                f"{name}: vertices {original} and {duplicate[0]} are at the same position "
+                f"{vertices[original].tolist()} ({len(duplicate)} duplicate vertices); pass repair=True to "
+                "merge them"
+            )
+        vertices, faces, normals, fields = _merge_coincident(vertices, faces, normals, fields)
+        logger.info("%s: merged %d duplicate vertices", name, len(duplicate))
+        n = len(vertices)
+        repaired = True
+
+    if faces is not None:
+        faces, dropped = _check_faces(name, vertices, faces, repair)
+        repaired |= dropped
+        _check_manifold(name, faces)
+        unused = np.ones(n, dtype=bool)
+        unused[faces.ravel()] = False
+        if unused.any():
+            warnings.warn(
+                f"{name}: {int(unused.sum())} vertices are used by no face (first: vertex "
+                f"{int(np.flatnonzero(unused)[0])}); kept so that vertex indices and fields stay aligned",
+                SurfaceWarning,
+                stacklevel=2,
+            )
+
+    if not repaired:
+        return surface
+    return Surface(vertices, faces, normals, fields, name)
+
+
+def _check_faces(name: str, vertices: np.ndarray, faces: np.ndarray, repair: bool) -> tuple[np.ndarray, bool]:
+    """Find degenerate (repeated index) and zero-area faces; raise, or drop them when repairing.
+
+    Returns the (possibly reduced) faces and whether any were dropped.
+    """
+    repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    diagonal = np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0))
+    flat = ~repeated & (area <= 1e-12 * diagonal**2)
+    bad = repeated | flat
+    if not bad.any():
+        return faces, False
+    if not repair:
+        face = int(np.flatnonzero(bad)[0])
+        what = "repeats a vertex index" if repeated[face] else f"has zero area ({area[face]:.3g})"
+        raise SurfaceError(
+            f"{name}: face {face} = {faces[face].tolist()} {what} ({int(repeated.sum())} degenerate and "
+            f"{int(flat.sum())} zero-area faces); pass repair=True to drop them"
+        )
+    faces = faces[~bad]
+    logger.info("%s: dropped %d degenerate and %d zero-area faces", name, int(repeated.sum()), int(flat.sum()))
+    if len(faces) == 0:
+        raise SurfaceError(f"{name}: empty mesh: every face was degenerate or of zero area")
+    return faces, True
+
+
+def _check_manifold(name: str, faces: np.ndarray) -> None:
+    """Raise for an edge shared by more than two faces (no repair: see validate_surface)."""
+    pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    edges, inverse, counts = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
+    if (counts > 2).any():
+        worst = int(np.flatnonzero(counts > 2)[0])
+        owners = np.flatnonzero(inverse.reshape(-1) == worst) // 3
+        raise SurfaceError(
+            f"{name}: non-manifold edge between vertices {edges[worst, 0]} and {edges[worst, 1]}: shared by "
+            f"{counts[worst]} faces {owners.tolist()} ({int((counts > 2).sum())} such edges); this cannot be "
+            "repaired automatically (not even with repair=True): remove the extra faces"
+        )
+
+
+def _merge_coincident(vertices, faces, normals, fields):
+    """Merge vertices at exactly the same position into the lowest-numbered copy.
+
+    The kept vertices keep their relative order. For STL, whose vertices are the face corners in order,
+    this numbers vertices by first appearance.
+
+    Returns (vertices, faces, normals, fields) remapped; normals and fields take the kept copy's rows.
+    """
+    # +0.0 turns -0.0 into 0.0 so that the byte-wise row comparison of np.unique agrees with ==.
+    _, first, inverse = np.unique(vertices + 0.0, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)  # groups sorted by their lowest vertex index
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    kept = first[order]
+    new_index = rank[inverse.reshape(-1)]
+    merged_faces = None if faces is None else new_index[faces]
+    merged_normals = None if normals is None else normals[kept]
+    merged_fields = {key: value[kept] for key, value in fields.items()}
+    return vertices[kept], merged_faces, merged_normals, merged_fields
+
+
+# ====================================================================== area normalisation
+def normalize_area(
+    surface: Surface, target_area: float, field_exponents: Mapping[str, float] | None = None
+) -> tuple[Surface, float]:
+    """Scale a surface uniformly so that its area becomes ``target_area``.
+
+    The scaling is about the area-weighted centroid c (which therefore stays put), not about the origin:
+    ``v' = c + s (v - c)`` with linear factor ``s = sqrt(target_area / area)``. Normals are unchanged.
+    A point cloud's area is the estimate of :attr:`Surface.area`, which scales exactly by s², so the
+    result's estimated area is ``target_area``.
+
+    Fields named in ``field_exponents = {name: e}`` are multiplied by ``(target_area / area) ** e``
+    (= s ** (2e)): a quantity proportional to area^e keeps its relation to the geometry. Wall stress
+    scales with the square root of area, so use ``{"J2m": 0.5}``, i.e. J2m is multiplied by s. Other
+    fields are copied unchanged. (The aneurysm .mat files are already at area 100, so s = 1 for them.)
+
+    Args:
+        surface: mesh or point cloud with positive area.
+        target_area: the wanted area (> 0), e.g. 15000 for human bodies, 100 for aneurysms.
+        field_exponents: {field name: area exponent e}; ``None`` scales no field.
+
+    Returns:
+        (scaled surface, s) where s is the linear scale factor applied to the positions.
+    """
+    target_area = float(target_area)
+    if not np.isfinite(target_area) or target_area <= 0:
+        raise SurfaceError(f"{surface.name}: target area must be positive and finite, got {target_area}")
+    field_exponents = dict(field_exponents or {})
+    missing = [key for key in field_exponents if key not in surface.fields]
+    if missing:
+        raise SurfaceError(f"{surface.name}: cannot scale missing field(s) {missing} "
+                           f"(the surface has {sorted(surface.fields)})")
+    weights = surface.vertex_areas()
+    area = float(weights.sum())
+    if not np.isfinite(area) or area <= 0:
+        raise SurfaceError(f"{surface.name}: cannot normalise a surface of area {area}")
+    ratio = target_area / area
+    scale = float(np.sqrt(ratio))
+    centroid = weights @ surface.vertices / area
+    vertices = centroid + scale * (surface.vertices - centroid)
+    fields = {key: value.copy() for key, value in surface.fields.items()}
+    for key, exponent in field_exponents.items():
+        fields[key] = np.asarray(fields[key], dtype=np.float64) * ratio ** float(exponent)
+    normals = None if surface.normals is None else surface.normals.copy()
+    faces = None if surface.faces is None else surface.faces.copy()
+    return Surface(vertices, faces, normals, fields, surface.name), scale
 
 
 # ====================================================================== sampling
