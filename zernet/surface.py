@@ -824,8 +824,10 @@ def sample_surface(surface: Surface, n_samples: int, seed: int = 0) -> SurfaceSa
     barycentric = np.stack([1.0 - root, root * (1.0 - uniform[:, 2]), root * uniform[:, 2]], axis=1)
     corners = surface.faces[face_index]  # (M, 3)
     points = np.einsum("mc,mcd->md", barycentric, surface.vertices[corners])
+    # Copies: scipy may sort the index arrays in place, which must not permute `barycentric`.
     interpolation = scipy.sparse.csr_matrix(
-        (barycentric.ravel(), corners.ravel(), np.arange(0, 3 * n_samples + 1, 3)), shape=(n_samples, n)
+        (barycentric.ravel().copy(), corners.ravel().copy(), np.arange(0, 3 * n_samples + 1, 3)),
+        shape=(n_samples, n),
     )
     interpolation.sum_duplicates()  # a face with a repeated vertex index would otherwise store it twice
     return SurfaceSamples(
