@@ -350,8 +350,9 @@ def test_copy_and_with_fields():
 # ---------------------------------------------------------------------------------------------- normalisation
 def test_normalize_area_exact_with_field_scaling():
     sphere = icosphere(2)
+    n = sphere.n_vertices
     sphere = Surface(sphere.vertices * 3.0 + [1.0, -2.0, 5.0], sphere.faces,
-                     fields={"J2m": np.linspace(0.1, 0.3, sphere.n_vertices), "label": np.arange(sphere.n_vertices)})
+                     fields={"J2m": np.linspace(0.1, 0.3, n), "label": np.arange(n)})
     area = sphere.area
     scaled, scale = normalize_area(sphere, 100.0, {"J2m": 0.5})
     assert scaled.area == pytest.approx(100.0, rel=1e-12)
@@ -364,7 +365,6 @@ def test_normalize_area_exact_with_field_scaling():
     np.testing.assert_allclose(new_centroid, centroid, atol=1e-12)
     np.testing.assert_allclose(scaled.vertices - centroid, scale * (sphere.vertices - centroid), atol=1e-12)
     # Exponent 1 scales like area itself.
-    _, _ = normalize_area(sphere, 15000.0)
     doubled, _ = normalize_area(sphere, 2 * area, {"J2m": 1.0})
     np.testing.assert_allclose(doubled.fields["J2m"], 2 * sphere.fields["J2m"], rtol=1e-15)
 
@@ -423,6 +423,20 @@ def test_face_counts_are_proportional_to_area():
     expected = m * areas[:4] / areas.sum()
     chi_square = np.sum((counts[:4] - expected) ** 2 / expected)
     assert chi_square < 16.3  # 99.9 % quantile of chi-square with 3 degrees of freedom
+
+
+def test_samples_are_uniform_inside_a_triangle():
+    triangle = Surface(np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), np.array([[0, 1, 2]]))
+    m = 20000
+    samples = sample_surface(triangle, m, seed=5)
+    # The midpoint subdivision splits the triangle into four parts of equal area: three corner triangles
+    # (one barycentric weight above 1/2) and the middle one.
+    corner = np.argmax(samples.barycentric > 0.5, axis=1)
+    part = np.where((samples.barycentric > 0.5).any(axis=1), corner, 3)
+    counts = np.bincount(part, minlength=4)
+    chi_square = np.sum((counts - m / 4) ** 2 / (m / 4))
+    assert chi_square < 16.3  # 99.9 % quantile of chi-square with 3 degrees of freedom
+    np.testing.assert_allclose(samples.points.mean(axis=0), [1.0, 1.0 / 3.0, 0.0], atol=0.02)
 
 
 def test_interpolation_reproduces_linear_functions():

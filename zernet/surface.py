@@ -477,7 +477,9 @@ def _load_mat(name: str) -> Surface:
     try:
         content = scipy.io.loadmat(name)
     except NotImplementedError as error:  # MATLAB v7.3 files are HDF5
-        raise SurfaceError(f"{name}: MATLAB v7.3 (HDF5) files are not supported; save with -v7: {error}") from error
+        raise SurfaceError(
+            f"{name}: MATLAB v7.3 (HDF5) files are not supported; save with -v7: {error}"
+        ) from error
     except Exception as error:
         raise SurfaceError(f"{name}: cannot read the .mat file: {type(error).__name__}: {error}") from error
     arrays = {key: value for key, value in content.items() if not key.startswith("__")}
