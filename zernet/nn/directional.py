@@ -8,6 +8,8 @@ along a *direction axis* of length ``2L + 1``:
 .. math::
     h_q(ψ) = a_0 + \sum_{\ell=1}^{L} a_\ell \cos \ell ψ + b_\ell \sin \ell ψ .
 
+This is the harmonic layout of :mod:`zernet.nn.pooling` (there along the first axis, here along axis 1),
+whose :func:`~zernet.nn.pooling.continuous_max` and :func:`~zernet.nn.pooling.discrete_max` pool it.
 :func:`fourier_to_samples` / :func:`samples_to_fourier` convert to and from ``s`` samples at
 ``ψ_a = 2π a / s``; :func:`rotate_fourier` gives the coefficients of ``h(ψ + δ)`` (the same convention as
 :func:`zernet.zernike.rotate_coefficients`: each ``(a_ℓ, b_ℓ)`` turns by ``[[cos ℓδ, sin ℓδ], [-sin ℓδ,
@@ -66,9 +68,11 @@ import scipy.sparse as sp
 import torch
 from torch import Tensor, nn
 
+from zernet.polar import transport_angles
 from zernet.zernike import n_max_for, num_bases, rotation_matrix
 
 from .models import register_model
+from .pooling import continuous_max, discrete_max
 
 __all__ = [
     "fourier_dim",
@@ -77,7 +81,6 @@ __all__ = [
     "samples_to_fourier",
     "fourier_rotation_matrix",
     "rotate_fourier",
-    "circle_max",
     "DirectionalOperator",
     "directional_operator",
     "DirectionalZernikeConv",
@@ -222,79 +225,9 @@ def rotate_fourier(coeffs: Tensor, delta, dim: int = -2) -> Tensor:
     return (q @ x.unsqueeze(-1)).squeeze(-1).movedim(-1, dim)
 
 
-def circle_max(coeffs: Tensor, dim: int = -2, grid: int | None = None, newton_steps: int = 4) -> Tensor:
-    """Maximum over ``ψ ∈ [0, 2π)`` of trigonometric polynomials given by Fourier coefficients.
-
-    A dense grid locates the maximum, Newton steps on ``h'`` refine it (each step kept only where it
-    increases ``h``), and the polynomial is evaluated at the refined angle; the angle is not
-    differentiated, so gradients are those of ``h(ψ*)`` (exact at a maximum).
-
-    Args:
-        coeffs: ``(..., 2L + 1, ...)`` with the direction axis at ``dim``.
-        dim: direction axis.
-        grid: number of grid angles; default ``max(64, 16 (L + 1))``.
-        newton_steps: refinement steps.
-
-    Returns:
-        The maximum, ``coeffs``'s shape without the direction axis.
-    """
-    order = _order_of(coeffs.shape[dim])
-    x = coeffs.movedim(dim, -1)
-    if order == 0:
-        return x[..., 0]
-    grid = max(64, 16 * (order + 1)) if grid is None else int(grid)
-    with torch.no_grad():
-        values = fourier_to_samples(x.detach(), grid, dim=-1)
-        psi = values.argmax(dim=-1).to(x.dtype) * (2.0 * math.pi / grid)
-        ells = torch.arange(1, order + 1, dtype=x.dtype, device=x.device)
-        a, b = x.detach()[..., 1::2], x.detach()[..., 2::2]
-
-        def evaluate(angle):
-            c, s = torch.cos(angle[..., None] * ells), torch.sin(angle[..., None] * ells)
-            value = x.detach()[..., 0] + (a * c + b * s).sum(-1)
-            d1 = (ells * (b * c - a * s)).sum(-1)
-            d2 = -(ells**2 * (a * c + b * s)).sum(-1)
-            return value, d1, d2
-
-        value, d1, d2 = evaluate(psi)
-        for _ in range(newton_steps):
-            step = torch.where(d2 < 0, -d1 / d2.clamp(max=-torch.finfo(x.dtype).tiny), torch.zeros_like(d1))
-            step = step.clamp(-math.pi / grid, math.pi / grid)
-            new_psi = psi + step
-            new_value, new_d1, new_d2 = evaluate(new_psi)
-            better = new_value >= value
-            psi = torch.where(better, new_psi, psi)
-            value = torch.where(better, new_value, value)
-            d1, d2 = torch.where(better, new_d1, d1), torch.where(better, new_d2, d2)
-    table = torch.cat(
-        [torch.ones_like(psi)[..., None], torch.stack([torch.cos(psi[..., None] * ells), torch.sin(psi[..., None] * ells)], -1).flatten(-2)],
-        dim=-1,
-    )
-    return (x * table).sum(-1)
-
-
 # --------------------------------------------------------------------------------------------------
 # Transport angles and the transported patch operator
 # --------------------------------------------------------------------------------------------------
-
-
-def _transport_angles(frames: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``γ_qp``: angle of ``q``'s ``e1`` in ``p``'s ``(e1, e2)`` after the minimal rotation ``n_q → n_p``."""
-    try:
-        from zernet.polar import transport_angles
-    except ImportError:  # polar.py not present: the same definition, computed here
-        transport_angles = None
-    if transport_angles is not None:
-        return np.asarray(transport_angles(frames, p, q), dtype=np.float64)
-    frames = np.asarray(frames, dtype=np.float64)
-    e1q, nq = frames[q, 0], frames[q, 2]
-    e1p, e2p, n_p = frames[p, 0], frames[p, 1], frames[p, 2]
-    # Rodrigues with axis n_q × n_p: R v = c v + w × v + w (w·v) / (1 + c), w = n_q × n_p, c = n_q·n_p.
-    c = np.einsum("ij,ij->i", nq, n_p)
-    w = np.cross(nq, n_p)
-    wv = np.einsum("ij,ij->i", w, e1q)
-    moved = c[:, None] * e1q + np.cross(w, e1q) + w * (wv / np.maximum(1.0 + c, 1e-12))[:, None]
-    return np.arctan2(np.einsum("ij,ij->i", moved, e2p), np.einsum("ij,ij->i", moved, e1p))
 
 
 class _SparseApply(torch.autograd.Function):
@@ -317,6 +250,7 @@ def _torch_csr(matrix: sp.csr_matrix, dtype: torch.dtype, device) -> Tensor:
         torch.as_tensor(matrix.indices, dtype=torch.int64),
         torch.as_tensor(matrix.data, dtype=dtype),
         size=matrix.shape,
+        check_invariants=False,
     ).to(device)
 
 
@@ -366,7 +300,7 @@ class DirectionalOperator:
         if order > 0:
             centers = rows // k
             pairs, inverse = np.unique(centers * n + cols, return_inverse=True)
-            gamma = _transport_angles(frames, pairs // n, pairs % n)[inverse.reshape(-1)]
+            gamma = transport_angles(frames, pairs // n, pairs % n)[inverse.reshape(-1)]
         out_rows, out_cols, out_vals = [rows * d], [cols * d], [vals]
         for ell in range(1, order + 1):
             c, s = vals * np.cos(ell * gamma), vals * np.sin(ell * gamma)
@@ -552,8 +486,14 @@ class DirectionalZernikeConv(nn.Module):
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
-        """Uniform ``±1/sqrt(k (2 L_in + 1) C_in)`` weights, zero bias."""
-        bound = 1.0 / math.sqrt(self.k * fourier_dim(self.order) * self.in_channels)
+        """He-uniform weights, zero bias.
+
+        ``o(φ) = Σ α[j, r] w_r (R Q G)[j, r]`` with orthogonal ``R``, ``Q``: for inputs whose orders
+        ``<= L`` carry equal power, ``Var o = Var G · k C_in E[h²] (1 + L) / (1 + 2L)``, so the bound is
+        ``sqrt(6 (1 + 2L) / (k C_in (1 + L)))`` (:class:`~zernet.nn.conv.ZernikeConv`'s for ``L = 0``).
+        """
+        fan_in = self.k * self.in_channels * (1 + self.order) / (1 + 2 * self.order)
+        bound = math.sqrt(6.0 / fan_in)
         nn.init.uniform_(self.weight, -bound, bound)
         if self.bias is not None:
             nn.init.zeros_(self.bias)
@@ -644,9 +584,9 @@ class DirectionalLifting(DirectionalZernikeConv):
 class DirectionalPooling(nn.Module):
     r"""Pooling over the direction axis: directional channels -> scalars.
 
-    - ``"continuous"``: ``max_ψ h(ψ)`` over the whole circle (:func:`circle_max`); independent of the
+    - ``"continuous"``: ``max_ψ h(ψ)`` over the whole circle (:func:`zernet.nn.pooling.continuous_max`); independent of the
       reference direction for any rotation.
-    - ``"discrete"``: ``max_a h(2π a / s)``; independent of rotations by multiples of ``2π / s``.
+    - ``"discrete"``: ``max_a h(2π a / s)`` (:func:`zernet.nn.pooling.discrete_max`); independent of rotations by multiples of ``2π / s``.
     - ``"mean"``: ``a_0``, the mean over the circle.
 
     Args:
@@ -670,8 +610,8 @@ class DirectionalPooling(nn.Module):
         if self.mode == "mean":
             return x[:, 0]
         if self.mode == "discrete":
-            return fourier_to_samples(x, self.angular_resolution, dim=1).amax(dim=1)
-        return circle_max(x, dim=1)
+            return discrete_max(x.transpose(0, 1), self.angular_resolution)
+        return continuous_max(x.transpose(0, 1))
 
     def extra_repr(self) -> str:
         return f"mode={self.mode!r}" + (f", s={self.angular_resolution}" if self.mode == "discrete" else "")
