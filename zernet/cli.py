@@ -1,0 +1,336 @@
+"""The ``zernet`` command: preprocess, train, evaluate, predict, demo.
+
+Every subcommand has ``--help``. Problems a user can fix (a missing file, a bad configuration key, an
+unknown model, a malformed mesh) are reported as one line on stderr with exit code 2; ``--debug`` shows
+the full traceback instead. Training interrupted with Ctrl-C can be continued with ``--resume``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main", "build_parser", "DEMO_CONFIG", "demo_config"]
+
+# The built-in demo, used when the repository's configs/demo.yaml is not available (e.g. an installed wheel).
+# configs/demo.yaml carries the same settings with comments; a test keeps the two identical.
+DEMO_CONFIG = {
+    "data": {"kind": "synthetic", "seed": 0, "val_fraction": 0.2},
+    "patch": {"area": None, "scales": [{"r0": 0.3}]},
+    "model": {"name": "zernet"},
+    "train": {"epochs": 10, "patience": 5, "seed": 0},
+    "eval": {"renders": 3},
+    "cache_dir": ".zernet-cache",
+}
+
+EXIT_USER_ERROR = 2
+
+
+class _UsageError(Exception):
+    """A command-line problem detected by the CLI itself (reported like any user error)."""
+
+
+def demo_config() -> dict:
+    """The demo configuration: ``configs/demo.yaml`` of a source checkout, else :data:`DEMO_CONFIG`."""
+    from zernet.train import load_config
+
+    repo_file = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
+    if repo_file.is_file():
+        return load_config(repo_file)
+    return copy.deepcopy(DEMO_CONFIG)
+
+
+# --------------------------------------------------------------------------------------------------------
+# Parser
+# --------------------------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    # SUPPRESS: a subcommand's --debug must not reset a --debug given before the subcommand.
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                        help="show full tracebacks instead of one-line errors")
+    overrides = argparse.ArgumentParser(add_help=False)
+    overrides.add_argument("--set", dest="overrides", nargs="+", action="extend", default=[], metavar="KEY=VALUE",
+                           help="override config entries with dotted keys, e.g. --set train.epochs=5 "
+                                "model.name=feastnet patch.scales.0.r0=4.5 (values are read as YAML)")
+
+    parser = argparse.ArgumentParser(
+        prog="zernet",
+        description="Convolutional neural networks on curved surfaces (ZerNet): preprocess, train, evaluate, "
+                    "predict, demo.",
+        epilog="Run 'zernet COMMAND --help' for the options of one command. Start with 'zernet demo'.",
+    )
+    parser.add_argument("--debug", action="store_true", default=False,
+                        help="show full tracebacks instead of one-line errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    p = sub.add_parser("preprocess", parents=[common, overrides],
+                       help="build and cache the patch operators of a data set",
+                       description="Preprocess every shape of the data set described by CONFIG (area "
+                                   "normalisation, sampling, geodesic polar coordinates, patch operators) in "
+                                   "parallel and store the results under the config's cache_dir. Shapes already "
+                                   "cached are skipped, so training afterwards starts at once.")
+    p.add_argument("config", type=Path, help="YAML configuration file (see configs/)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes (default: the data module's choice, one per core)")
+    p.set_defaults(func=_cmd_preprocess)
+
+    p = sub.add_parser("train", parents=[common, overrides], help="train a model from a YAML configuration",
+                       description="Train a model, select the best epoch on the validation split, evaluate it on "
+                                   "the test split and write the run folder: config.yaml, last.pt, best.pt, "
+                                   "train.log, metrics.json and plots/.")
+    p.add_argument("config", type=Path, nargs="?", default=None,
+                   help="YAML configuration file (optional with --resume: the run's own config.yaml is used)")
+    p.add_argument("--run-dir", type=Path, default=None, metavar="DIR",
+                   help="run folder (default: runs/<config file name>)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --run-dir exactly where its last checkpoint left off")
+    p.add_argument("--overwrite", action="store_true",
+                   help="start afresh even if the run folder already holds a checkpoint")
+    p.add_argument("--workers", type=int, default=None, metavar="N", help="preprocessing worker processes")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars (log lines only)")
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("evaluate", parents=[common], help="evaluate a trained run on a split",
+                       description="Evaluate the validation-selected model (best.pt) of RUN_DIR on a split of its "
+                                   "data set, print the metrics and write them to RUN_DIR/metrics-SPLIT.json "
+                                   "(metrics.json for the test split).")
+    p.add_argument("run_dir", type=Path, help="a run folder written by 'zernet train' (or a .pt checkpoint)")
+    p.add_argument("--split", default="test", help="split to evaluate: test (default), val or train")
+    p.add_argument("--device", default=None, help="override the run's device (cpu, cuda, ...)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("predict", parents=[common], help="predict per-vertex values on a new surface",
+                       description="Run the model of RUN_DIR on MESH (a .ply/.obj/.off/.stl mesh, a .mat surface "
+                                   "or a point cloud). Writes PREFIX.npy (per-vertex class index or value) and "
+                                   "PREFIX.ply (the surface coloured by the prediction); with --probabilities "
+                                   "also PREFIX_probabilities.npy (classification).")
+    p.add_argument("run_dir", type=Path, help="a run folder written by 'zernet train' (or a .pt checkpoint)")
+    p.add_argument("mesh", type=Path, help="the surface to predict on")
+    p.add_argument("--out", required=True, metavar="PREFIX", help="output path prefix, e.g. out/shape1")
+    p.add_argument("--probabilities", action="store_true", help="also write the per-class probabilities")
+    p.add_argument("--colormap", default=None,
+                   help="matplotlib colormap for the .ply (default: tab10/tab20 for a few classes, hsv for "
+                        "many, viridis for values)")
+    p.add_argument("--device", default=None, help="override the run's device (cpu, cuda, ...)")
+    p.set_defaults(func=_cmd_predict)
+
+    p = sub.add_parser("demo", parents=[common, overrides],
+                       help="train and evaluate on the built-in synthetic data (a few minutes)",
+                       description="Train and evaluate a small ZerNet on the built-in synthetic data set (no "
+                                   "download), then print the test metrics and the paths of the pictures. Takes a "
+                                   "few minutes on a 2-core CPU, preprocessing included.")
+    p.add_argument("--run-dir", type=Path, default=Path("runs/demo"), metavar="DIR",
+                   help="run folder (default: runs/demo; an earlier demo there is replaced)")
+    p.add_argument("--workers", type=int, default=None, metavar="N", help="preprocessing worker processes")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars (log lines only)")
+    p.set_defaults(func=_cmd_demo)
+    return parser
+
+
+# --------------------------------------------------------------------------------------------------------
+# Commands
+# --------------------------------------------------------------------------------------------------------
+
+
+def _read_config(path: Path | None, overrides: list[str]) -> dict:
+    from zernet.train import apply_overrides, load_config, resolve_config
+
+    config = load_config(path)
+    config = apply_overrides(config, overrides)
+    return resolve_config(config)  # fail on a bad key now, before any work
+
+
+def _cmd_preprocess(args) -> int:
+    from zernet.train import build_dataset
+
+    config = _read_config(args.config, args.overrides)
+    started = time.perf_counter()
+    dataset = build_dataset(config, progress=True, workers=args.workers)
+    seconds = time.perf_counter() - started
+    print(f"preprocessed {dataset.summary() if hasattr(dataset, 'summary') else len(dataset)} "
+          f"in {seconds:.1f} s; cache: {config['cache_dir']}")
+    failures = getattr(dataset, "failures", {})
+    for name, reason in failures.items():
+        print(f"  failed: {name}: {reason}", file=sys.stderr)
+    return 0
+
+
+def _cmd_train(args) -> int:
+    from zernet.train import train
+
+    if args.config is None and not args.resume:
+        raise _UsageError("train needs a CONFIG file (or --resume with --run-dir of an existing run)")
+    if args.resume and args.run_dir is None:
+        raise _UsageError("--resume needs --run-dir: the run folder to continue")
+    if args.resume and args.overwrite:
+        raise _UsageError("--resume and --overwrite contradict each other")
+    config = _read_config(args.config, args.overrides) if args.config is not None else None
+    if config is None and args.overrides:
+        raise _UsageError("--set needs a CONFIG file; on resume only train.epochs and train.patience may change")
+    run_dir = args.run_dir or Path("runs") / args.config.stem
+    metrics = train(config, run_dir, resume=args.resume, progress=not args.no_progress,
+                    overwrite=args.overwrite, workers=args.workers)
+    _print_metrics(metrics, run_dir)
+    return 0
+
+
+def _cmd_evaluate(args) -> int:
+    from zernet.train import _summary_line, _write_json, evaluate
+
+    metrics = evaluate(args.run_dir, split=args.split, progress=not args.no_progress, device=args.device)
+    print(f"{args.split} ({metrics['n_shapes']} shapes): {_summary_line(metrics)}")
+    if args.run_dir.is_dir():
+        out = args.run_dir / ("metrics.json" if args.split == "test" else f"metrics-{args.split}.json")
+        if out.name == "metrics.json" and out.is_file():
+            # Keep what training recorded (timings, plots) and refresh the scores.
+            previous = json.loads(out.read_text(encoding="utf-8"))
+            previous.update(metrics)
+            metrics = previous
+        _write_json(out, metrics)
+        print(f"wrote {out}")
+    return 0
+
+
+def _cmd_predict(args) -> int:
+    import numpy as np
+
+    from zernet.surface import load_surface
+    from zernet.train import _checkpoint_path, load_checkpoint, predict
+
+    if not args.mesh.is_file():
+        raise FileNotFoundError(f"mesh not found: {args.mesh}")
+    checkpoint_path = _checkpoint_path(args.run_dir)
+    checkpoint = load_checkpoint(checkpoint_path)
+    surface = load_surface(args.mesh)
+    result = predict(checkpoint_path, surface, probabilities=args.probabilities, device=args.device)
+    prediction, probabilities = result if args.probabilities else (result, None)
+
+    prefix = Path(args.out)
+    prefix.parent.mkdir(parents=True, exist_ok=True)
+    npy_path = prefix.parent / f"{prefix.name}.npy"
+    np.save(npy_path, prediction)
+    written = [npy_path]
+    if probabilities is not None:
+        prob_path = prefix.parent / f"{prefix.name}_probabilities.npy"
+        np.save(prob_path, probabilities)
+        written.append(prob_path)
+    ply_path = prefix.parent / f"{prefix.name}.ply"
+    _write_coloured_ply(ply_path, surface, prediction, checkpoint, args.colormap)
+    written.append(ply_path)
+    if checkpoint["task"] == "classification":
+        counts = np.bincount(prediction, minlength=1)
+        print(f"predicted {len(prediction)} vertices of {args.mesh}: {np.count_nonzero(counts)} distinct classes")
+    else:
+        print(f"predicted {len(prediction)} vertices of {args.mesh}: values from {prediction.min():.4g} to "
+              f"{prediction.max():.4g} (mean {prediction.mean():.4g})")
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+def _write_coloured_ply(path: Path, surface, prediction, checkpoint: dict, colormap: str | None) -> None:
+    """Write the surface (mesh or point cloud, original coordinates) with vertex colours from ``prediction``."""
+    import matplotlib
+    import numpy as np
+    import trimesh
+
+    if checkpoint["task"] == "classification":
+        n_classes = int(checkpoint["num_classes"])
+        name = colormap or ("tab10" if n_classes <= 10 else "tab20" if n_classes <= 20 else "hsv")
+        cmap = matplotlib.colormaps[name]
+        if n_classes <= 20 and colormap is None:
+            rgba = cmap(prediction % cmap.N)  # qualitative maps: one distinct colour per class
+        else:
+            rgba = cmap(prediction / max(n_classes - 1, 1))
+    else:
+        cmap = matplotlib.colormaps[colormap or "viridis"]
+        low, high = float(np.min(prediction)), float(np.max(prediction))
+        rgba = cmap((prediction - low) / (high - low) if high > low else np.zeros_like(prediction))
+    colours = (np.asarray(rgba) * 255).round().astype(np.uint8)
+    if surface.faces is not None:
+        geometry = trimesh.Trimesh(surface.vertices, surface.faces, vertex_colors=colours, process=False)
+    else:
+        geometry = trimesh.PointCloud(surface.vertices, colors=colours)
+    from zernet.io_utils import atomic_write_bytes
+
+    atomic_write_bytes(path, geometry.export(file_type="ply"))
+
+
+def _cmd_demo(args) -> int:
+    from zernet.train import apply_overrides, resolve_config, train
+
+    config = resolve_config(apply_overrides(demo_config(), args.overrides))
+    started = time.perf_counter()
+    metrics = train(config, args.run_dir, progress=not args.no_progress, overwrite=True, workers=args.workers)
+    print(f"demo finished in {time.perf_counter() - started:.0f} s")
+    _print_metrics(metrics, args.run_dir)
+    return 0
+
+
+def _print_metrics(metrics: dict, run_dir: Path) -> None:
+    from zernet.train import _summary_line
+
+    print(f"test metrics ({metrics.get('n_shapes', '?')} shapes, model of epoch {metrics.get('best_epoch')} "
+          f"chosen on validation): {_summary_line(metrics)}")
+    print(f"run folder: {run_dir}")
+    print(f"  metrics:  {run_dir / 'metrics.json'}")
+    for plot in metrics.get("plots", []):
+        print(f"  picture:  {plot}")
+
+
+# --------------------------------------------------------------------------------------------------------
+# Entry point
+# --------------------------------------------------------------------------------------------------------
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions that describe a problem the user can fix: reported as one line, exit code 2."""
+    from zernet.surface import SurfaceError
+    from zernet.train import ConfigError
+
+    errors: list[type[BaseException]] = [_UsageError, ConfigError, SurfaceError, FileNotFoundError,
+                                         NotADirectoryError, IsADirectoryError, PermissionError, ValueError,
+                                         KeyError]
+    try:
+        from zernet.data.base import DatasetError
+
+        errors.append(DatasetError)
+    except ImportError:
+        pass
+    return tuple(errors)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the ``zernet`` command; returns the exit code (0 success, 2 user error, 1 internal error)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    debug = bool(getattr(args, "debug", False))
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("zernet: interrupted (a training run continues with: zernet train --resume --run-dir DIR)",
+              file=sys.stderr)
+        return 130
+    except Exception as error:
+        if debug:
+            raise
+        user_error = isinstance(error, _user_errors())
+        message = str(error.args[0]) if isinstance(error, KeyError) and error.args else str(error)
+        if user_error:
+            print(f"zernet {args.command}: error: {message}", file=sys.stderr)
+            return EXIT_USER_ERROR
+        print(f"zernet {args.command}: internal error: {type(error).__name__}: {message} "
+              "(rerun with --debug for the traceback)", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

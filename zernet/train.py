@@ -1,0 +1,1105 @@
+"""Training, evaluation and prediction: one loop for every model, data set and task.
+
+The public entry points are:
+
+- :func:`train` ``(config, run_dir, resume=False, progress=True) -> metrics`` — trains a model described by a
+  configuration dictionary (normally read from a YAML file, see ``configs/``), selects the best epoch on a
+  validation split carved from the training shapes, evaluates that model on the test split and writes a
+  complete run folder:
+
+  ``config.yaml``  the full configuration with defaults filled in;
+  ``last.pt``      checkpoint after the latest epoch (model, optimiser, RNG states, history, config);
+  ``best.pt``      checkpoint of the epoch with the best validation metric;
+  ``train.log``    what happened, one line per event and per epoch;
+  ``metrics.json`` the validation-selected model evaluated on the test shapes;
+  ``plots/``       training curves, the geodesic error curve (correspondence), renders of test shapes.
+
+- :func:`evaluate` ``(run_dir or checkpoint, dataset=None, split="test") -> metrics``.
+- :func:`predict` ``(checkpoint, surface) -> per-vertex predictions``.
+
+Reproducibility and resuming. Every random choice is seeded from the configuration: the model's
+initialisation and dropout use torch's global generator (seeded once), and the order in which the
+training shapes are visited in epoch ``e`` is a permutation drawn from a *fresh* generator seeded with
+``(train.seed, e)`` (:func:`epoch_order`), so it depends on nothing but the seed and the epoch — a resumed
+run or any rank of a distributed run computes the same order without shared state. The checkpoint written
+after every epoch holds the torch, numpy and Python RNG states, the optimiser state and the early-stopping
+counters, so ``resume=True`` continues exactly where the last checkpoint left off: the final weights equal
+those of an uninterrupted run.
+
+Checkpoints contain only tensors and plain containers (dicts, lists, strings, numbers), so they load with
+``torch.load(weights_only=True)``: a crafted checkpoint cannot run code.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+import random
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import fields as dataclass_fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import yaml
+
+from zernet.io_utils import atomic_save_torch, atomic_write_bytes
+
+__all__ = [
+    "ConfigError",
+    "DEFAULT_CONFIG",
+    "load_config",
+    "apply_overrides",
+    "resolve_config",
+    "build_dataset",
+    "train",
+    "evaluate",
+    "predict",
+    "load_checkpoint",
+    "epoch_order",
+]
+
+CHECKPOINT_FORMAT = "zernet-checkpoint-1"
+
+# Every key the loop itself understands, with its default. ``data`` and ``model`` additionally pass any
+# other key through to the data-set loader and to ``build_model``, which reject what they do not know.
+DEFAULT_CONFIG: dict[str, Any] = {
+    "data": {
+        "kind": "synthetic",      # synthetic | faust | segmentation | regression | aneurysm
+        "seed": 0,                # seeds the validation split carved from the training shapes
+        "val_fraction": None,     # share of the training shapes held out for model selection
+        "val_count": None,        # or an exact number (overrides val_fraction); neither: the loader's default
+    },
+    "patch": {
+        "area": None,             # every surface is scaled to this total area first (None: keep as is)
+        "scales": [],             # one PatchConfig dict per scale, e.g. {r0: 5.5, n_samples: 12000}
+    },
+    "model": {
+        "name": "zernet",
+    },
+    "train": {
+        "epochs": 200,
+        "lr": 1.0e-3,
+        "weight_decay": 0.0,
+        "loss": "auto",               # auto (cross_entropy / mse by task) | cross_entropy | mse | l1
+        "standardize_targets": True,  # regression: train on (y - mean) / std of the training targets
+        "patience": 20,               # stop after this many epochs without a better validation metric
+        "seed": 0,
+        "shapes_per_step": 1,         # surfaces concatenated into one optimiser step
+        "device": "auto",             # auto (cuda if available, else cpu) | cpu | cuda | cuda:1 ...
+        "threads": None,              # torch CPU threads (None: torch's default)
+        "grad_clip": None,            # clip the gradient norm to this value (None: no clipping)
+    },
+    "eval": {
+        "renders": 3,                 # test shapes rendered as pictures (prediction, truth, error)
+        "plots": True,                # write plots at all (training curves, error curve, renders)
+    },
+    "cache_dir": ".zernet-cache",     # preprocessed patch operators, reused across runs
+}
+
+_PASS_THROUGH_SECTIONS = ("data", "model")
+_LOSSES = ("auto", "cross_entropy", "mse", "l1")
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be used; the message names the offending key."""
+
+
+# --------------------------------------------------------------------------------------------------------
+# Configuration
+# --------------------------------------------------------------------------------------------------------
+
+
+def load_config(path: str | Path) -> dict:
+    """Read a YAML configuration file into a plain dictionary (defaults are filled in by :func:`resolve_config`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        config = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML ({error})") from None
+    if config is None:
+        config = {}
+    if not isinstance(config, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of sections, got {type(config).__name__}")
+    return config
+
+
+def apply_overrides(config: dict, overrides: Sequence[str]) -> dict:
+    """Return a copy of ``config`` with dotted ``key=value`` overrides applied.
+
+    Values are parsed as YAML, so ``train.epochs=5`` gives an int, ``model.widths=[32,64]`` a list and
+    ``data.root=~/faust`` a string. ``patch.scales.0.r0=4.5`` indexes into a list.
+    """
+    config = copy.deepcopy(config)
+    for override in overrides:
+        key, sep, raw = override.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"override {override!r} is not of the form section.key=value")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            value = raw
+        parts = key.strip().split(".")
+        node: Any = config
+        for depth, part in enumerate(parts[:-1]):
+            where = ".".join(parts[: depth + 1])
+            if isinstance(node, list):
+                node = node[_list_index(part, node, where)]
+            else:
+                if part not in node or node[part] is None:
+                    node[part] = {}
+                node = node[part]
+            if not isinstance(node, (dict, list)):
+                raise ConfigError(f"override {override!r}: {where} is a value, not a section")
+        last = parts[-1]
+        if isinstance(node, list):
+            node[_list_index(last, node, key)] = value
+        else:
+            node[last] = value
+    return config
+
+
+def _list_index(part: str, node: list, where: str) -> int:
+    try:
+        index = int(part)
+    except ValueError:
+        raise ConfigError(f"override key {where}: expected a list index, got {part!r}") from None
+    if not -len(node) <= index < len(node):
+        raise ConfigError(f"override key {where}: index {index} out of range (list of {len(node)})")
+    return index
+
+
+def resolve_config(config: dict) -> dict:
+    """Fill in defaults and check every key and value the training loop relies on.
+
+    Unknown top-level sections and unknown keys in ``train``, ``patch`` (and each scale) and ``eval`` are
+    errors that name the key — a typo must not silently fall back to a default. Keys in ``data`` and
+    ``model`` other than the generic ones go to the loader and to ``build_model``, which check them.
+    """
+    from zernet.patches import PatchConfig
+
+    if not isinstance(config, dict):
+        raise ConfigError(f"config must be a mapping of sections, got {type(config).__name__}")
+    unknown = set(config) - set(DEFAULT_CONFIG)
+    if unknown:
+        raise ConfigError(
+            f"unknown config section {sorted(unknown)[0]!r} (known: {', '.join(sorted(DEFAULT_CONFIG))})"
+        )
+    resolved: dict[str, Any] = {}
+    for section, defaults in DEFAULT_CONFIG.items():
+        given = config.get(section)
+        if not isinstance(defaults, dict):
+            resolved[section] = defaults if given is None else given
+            continue
+        if given is None:
+            given = {}
+        if not isinstance(given, dict):
+            raise ConfigError(f"config section {section!r} must be a mapping, got {type(given).__name__}")
+        if section not in _PASS_THROUGH_SECTIONS:
+            extra = set(given) - set(defaults)
+            if extra:
+                raise ConfigError(
+                    f"unknown key {section}.{sorted(extra)[0]} (known: {', '.join(sorted(defaults))})"
+                )
+        merged = copy.deepcopy(defaults)
+        merged.update(copy.deepcopy(given))
+        resolved[section] = merged
+
+    train_cfg = resolved["train"]
+    _check_int(train_cfg, "train.epochs", minimum=0)
+    _check_int(train_cfg, "train.patience", minimum=1, allow_none=True)
+    _check_int(train_cfg, "train.seed", minimum=0)
+    _check_int(train_cfg, "train.shapes_per_step", minimum=1)
+    _check_int(train_cfg, "train.threads", minimum=1, allow_none=True)
+    _check_number(train_cfg, "train.lr", positive=True)
+    _check_number(train_cfg, "train.weight_decay")
+    _check_number(train_cfg, "train.grad_clip", positive=True, allow_none=True)
+    if train_cfg["loss"] not in _LOSSES:
+        raise ConfigError(f"train.loss must be one of {', '.join(_LOSSES)}, got {train_cfg['loss']!r}")
+    if not isinstance(train_cfg["device"], str):
+        raise ConfigError(f"train.device must be a string such as auto, cpu or cuda, got {train_cfg['device']!r}")
+
+    data_cfg = resolved["data"]
+    if not isinstance(data_cfg.get("kind"), str):
+        raise ConfigError("data.kind must name a data set kind (synthetic, faust, segmentation, regression, aneurysm)")
+    _check_int(data_cfg, "data.seed", minimum=0)
+    _check_int(data_cfg, "data.val_count", minimum=0, allow_none=True)
+    _check_number(data_cfg, "data.val_fraction", allow_none=True)
+    if data_cfg["val_fraction"] is not None and not 0.0 <= float(data_cfg["val_fraction"]) < 1.0:
+        raise ConfigError(f"data.val_fraction must be in [0, 1), got {data_cfg['val_fraction']}")
+
+    model_cfg = resolved["model"]
+    if not isinstance(model_cfg.get("name"), str):
+        raise ConfigError("model.name must name a model (e.g. zernet, zernet-multiscale, feastnet)")
+
+    patch_cfg = resolved["patch"]
+    _check_number(patch_cfg, "patch.area", positive=True, allow_none=True)
+    scales = patch_cfg["scales"]
+    if not isinstance(scales, list) or not scales:
+        raise ConfigError("patch.scales must be a non-empty list of patch settings, one per scale (e.g. [{r0: 5.5}])")
+    known = {f.name for f in dataclass_fields(PatchConfig)}
+    for i, scale in enumerate(scales):
+        if not isinstance(scale, dict):
+            raise ConfigError(f"patch.scales.{i} must be a mapping of PatchConfig fields, got {scale!r}")
+        extra = set(scale) - known
+        if extra:
+            raise ConfigError(f"unknown key patch.scales.{i}.{sorted(extra)[0]} (known: {', '.join(sorted(known))})")
+        if "r0" not in scale:
+            raise ConfigError(f"patch.scales.{i}.r0 (the patch radius) is required")
+        try:
+            PatchConfig(**scale)
+        except (TypeError, ValueError) as error:
+            raise ConfigError(f"patch.scales.{i}: {error}") from None
+
+    eval_cfg = resolved["eval"]
+    _check_int(eval_cfg, "eval.renders", minimum=0)
+    if resolved["cache_dir"] is not None and not isinstance(resolved["cache_dir"], str):
+        raise ConfigError(f"cache_dir must be a folder path or null, got {resolved['cache_dir']!r}")
+    return resolved
+
+
+def _check_int(section: dict, dotted: str, minimum: int | None = None, allow_none: bool = False) -> None:
+    key = dotted.rsplit(".", 1)[1]
+    value = section.get(key)
+    if value is None and allow_none:
+        return
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{dotted} must be an integer, got {value!r}")
+    if minimum is not None and value < minimum:
+        raise ConfigError(f"{dotted} must be >= {minimum}, got {value}")
+
+
+def _check_number(section: dict, dotted: str, positive: bool = False, allow_none: bool = False) -> None:
+    key = dotted.rsplit(".", 1)[1]
+    value = section.get(key)
+    if value is None and allow_none:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f"{dotted} must be a number, got {value!r}")
+    if positive and value <= 0:
+        raise ConfigError(f"{dotted} must be > 0, got {value}")
+
+
+def patch_configs(config: dict) -> list:
+    """The list of :class:`~zernet.patches.PatchConfig`, one per scale, of a resolved configuration."""
+    from zernet.patches import PatchConfig
+
+    return [PatchConfig(**scale) for scale in config["patch"]["scales"]]
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` picks CUDA when available; anything else is handed to ``torch.device`` and checked."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"train.device: {name!r} is not a device (use auto, cpu, cuda or cuda:N)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"train.device is {name!r} but CUDA is not available on this machine")
+    return device
+
+
+# --------------------------------------------------------------------------------------------------------
+# Data and model
+# --------------------------------------------------------------------------------------------------------
+
+
+# data.kind -> (module, loader function) in zernet.data.
+DATA_KINDS = {
+    "synthetic": ("zernet.data.synthetic", "make_synthetic_dataset"),
+    "faust": ("zernet.data.faust", "load_faust"),
+    "segmentation": ("zernet.data.segmentation", "load_segmentation"),
+    "regression": ("zernet.data.regression", "load_regression"),
+    "aneurysm": ("zernet.data.regression", "load_aneurysm"),
+}
+# Arguments the training loop supplies itself; a config must not set them under data.
+_LOADER_OWN = {"patch_configs", "cache_dir", "area", "n_val", "feature_kind", "workers", "progress"}
+
+
+def build_dataset(config: dict, progress: bool = True, workers: int | None = None):
+    """The :class:`~zernet.data.ShapeDataset` a resolved configuration describes (preprocessed and cached).
+
+    ``data.kind`` picks the loader (:data:`DATA_KINDS`); ``patch.scales``, ``patch.area``, ``cache_dir``,
+    ``data.val_fraction``/``data.val_count`` (-> ``n_val``) and ``data.features`` (-> ``feature_kind``) are
+    handed to it, and every other ``data`` key is passed through by name (e.g. ``root``, ``test``, ``task``).
+    """
+    import importlib
+    import inspect
+
+    data_cfg = dict(config["data"])
+    kind = data_cfg.pop("kind")
+    if kind not in DATA_KINDS:
+        raise ConfigError(f"data.kind {kind!r} is not a data set kind (known: {', '.join(DATA_KINDS)})")
+    module_name, function_name = DATA_KINDS[kind]
+    loader = getattr(importlib.import_module(module_name), function_name)
+    accepted = set(inspect.signature(loader).parameters)
+
+    arguments: dict[str, Any] = {"patch_configs": patch_configs(config), "cache_dir": config["cache_dir"],
+                                 "progress": progress, "workers": workers}
+    val_count, val_fraction = data_cfg.pop("val_count", None), data_cfg.pop("val_fraction", None)
+    if val_count is not None:
+        arguments["n_val"] = int(val_count)
+    elif val_fraction is not None:
+        # A fraction of exactly 0 means "no validation shapes" (the loaders read a float 0 as a count).
+        arguments["n_val"] = float(val_fraction) if val_fraction > 0 else 0
+    if "features" in data_cfg:
+        arguments["feature_kind"] = data_cfg.pop("features")
+    area = config["patch"]["area"]
+    if "area" in accepted:
+        if area is not None or kind in ("regression", "segmentation"):
+            arguments["area"] = area
+    elif area is not None:
+        raise ConfigError(f"patch.area: the {kind} data set has a fixed area; remove patch.area (or set it to null)")
+    for key, value in data_cfg.items():
+        if key in _LOADER_OWN:
+            raise ConfigError(f"data.{key}: set this through the config's own key instead "
+                              "(patch.area, cache_dir, data.val_count/val_fraction, data.features)")
+        if key not in accepted:
+            options = sorted(accepted - _LOADER_OWN)
+            raise ConfigError(f"unknown key data.{key} for data.kind {kind} (known: "
+                              f"kind, seed, val_fraction, val_count, features, {', '.join(options)})")
+        arguments[key] = value
+    arguments = {k: v for k, v in arguments.items() if k in accepted}
+    return loader(**arguments)
+
+
+def _is_correspondence(dataset, config: dict) -> bool:
+    """Correspondence = classification whose class is the vertex index of a shared template."""
+    flag = getattr(dataset, "correspondence", None)
+    if flag is not None:
+        return bool(flag)
+    return config["data"]["kind"] == "faust"
+
+
+def _build_model(spec: dict) -> torch.nn.Module:
+    from zernet.nn.models import build_model
+
+    try:
+        return build_model(spec["name"], spec["in_channels"], spec["out_channels"], **spec["options"])
+    except TypeError as error:
+        raise ConfigError(f"model {spec['name']!r}: {error}") from None
+    except KeyError as error:
+        raise ConfigError(f"model.name: {error.args[0] if error.args else error}") from None
+
+
+def _model_spec(config: dict, in_channels: int, out_channels: int) -> dict:
+    options = {k: v for k, v in config["model"].items() if k != "name"}
+    return {"name": config["model"]["name"], "in_channels": int(in_channels),
+            "out_channels": int(out_channels), "options": options}
+
+
+class _Batch:
+    """One optimiser step's input: features, targets and geometry of one or more concatenated surfaces."""
+
+    def __init__(self, records: Sequence, device: torch.device, target_stats: dict | None):
+        from zernet.nn.geometry import Geometry
+
+        self.names = [r.name for r in records]
+        self.sizes = [len(r.features) for r in records]
+        self.features = torch.from_numpy(np.concatenate([np.asarray(r.features, np.float32) for r in records]))
+        self.features = self.features.to(device)
+        geometries = [r.geometry for r in records]
+        geometry = geometries[0] if len(geometries) == 1 else Geometry.concatenate(geometries)
+        self.geometry = geometry.to(device)
+        self.target = None
+        if records[0].target is not None:
+            target = np.concatenate([np.asarray(r.target) for r in records])
+            self.target = torch.from_numpy(target).to(device)
+            if target_stats is not None:  # regression on standardised targets
+                self.target = (self.target.float() - target_stats["mean"]) / target_stats["std"]
+
+
+def _loss_name(config: dict, task: str) -> str:
+    loss = config["train"]["loss"]
+    if loss == "auto":
+        return "cross_entropy" if task == "classification" else "mse"
+    if task == "classification" and loss != "cross_entropy":
+        raise ConfigError(f"train.loss {loss!r} does not fit a classification task (use cross_entropy)")
+    if task == "regression" and loss == "cross_entropy":
+        raise ConfigError("train.loss cross_entropy does not fit a regression task (use mse or l1)")
+    return loss
+
+
+def _loss(name: str, output: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    if name == "cross_entropy":
+        return F.cross_entropy(output, target)
+    output = output.reshape(target.shape)
+    return F.mse_loss(output, target) if name == "mse" else F.l1_loss(output, target)
+
+
+def _target_stats(dataset, indices: Sequence[int]) -> dict:
+    """Mean and standard deviation of every training vertex's target (regression standardisation)."""
+    total, total_sq, count = 0.0, 0.0, 0
+    for i in indices:
+        target = np.asarray(dataset[i].target, dtype=np.float64)
+        total += target.sum()
+        total_sq += (target**2).sum()
+        count += target.size
+    mean = total / count
+    std = math.sqrt(max(total_sq / count - mean**2, 0.0))
+    return {"mean": float(mean), "std": float(std if std > 1e-12 else 1.0)}
+
+
+# --------------------------------------------------------------------------------------------------------
+# Shape order, RNG states, checkpoints
+# --------------------------------------------------------------------------------------------------------
+
+
+def epoch_order(seed: int, epoch: int, n: int) -> list[int]:
+    """The order of the ``n`` training shapes in ``epoch`` (1-based): a permutation from a generator seeded
+    with ``(seed, epoch)`` only, so every process and every resume computes the same order."""
+    generator = torch.Generator().manual_seed(int(seed) * 1_000_003 + int(epoch))
+    return torch.randperm(n, generator=generator).tolist()
+
+
+def step_groups(order: Sequence[int], shapes_per_step: int) -> list[list[int]]:
+    """Cut an epoch's order into optimiser steps of ``shapes_per_step`` shapes (the last one may be short)."""
+    return [list(order[i:i + shapes_per_step]) for i in range(0, len(order), shapes_per_step)]
+
+
+def _seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def _rng_state() -> dict:
+    """torch, CUDA, numpy and Python RNG states as tensors and plain values (loadable with weights_only)."""
+    np_name, np_keys, np_pos, np_has_gauss, np_gauss = np.random.get_state()
+    py_version, py_state, py_gauss = random.getstate()
+    state = {
+        "torch": torch.get_rng_state(),
+        "numpy": {"name": np_name, "keys": torch.from_numpy(np_keys.astype(np.int64)), "pos": int(np_pos),
+                  "has_gauss": int(np_has_gauss), "cached_gaussian": float(np_gauss)},
+        "python": {"version": int(py_version), "state": torch.tensor(py_state, dtype=torch.int64),
+                   "gauss_next": py_gauss},
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np_state = state["numpy"]
+    np.random.set_state((np_state["name"], np_state["keys"].numpy().astype(np.uint32), np_state["pos"],
+                         np_state["has_gauss"], np_state["cached_gaussian"]))
+    py_state = state["python"]
+    random.setstate((py_state["version"], tuple(int(v) for v in py_state["state"].tolist()),
+                     py_state["gauss_next"]))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _cpu_state_dict(module_or_optimizer) -> dict:
+    """A state dict with every tensor copied to the CPU, so the checkpoint loads on any machine."""
+    def to_cpu(value):
+        if isinstance(value, torch.Tensor):
+            return value.detach().to("cpu", copy=True)
+        if isinstance(value, dict):
+            return {k: to_cpu(v) for k, v in value.items()}
+        if isinstance(value, list):
+            return [to_cpu(v) for v in value]
+        if isinstance(value, tuple):
+            return tuple(to_cpu(v) for v in value)
+        return value
+
+    return to_cpu(module_or_optimizer.state_dict())
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Load a zernet checkpoint safely (``weights_only=True``) onto the CPU, with a clear error if unusable."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # truncated, corrupt, or holding objects weights_only refuses
+        raise ValueError(f"{path}: not a readable zernet checkpoint ({type(error).__name__}: {error})") from None
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: not a zernet checkpoint (expected format {CHECKPOINT_FORMAT})")
+    return checkpoint
+
+
+def _checkpoint_path(run_dir_or_checkpoint: str | Path) -> Path:
+    """A run folder means its ``best.pt``; a file is taken as it is."""
+    path = Path(run_dir_or_checkpoint)
+    if path.is_dir():
+        best = path / "best.pt"
+        if not best.is_file():
+            raise FileNotFoundError(f"{path} holds no best.pt: is it a zernet run folder whose training has run?")
+        return best
+    return path
+
+
+def _plain(value):
+    """Configuration values as plain YAML/JSON types (tuples -> lists, paths -> strings)."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.floating,)):
+        return float(value)
+    return value
+
+
+# --------------------------------------------------------------------------------------------------------
+# Logging
+# --------------------------------------------------------------------------------------------------------
+
+
+class _TqdmHandler(logging.Handler):
+    """Console output that does not tear through an active progress bar."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from tqdm.auto import tqdm
+
+        try:
+            tqdm.write(self.format(record))
+        except Exception:  # a closed console must not stop training
+            self.handleError(record)
+
+
+def _open_log(run_dir: Path, echo: bool = True) -> logging.Logger:
+    """A logger writing to ``run_dir/train.log`` (appending, so a resumed run keeps its history) and the console."""
+    logger = logging.getLogger(f"zernet.run.{run_dir.resolve()}")
+    logger.setLevel(logging.INFO)
+    logger.propagate = False
+    for handler in list(logger.handlers):
+        logger.removeHandler(handler)
+        handler.close()
+    file_handler = logging.FileHandler(run_dir / "train.log", mode="a", encoding="utf-8")
+    file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
+    logger.addHandler(file_handler)
+    if echo:
+        console = _TqdmHandler()
+        console.setFormatter(logging.Formatter("%(message)s"))
+        logger.addHandler(console)
+    return logger
+
+
+def _close_log(logger: logging.Logger) -> None:
+    for handler in list(logger.handlers):
+        logger.removeHandler(handler)
+        handler.close()
+
+
+# --------------------------------------------------------------------------------------------------------
+# Training
+# --------------------------------------------------------------------------------------------------------
+
+
+def _merge_resume_config(stored: dict, given: dict | None, logger: logging.Logger) -> dict:
+    """On resume the stored configuration wins, except that the epoch budget and patience may be raised."""
+    config = copy.deepcopy(stored)
+    if given is None:
+        return config
+    given = resolve_config(given)
+    for key in ("epochs", "patience"):
+        if given["train"][key] != config["train"][key]:
+            logger.info(f"resume: train.{key} changed from {config['train'][key]} to {given['train'][key]}")
+            config["train"][key] = given["train"][key]
+    others = {k: v for k, v in given.items()}
+    others["train"] = dict(others["train"], epochs=config["train"]["epochs"], patience=config["train"]["patience"])
+    if _plain(others) != _plain(config):
+        logger.warning("resume: the given configuration differs from the run's; continuing with the run's own "
+                       "config.yaml (only train.epochs and train.patience may change on resume)")
+    return config
+
+
+def train(config: dict | None, run_dir: str | Path, resume: bool = False, progress: bool = True,
+          overwrite: bool = False, workers: int | None = None) -> dict:
+    """Train, select the best epoch on validation, evaluate it on the test split and fill ``run_dir``.
+
+    Args:
+        config: configuration dictionary (see ``DEFAULT_CONFIG`` and ``configs/*.yaml``). With ``resume`` it
+            may be ``None`` (the run's own config is used); otherwise only ``train.epochs``/``train.patience``
+            may differ from the run's.
+        run_dir: the run folder; created if needed.
+        resume: continue from ``run_dir/last.pt`` exactly where it stopped.
+        progress: show progress bars (preprocessing, steps of each epoch).
+        overwrite: start afresh even if ``run_dir`` already holds a checkpoint (otherwise an error, so that a
+            finished run is never clobbered by accident).
+        workers: processes for preprocessing (None: the data module's default).
+
+    Returns:
+        The test metrics (also written to ``run_dir/metrics.json``).
+    """
+    run_dir = Path(run_dir)
+    last_path, best_path = run_dir / "last.pt", run_dir / "best.pt"
+    checkpoint = None
+    if resume:
+        if not last_path.is_file():
+            raise FileNotFoundError(f"cannot resume: {last_path} does not exist (no epoch has finished yet?)")
+        checkpoint = load_checkpoint(last_path)
+    else:
+        if config is None:
+            raise ConfigError("train needs a configuration (or resume=True with an existing run folder)")
+        config = resolve_config(config)
+        if last_path.exists() and not overwrite:
+            raise ConfigError(f"{run_dir} already holds a run (last.pt); resume it with --resume or choose "
+                              "another --run-dir")
+        for stale in (last_path, best_path, run_dir / "metrics.json", run_dir / "train.log"):
+            if stale.exists():
+                stale.unlink()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    logger = _open_log(run_dir)
+    try:
+        if checkpoint is not None:
+            config = _merge_resume_config(checkpoint["config"], config, logger)
+        atomic_write_bytes(run_dir / "config.yaml",
+                           yaml.safe_dump(_plain(config), sort_keys=False).encode("utf-8"))
+        return _train(config, run_dir, checkpoint, progress, logger, workers)
+    finally:
+        _close_log(logger)
+
+
+def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool, logger: logging.Logger,
+           workers: int | None) -> dict:
+    from tqdm.auto import tqdm
+
+    tcfg = config["train"]
+    device = resolve_device(tcfg["device"])
+    if tcfg["threads"]:
+        torch.set_num_threads(int(tcfg["threads"]))
+    logger.info(("resuming" if checkpoint else "starting") + f" run in {run_dir} on {device} "
+                f"({torch.get_num_threads()} CPU threads)")
+
+    started = time.perf_counter()
+    dataset = build_dataset(config, progress=progress, workers=workers)
+    preprocess_seconds = time.perf_counter() - started
+    train_idx, val_idx = list(dataset.splits["train"]), list(dataset.splits.get("val", []))
+    test_idx = list(dataset.splits.get("test", []))
+    if not train_idx:
+        raise ConfigError("the data set has no training shapes")
+    logger.info(f"data: {config['data']['kind']}, {dataset.task}, {len(train_idx)} train / {len(val_idx)} val / "
+                f"{len(test_idx)} test shapes (loaded in {preprocess_seconds:.1f} s)")
+    if not val_idx:
+        logger.warning("no validation shapes: the last epoch is kept as the model and early stopping is off")
+
+    task = dataset.task
+    loss_name = _loss_name(config, task)
+    first = dataset[train_idx[0]]
+    out_channels = int(dataset.num_classes) if task == "classification" else 1
+    spec = _model_spec(config, first.features.shape[1], out_channels)
+
+    if checkpoint is not None:
+        target_stats = checkpoint["target_stats"]
+    elif task == "regression" and tcfg["standardize_targets"]:
+        target_stats = _target_stats(dataset, train_idx)
+        logger.info(f"targets standardised with training mean {target_stats['mean']:.6g}, "
+                    f"std {target_stats['std']:.6g}")
+    else:
+        target_stats = None
+
+    # Seed right before the model is built, so its initialisation depends only on train.seed.
+    _seed_everything(tcfg["seed"])
+    model = _build_model(spec).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=tcfg["lr"], weight_decay=tcfg["weight_decay"])
+    state = {"epoch": 0, "best_metric": None, "best_epoch": 0, "bad_epochs": 0, "stopped": False,
+             "stop_reason": "", "train_seconds": 0.0, "history": []}
+    if checkpoint is not None:
+        model.load_state_dict(checkpoint["model"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        state = checkpoint["state"]
+        _set_rng_state(checkpoint["rng"])
+        logger.info(f"resumed after epoch {state['epoch']} (best {state['best_metric']} at epoch "
+                    f"{state['best_epoch']})")
+    n_params = sum(p.numel() for p in model.parameters())
+    logger.info(f"model {spec['name']} ({n_params:,} parameters), loss {loss_name}, lr {tcfg['lr']}, "
+                f"{tcfg['shapes_per_step']} shape(s) per step")
+
+    higher_is_better = task == "classification"
+    monitor = "val_accuracy" if higher_is_better else "val_loss"
+    epochs, patience = tcfg["epochs"], tcfg["patience"]
+    if state["stopped"] and state["epoch"] < epochs and state["stop_reason"] == "epoch budget":
+        state["stopped"] = False  # the budget was raised on resume
+    while not state["stopped"] and state["epoch"] < epochs:
+        epoch = state["epoch"] + 1
+        epoch_started = time.perf_counter()
+        model.train()
+        order = [train_idx[i] for i in epoch_order(tcfg["seed"], epoch, len(train_idx))]
+        groups = step_groups(order, tcfg["shapes_per_step"])
+        loss_sum, hit_sum, vertex_sum = 0.0, 0.0, 0
+        bar = tqdm(groups, desc=f"epoch {epoch}/{epochs}", unit="step", leave=False, disable=not progress,
+                   dynamic_ncols=True)
+        for step, group in enumerate(bar, start=1):
+            batch = _Batch([dataset[i] for i in group], device, target_stats)
+            optimizer.zero_grad(set_to_none=True)
+            output = model(batch.features, batch.geometry)
+            loss = _loss(loss_name, output, batch.target)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(
+                    f"the training loss became {loss.item()} at epoch {epoch}, step {step} (shapes "
+                    f"{', '.join(batch.names)}); lower train.lr or check the targets for NaN/inf"
+                )
+            loss.backward()
+            if tcfg["grad_clip"]:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), tcfg["grad_clip"])
+            optimizer.step()
+            n = int(batch.target.shape[0])
+            loss_sum += loss.item() * n
+            vertex_sum += n
+            postfix = {"loss": f"{loss_sum / vertex_sum:.4g}"}
+            if task == "classification":
+                hit_sum += (output.detach().argmax(dim=1) == batch.target).sum().item()
+                postfix["acc"] = f"{hit_sum / vertex_sum:.3f}"
+            bar.set_postfix(postfix)
+        bar.close()
+
+        entry = {"epoch": epoch, "train_loss": loss_sum / vertex_sum}
+        if task == "classification":
+            entry["train_accuracy"] = hit_sum / vertex_sum
+        if val_idx:
+            entry.update(_validate(model, dataset, val_idx, device, loss_name, target_stats, task))
+        entry["seconds"] = time.perf_counter() - epoch_started
+        state["train_seconds"] += entry["seconds"]
+        state["history"].append(entry)
+        state["epoch"] = epoch
+
+        current = entry.get(monitor)
+        improved = False
+        if current is None:  # no validation: the latest model is the model
+            improved = True
+        elif state["best_metric"] is None or (current > state["best_metric"] if higher_is_better
+                                                else current < state["best_metric"]):
+            improved = True
+        if improved:
+            state["best_metric"] = current
+            state["best_epoch"] = epoch
+            state["bad_epochs"] = 0
+        else:
+            state["bad_epochs"] += 1
+        if val_idx and patience is not None and state["bad_epochs"] >= patience:
+            state["stopped"], state["stop_reason"] = True, f"early stopping (no better {monitor} for {patience} epochs)"
+        elif epoch >= epochs:
+            state["stopped"], state["stop_reason"] = True, "epoch budget"
+
+        checkpoint = {
+            "format": CHECKPOINT_FORMAT,
+            "config": _plain(config),
+            "model_spec": _plain(spec),
+            "task": task,
+            "num_classes": None if dataset.num_classes is None else int(dataset.num_classes),
+            "correspondence": _is_correspondence(dataset, config),
+            "target_stats": target_stats,
+            "model": _cpu_state_dict(model),
+            "optimizer": _cpu_state_dict(optimizer),
+            "state": copy.deepcopy(state),
+            "rng": _rng_state(),
+        }
+        # best.pt first: if the process dies between the two writes, last.pt still points at the previous
+        # epoch, and resuming repeats this epoch identically and rewrites best.pt.
+        if improved:
+            atomic_save_torch(checkpoint, run_dir / "best.pt")
+        atomic_save_torch(checkpoint, run_dir / "last.pt")
+        logger.info(_epoch_line(entry, epochs, improved))
+        if state["stopped"] and state["stop_reason"] != "epoch budget":
+            logger.info(f"stopping after epoch {epoch}: {state['stop_reason']}")
+
+    logger.info(f"training done: {state['epoch']} epochs in {state['train_seconds']:.1f} s; best epoch "
+                f"{state['best_epoch']} ({monitor} {state['best_metric']})")
+
+    best = load_checkpoint(run_dir / "best.pt")
+    model.load_state_dict(best["model"])
+    if test_idx:
+        split, indices = "test", test_idx
+    else:
+        logger.warning("the data set has no test shapes: metrics.json reports the validation split instead")
+        split, indices = "val", val_idx
+    metrics, predictions = _evaluate_model(model, best, dataset, indices, device, progress)
+    metrics.update({
+        "split": split,
+        "checkpoint": "best.pt",
+        "best_epoch": state["best_epoch"],
+        "epochs_trained": state["epoch"],
+        "stop_reason": state["stop_reason"],
+        "selection": {"metric": monitor, "value": state["best_metric"]},
+        "train_seconds": state["train_seconds"],
+        "preprocess_seconds": preprocess_seconds,
+    })
+    if config["eval"]["plots"]:
+        try:
+            metrics["plots"] = _write_plots(run_dir, state["history"], metrics, predictions, dataset,
+                                            config["eval"]["renders"])
+        except Exception as error:  # a plotting problem must not throw away a finished training run
+            logger.warning(f"plots failed: {type(error).__name__}: {error}")
+            metrics["plots"] = []
+    _write_json(run_dir / "metrics.json", metrics)
+    logger.info(f"{split} metrics: {_summary_line(metrics)}")
+    logger.info(f"wrote {run_dir / 'metrics.json'}")
+    return metrics
+
+
+def _epoch_line(entry: dict, epochs: int, improved: bool) -> str:
+    parts = [f"epoch {entry['epoch']}/{epochs}", f"train loss {entry['train_loss']:.4g}"]
+    for key in ("train_accuracy", "val_loss", "val_accuracy", "val_MAPE"):
+        if key in entry:
+            parts.append(f"{key.replace('_', ' ')} {entry[key]:.4g}")
+    parts.append(f"{entry['seconds']:.1f} s")
+    return ", ".join(parts) + (" *" if improved else "")
+
+
+@torch.no_grad()
+def _validate(model, dataset, indices, device, loss_name, target_stats, task) -> dict:
+    """Mean validation loss and metric over shapes (each shape counts once)."""
+    from zernet import metrics as zmetrics
+
+    model.eval()
+    losses, scores = [], []
+    for i in indices:
+        batch = _Batch([dataset[i]], device, target_stats)
+        output = model(batch.features, batch.geometry)
+        losses.append(_loss(loss_name, output, batch.target).item())
+        if task == "classification":
+            scores.append(zmetrics.accuracy(output.argmax(dim=1), batch.target))
+        else:
+            pred = _unstandardise(output.reshape(-1), target_stats)
+            scores.append(zmetrics.regression_scores(pred, dataset[i].target)["MAPE"])
+    model.train()
+    key = "val_accuracy" if task == "classification" else "val_MAPE"
+    return {"val_loss": float(np.mean(losses)), key: float(np.mean(scores))}
+
+
+def _unstandardise(values: torch.Tensor, target_stats: dict | None) -> torch.Tensor:
+    if target_stats is None:
+        return values
+    return values * target_stats["std"] + target_stats["mean"]
+
+
+def _write_json(path: Path, data: dict) -> None:
+    def default(value):
+        if isinstance(value, (np.integer,)):
+            return int(value)
+        if isinstance(value, (np.floating,)):
+            return float(value)
+        if isinstance(value, np.ndarray):
+            return value.tolist()
+        raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+    text = json.dumps(data, indent=2, default=default, allow_nan=True)
+    atomic_write_bytes(path, (text + "\n").encode("utf-8"))
+
+
+# --------------------------------------------------------------------------------------------------------
+# Evaluation and prediction
+# --------------------------------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def _predict_record(model, record, device, checkpoint: dict) -> tuple[np.ndarray, np.ndarray | None]:
+    """(prediction, probabilities) for one record: class index and softmax per vertex, or the value."""
+    model.eval()
+    batch = _Batch([record], device, None)
+    output = model(batch.features, batch.geometry)
+    if checkpoint["task"] == "classification":
+        probabilities = torch.softmax(output.float(), dim=1)
+        return output.argmax(dim=1).cpu().numpy(), probabilities.cpu().numpy()
+    values = _unstandardise(output.reshape(-1).float(), checkpoint["target_stats"])
+    return values.cpu().numpy(), None
+
+
+def _evaluate_model(model, checkpoint: dict, dataset, indices: Sequence[int], device, progress: bool,
+                    keep: int = 3) -> tuple[dict, list[dict]]:
+    """Metrics of ``model`` on the shapes at ``indices`` and the predictions of the first ``keep`` of them."""
+    from tqdm.auto import tqdm
+
+    from zernet import metrics as zmetrics
+
+    task = checkpoint["task"]
+    correspondence = task == "classification" and checkpoint.get("correspondence", False)
+    kind = "correspondence" if correspondence else ("segmentation" if task == "classification" else "regression")
+    per_shape: dict[str, dict] = {}
+    kept: list[dict] = []
+    errors_all, confusion = [], None
+    label_counts = None
+    for position, i in enumerate(tqdm(indices, desc="evaluating", unit="shape", leave=False,
+                                      disable=not progress)):
+        record = dataset[i]
+        if record.target is None:
+            raise ValueError(f"shape {record.name} has no ground truth to evaluate against")
+        pred, _ = _predict_record(model, record, device, checkpoint)
+        target = np.asarray(record.target)
+        errors = None
+        if kind == "correspondence":
+            errors = zmetrics.geodesic_errors(record.surface, pred, target)
+            errors_all.append(errors)
+            scores = zmetrics.correspondence_scores(errors)
+            per_shape[record.name] = {k: v for k, v in scores.items() if not k.startswith("curve_")}
+        elif kind == "segmentation":
+            n_classes = int(checkpoint["num_classes"])
+            shape_confusion = zmetrics.confusion_matrix(pred, target, n_classes)
+            confusion = shape_confusion if confusion is None else confusion + shape_confusion
+            counts = np.bincount(target, minlength=n_classes)
+            label_counts = counts if label_counts is None else label_counts + counts
+            per_shape[record.name] = {"accuracy": zmetrics.accuracy(pred, target)}
+            errors = (pred != target).astype(np.float64)
+        else:
+            per_shape[record.name] = zmetrics.regression_scores(pred, target)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                errors = np.abs(pred - target) / np.abs(target)
+        if position < keep:
+            kept.append({"name": record.name, "surface": record.surface, "prediction": pred, "target": target,
+                         "error": errors})
+
+    result: dict[str, Any] = {"task": task, "kind": kind, "n_shapes": len(indices)}
+    if kind == "correspondence":
+        scores = zmetrics.correspondence_scores(errors_all)
+        result["summary"] = {k: v for k, v in scores.items() if not k.startswith("curve_")}
+        result["error_curve"] = {"radii": scores["curve_radii"], "fractions": scores["curve_fractions"]}
+        result["baseline"] = {"chance_accuracy": 1.0 / float(checkpoint["num_classes"])}
+    elif kind == "segmentation":
+        result["summary"] = zmetrics.segmentation_scores(confusion=confusion)
+        result["baseline"] = {"majority_class_accuracy": float(label_counts.max() / label_counts.sum())}
+    else:
+        aggregated = zmetrics.aggregate_scores(per_shape)
+        result["summary"] = aggregated["mean"]
+        result["summary_std"] = aggregated["std"]
+        stats = checkpoint.get("target_stats")
+        if stats is not None:
+            # The honest reference: predicting the training mean everywhere.
+            constant = [zmetrics.regression_scores(np.full(len(dataset[i].target), stats["mean"]),
+                                                   dataset[i].target) for i in indices]
+            result["baseline"] = {"training_mean_MAPE": float(np.mean([c["MAPE"] for c in constant])),
+                                  "training_mean_RRMSE": float(np.mean([c["RRMSE"] for c in constant]))}
+    result["per_shape"] = per_shape
+    return result, kept
+
+
+def _summary_line(metrics: dict) -> str:
+    summary = metrics.get("summary", {})
+    keys = {"correspondence": ("accuracy", "within_0.025", "within_0.05", "mean_geodesic_error"),
+            "segmentation": ("accuracy", "mean_class_accuracy", "mean_iou"),
+            "regression": ("MAPE", "RRMSE", "PCC", "HR10", "HR20", "HR30")}.get(metrics.get("kind"), ())
+    parts = [f"{key} {summary[key]:.4f}" for key in keys if key in summary]
+    for key, value in metrics.get("baseline", {}).items():
+        parts.append(f"(baseline {key} {value:.4f})")
+    return ", ".join(parts)
+
+
+def _write_plots(run_dir: Path, history: list[dict], metrics: dict, kept: list[dict], dataset,
+                 renders: int) -> list[str]:
+    """Training curves, the error curve (correspondence) and renders of a few test shapes; returns paths."""
+    from zernet import viz
+
+    plot_dir = run_dir / "plots"
+    plot_dir.mkdir(exist_ok=True)
+    written = []
+    if history:
+        written.append(viz.plot_training_curves(history, plot_dir / "training_curves.png",
+                                                title=f"training ({metrics['kind']})"))
+    if "error_curve" in metrics:
+        curve = metrics["error_curve"]
+        written.append(viz.plot_error_curve({"zernet (test)": (curve["radii"], curve["fractions"])},
+                                            plot_dir / "error_curve.png"))
+    class_names = getattr(dataset, "info", {}).get("class_names")
+    for item in kept[:renders]:
+        path = plot_dir / f"test_{_safe_name(item['name'])}.png"
+        surface, pred, target, error = item["surface"], item["prediction"], item["target"], item["error"]
+        if metrics["kind"] == "correspondence":
+            # Vertex indices carry no visual meaning: colour each vertex by the height of the vertex it is
+            # matched to (prediction) or should be matched to (truth) on the same shape, so a correct map
+            # gives two identical pictures.
+            height = surface.vertices[:, 1]
+            written.append(viz.render_comparison(
+                surface, height[pred], height[target], error, path, error_label="geodesic error",
+                title=f"{item['name']}: matched vertex height", error_max=0.1))
+        elif metrics["kind"] == "segmentation":
+            written.append(viz.render_comparison(
+                surface, pred, target, error, path, error_label="wrong label", class_names=class_names,
+                title=f"{item['name']}: {np.mean(pred == target):.1%} correct"))
+        else:
+            written.append(viz.render_comparison(
+                surface, pred, target, np.minimum(error, 1.0), path, error_label="relative error",
+                title=f"{item['name']}: MAPE {np.nanmean(error):.3f}", error_max=0.5))
+    return [str(p) for p in written]
+
+
+def _safe_name(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)[:80]
+
+
+def evaluate(run_dir_or_checkpoint: str | Path, dataset=None, split: str = "test", progress: bool = True,
+             device: str | None = None) -> dict:
+    """Evaluate a trained model (a run folder's ``best.pt``, or any checkpoint file) on one split.
+
+    Args:
+        run_dir_or_checkpoint: a run folder or a ``.pt`` checkpoint.
+        dataset: the :class:`~zernet.data.ShapeDataset` to use; by default it is rebuilt (from the cache)
+            from the configuration stored in the checkpoint.
+        split: ``"test"``, ``"val"``, ``"train"`` or any split the data set defines.
+        device: overrides the configured ``train.device``.
+
+    Returns:
+        The same metrics dictionary that training writes to ``metrics.json``.
+    """
+    path = _checkpoint_path(run_dir_or_checkpoint)
+    checkpoint = load_checkpoint(path)
+    config = checkpoint["config"]
+    device = resolve_device(device or config["train"]["device"])
+    if dataset is None:
+        dataset = build_dataset(config, progress=progress)
+    if split not in dataset.splits:
+        raise ConfigError(f"the data set has no split {split!r} (it has {', '.join(sorted(dataset.splits))})")
+    indices = dataset.splits[split]
+    if not indices:
+        raise ConfigError(f"split {split!r} of the data set is empty")
+    model = _build_model(checkpoint["model_spec"]).to(device)
+    model.load_state_dict(checkpoint["model"])
+    metrics, _ = _evaluate_model(model, checkpoint, dataset, indices, device, progress, keep=0)
+    metrics.update({"split": split, "checkpoint": str(path), "best_epoch": checkpoint["state"]["best_epoch"],
+                    "epochs_trained": checkpoint["state"]["epoch"]})
+    return metrics
+
+
+def predict(checkpoint: str | Path, surface, probabilities: bool = False, device: str | None = None,
+            cache_dir: str | Path | None = None, progress: bool = False):
+    """Per-vertex predictions of a trained model on a new surface.
+
+    Args:
+        checkpoint: a run folder (its ``best.pt``) or a checkpoint file.
+        surface: a :class:`~zernet.surface.Surface` or a path to a mesh / point-cloud file. It is
+            preprocessed exactly like the training shapes (area normalisation, features, patch operators).
+        probabilities: classification only — also return the (N, C) softmax probabilities.
+
+    Returns:
+        (N,) int64 class indices or (N,) float32 values (regression, in the units of the training targets,
+        i.e. area-normalised); with ``probabilities=True`` a tuple (prediction, probabilities).
+    """
+    from zernet.data import prepare_surface
+    from zernet.surface import load_surface
+
+    path = _checkpoint_path(checkpoint)
+    checkpoint = load_checkpoint(path)
+    config = checkpoint["config"]
+    if not hasattr(surface, "vertices"):
+        surface = load_surface(surface)
+    record = prepare_surface(
+        surface,
+        patch_configs=patch_configs(config),
+        area=config["patch"]["area"],
+        cache_dir=config["cache_dir"] if cache_dir is None else cache_dir,
+        feature_kind=config["data"].get("features", "xyz"),
+    )
+    device = resolve_device(device or config["train"]["device"])
+    model = _build_model(checkpoint["model_spec"]).to(device)
+    model.load_state_dict(checkpoint["model"])
+    pred, probs = _predict_record(model, record, device, checkpoint)
+    pred = pred.astype(np.int64) if checkpoint["task"] == "classification" else pred.astype(np.float32)
+    if probabilities:
+        if probs is None:
+            raise ValueError("probabilities exist only for classification models")
+        return pred, probs.astype(np.float32)
+    return pred
