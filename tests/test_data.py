@@ -1,0 +1,251 @@
+"""Data sets: containers, splits, preprocessing and its cache, the four loaders and their error messages.
+
+Meshes here are tiny (icospheres of 162 vertices, creatures of 300) so the whole file runs in seconds.
+"""
+
+import os
+import time
+
+import numpy as np
+import pytest
+import scipy.io
+import trimesh
+
+from zernet.data import DatasetError, PreprocessError, ShapeSource, build_dataset, load_dataset
+from zernet.data.base import carve_validation, default_features
+from zernet.data.faust import load_faust
+from zernet.data.regression import leave_one_out_splits, load_aneurysm, load_regression
+from zernet.data.segmentation import face_to_vertex_labels, load_segmentation
+from zernet.data.synthetic import PART_NAMES, make_creature, make_synthetic_dataset
+from zernet.patches import PatchConfig
+from zernet.surface import Surface
+
+# Tiny surfaces are normalised to area 100 (an icosphere of radius ~2.8); r0 = 1.2 keeps ~10 vertices and,
+# with 1500 samples, ~70 samples per patch disk.
+AREA = 100.0
+CONFIGS = [PatchConfig(r0=1.2, n_samples=1500, patch_size=30, n_max=3)]
+
+
+def _sphere(seed: int = 0, subdivisions: int = 2, noise: float = 0.03):
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions)
+    rng = np.random.default_rng(seed)
+    vertices = np.asarray(mesh.vertices) * (1 + noise * rng.standard_normal((len(mesh.vertices), 1)))
+    return vertices, np.asarray(mesh.faces)
+
+
+def _write_ply(path, vertices, faces):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    trimesh.Trimesh(vertices, faces, process=False).export(path)
+
+
+# ------------------------------------------------------------------------------------------ containers
+def test_default_features_are_centred_at_the_area_weighted_centroid():
+    vertices, faces = _sphere()
+    surface = Surface(vertices + np.array([5.0, -2.0, 1.0]), faces)
+    features = default_features(surface)
+    assert features.dtype == np.float32 and features.shape == (len(vertices), 3)
+    np.testing.assert_allclose(surface.vertex_areas() @ features, 0.0, atol=1e-4)
+
+
+def test_validation_is_carved_from_train_seeded_and_disjoint():
+    train, val = carve_validation(range(10), 3, seed=1)
+    assert len(val) == 3 and not set(train) & set(val) and sorted(train + val) == list(range(10))
+    assert carve_validation(range(10), 3, seed=1) == (train, val)
+    assert carve_validation(range(10), 0.25, seed=1)[1].__len__() == 2
+    assert carve_validation([4], 3, seed=0) == ([4], [])  # one training shape always stays
+
+
+# ------------------------------------------------------------------------------------ synthetic + cache
+def test_creature_labels_and_curvature():
+    surface, labels, curvature = make_creature(3, n_vertices=600)
+    assert surface.n_vertices == 600 and surface.area == pytest.approx(1000.0)
+    assert set(np.unique(labels)) <= set(range(len(PART_NAMES))) and (labels == 0).any() and (labels > 0).any()
+    # Bumps bend more than the body on average; dents bend the other way.
+    assert curvature[labels == 1].mean() > curvature[labels == 0].mean() > curvature[labels == 3].mean()
+
+
+def test_synthetic_dataset_records_splits_subset_and_cache(tmp_path):
+    kwargs = dict(n_shapes=5, n_vertices=300, cache_dir=tmp_path, workers=0, progress=False, n_val=1,
+                  patch_configs=[PatchConfig(r0=4.0, n_samples=1000, patch_size=30, n_max=3)])
+    dataset = make_synthetic_dataset("segmentation", **kwargs)
+    assert dataset.task == "classification" and dataset.num_classes == 4 and len(dataset) == 5
+    assert dataset.splits["test"] == [4] and len(dataset.splits["val"]) == 1
+    assert sorted(dataset.splits["train"] + dataset.splits["val"]) == [0, 1, 2, 3]
+    record = dataset[0]
+    assert record.features.shape == (300, 3) and record.target.dtype == np.int64
+    assert len(record.geometry.operators) == 1 and record.geometry.operators[0].n_vertices == 300
+    edges = record.geometry.edge_index.numpy()
+    assert edges.shape[0] == 2 and set(map(tuple, edges.T)) == set(map(tuple, edges[::-1].T))
+    sub = dataset.subset([4, 0])
+    assert sub.names == ["creature_004", "creature_000"] and sub.splits["test"] == [0]
+    assert dataset.split("test").names == ["creature_004"]
+
+    started = time.perf_counter()
+    again = make_synthetic_dataset("segmentation", **kwargs)
+    assert time.perf_counter() - started < 2.0  # every shape comes from the cache
+    np.testing.assert_array_equal(again[2].target, dataset[2].target)
+
+    regression = load_dataset("synthetic-curvature", patch_configs=kwargs["patch_configs"], cache_dir=tmp_path,
+                              workers=0, progress=False, n_shapes=3, n_vertices=300, val_count=1)
+    assert regression.task == "regression" and regression[0].target.dtype == np.float32
+    with pytest.raises(TypeError, match="unknown option"):
+        load_dataset("synthetic", cache_dir=tmp_path, n_shape=3)
+
+
+def _sphere_source(seed):
+    vertices, faces = _sphere(seed)
+    return Surface(vertices, faces, name=f"sphere{seed}"), np.arange(len(vertices)) % 2
+
+
+def _broken_source():
+    raise DatasetError("broken.ply: vertex 3 is NaN")
+
+
+def test_failures_are_reported_by_name_and_others_go_on(tmp_path):
+    from functools import partial
+
+    sources = [ShapeSource("a", partial(_sphere_source, 0)), ShapeSource("bad", _broken_source),
+               ShapeSource("b", partial(_sphere_source, 1))]
+    common = dict(patch_configs=CONFIGS, cache_dir=tmp_path, target_area=AREA, task="classification",
+                  num_classes=2, split_names={"train": ["a", "bad"], "test": ["b"]}, workers=0, progress=False)
+    with pytest.warns(RuntimeWarning, match="bad: broken.ply: vertex 3 is NaN"):
+        dataset = build_dataset(sources, **common)
+    assert dataset.names == ["a", "b"] and dataset.splits["train"] == [0] and "bad" in dataset.failures
+    with pytest.raises(PreprocessError, match="bad"):
+        build_dataset(sources, strict=True, **common)
+    with pytest.raises(PreprocessError, match="1 of 1"):
+        build_dataset([sources[1]], **{**common, "split_names": {"train": ["bad"]}})
+
+
+def test_parallel_workers_match_in_process(tmp_path):
+    from functools import partial
+
+    sources = [ShapeSource(f"s{i}", partial(_sphere_source, i), key=f"sphere-{i}") for i in range(3)]
+    common = dict(patch_configs=CONFIGS, target_area=AREA, task="classification", num_classes=2,
+                  split_names={"train": ["s0", "s1"], "test": ["s2"]}, progress=False)
+    parallel = build_dataset(sources, cache_dir=tmp_path / "p", workers=2, **common)
+    serial = build_dataset(sources, cache_dir=tmp_path / "s", workers=0, **common)
+    for a, b in zip(parallel, serial):
+        np.testing.assert_allclose(a.features, b.features)
+        assert (a.geometry.operators[0].matrix != b.geometry.operators[0].matrix).nnz == 0
+
+
+# ------------------------------------------------------------------------------------------------- FAUST
+@pytest.fixture
+def fake_faust(tmp_path):
+    """tmp/MPI-FAUST/training/registrations/tr_reg_000..005.ply with one shared connectivity."""
+    folder = tmp_path / "MPI-FAUST" / "training" / "registrations"
+    for i in range(6):
+        vertices, faces = _sphere(i)
+        _write_ply(folder / f"tr_reg_{i:03d}.ply", vertices, faces)
+    return tmp_path, folder
+
+
+def test_faust_layout_splits_and_targets(fake_faust):
+    root, folder = fake_faust
+    kwargs = dict(patch_configs=CONFIGS, cache_dir=root / "cache", area=AREA, train_indices=range(4),
+                  test_indices=[4, 5], n_val=1, n_vertices=None, workers=0, progress=False)
+    dataset = load_faust(root, **kwargs)
+    assert dataset.correspondence and dataset.num_classes == 162 and len(dataset) == 6
+    assert [dataset.names[i] for i in dataset.splits["test"]] == ["tr_reg_004", "tr_reg_005"]
+    assert len(dataset.splits["val"]) == 1 and not set(dataset.splits["val"]) & set(dataset.splits["test"])
+    np.testing.assert_array_equal(dataset[3].target, np.arange(162))
+    assert dataset[0].surface.area == pytest.approx(AREA)
+    for other_root in (root / "MPI-FAUST", folder):  # also accepted as root
+        assert load_faust(other_root, **kwargs).names == dataset.names
+
+
+def test_faust_errors_name_the_problem(fake_faust, tmp_path):
+    root, folder = fake_faust
+    kwargs = dict(patch_configs=CONFIGS, cache_dir=root / "cache", area=AREA, train_indices=range(4),
+                  test_indices=[4, 5], workers=0, progress=False)
+    with pytest.raises(DatasetError, match="does not exist"):
+        load_faust(tmp_path / "nowhere", **kwargs)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match="MPI-FAUST/training/registrations/tr_reg_000.ply"):
+        load_faust(tmp_path / "empty", **kwargs)
+    with pytest.raises(DatasetError, match="6890"):
+        load_faust(root, **kwargs)  # the fake meshes have 162 vertices, FAUST 6890
+    kwargs["n_vertices"] = None
+    os.remove(folder / "tr_reg_002.ply")
+    with pytest.raises(DatasetError, match="missing: tr_reg_002.ply"):
+        load_faust(root, **kwargs)
+    vertices, faces = _sphere(2)
+    _write_ply(folder / "tr_reg_002.ply", vertices, faces[:, [1, 0, 2]][::-1])
+    with pytest.raises(PreprocessError, match="tr_reg_002.ply: its connectivity"):
+        load_faust(root, **kwargs)
+
+
+# ------------------------------------------------------------------------------------------ segmentation
+def test_face_to_vertex_rule_area_weighted_majority_and_ties():
+    # Square split in two triangles of equal area with labels 3 and 1: the shared vertices tie -> 1.
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    labels = face_to_vertex_labels(faces, np.array([3, 1]), np.array([1.0, 1.0]), 4)
+    np.testing.assert_array_equal(labels, [1, 3, 1, 1])
+    # A larger face wins over a smaller one.
+    labels = face_to_vertex_labels(faces, np.array([3, 1]), np.array([2.0, 1.0]), 4)
+    np.testing.assert_array_equal(labels, [3, 3, 3, 1])
+
+
+def test_segmentation_shared_one_based_face_labels(tmp_path):
+    vertices, faces = _sphere(0)
+    for i in range(4):
+        _write_ply(tmp_path / "meshes" / f"body{i}.ply", _sphere(i)[0], faces)
+    face_labels = np.where(vertices[faces].mean(axis=1)[:, 2] > 0, 2, 1)  # 1-based: upper half part 2
+    np.savetxt(tmp_path / "faust_seg.txt", face_labels, fmt="%d")
+    dataset = load_segmentation(tmp_path / "meshes", tmp_path / "faust_seg.txt", patch_configs=CONFIGS,
+                                cache_dir=tmp_path / "cache", area=AREA, num_classes=2, test=["body3"], n_val=1,
+                                workers=0, progress=False)
+    assert dataset.info["label_base"] == 1 and dataset.num_classes == 2
+    target = dataset[dataset.index("body0")].target
+    upper = vertices[:, 2] > 0.3
+    assert np.all(target[upper] == 1) and np.all(target[vertices[:, 2] < -0.3] == 0)
+
+
+def test_segmentation_label_count_mismatch_names_both_files(tmp_path):
+    vertices, faces = _sphere(0)
+    _write_ply(tmp_path / "m" / "a.ply", vertices, faces)
+    np.savetxt(tmp_path / "m" / "a.txt", np.zeros(100), fmt="%d")
+    with pytest.raises(PreprocessError, match=r"a\.txt: has 100 labels but .*a\.ply has 162 vertices and 320"):
+        load_segmentation(tmp_path / "m", patch_configs=CONFIGS, cache_dir=tmp_path / "c", area=AREA,
+                          num_classes=2, test=["a"], workers=0, progress=False)
+
+
+# -------------------------------------------------------------------------------------------- regression
+def test_aneurysm_mat_layout_area_exponent_and_leave_one_out(tmp_path):
+    names = []
+    for i in range(3):
+        vertices, faces = _sphere(i)
+        scaled = Surface(vertices, faces)
+        vertices = vertices * np.sqrt(100.0 / scaled.area)  # the files are at area 100
+        stress = 0.1 + 0.01 * vertices[:, 2:3]
+        scipy.io.savemat(tmp_path / f"TP_Ia{i}I.mat", {"X": vertices, "F": (faces + 1).astype(np.uint16),
+                                                      "J2m": stress})
+        names.append(f"TP_Ia{i}I")
+    common = dict(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0, progress=False)
+    dataset = load_aneurysm(tmp_path, **common)
+    assert dataset.task == "regression" and sorted(dataset.names) == names
+    record = dataset[0]
+    stress = scipy.io.loadmat(tmp_path / f"{record.name}.mat")["J2m"][:, 0]
+    np.testing.assert_allclose(record.target, stress, rtol=1e-5)  # area 100: unchanged
+    big = load_aneurysm(tmp_path, area=400.0, **common)
+    np.testing.assert_allclose(big[0].target, 2 * stress, rtol=1e-5)  # sqrt(400 / 100)
+
+    fold = leave_one_out_splits(dataset.names, "TP_Ia1I", n_val=1, seed=0)
+    assert [dataset.names[i] for i in fold["test"]] == ["TP_Ia1I"] and len(fold["val"]) == 1
+    assert sorted(fold["train"] + fold["val"] + fold["test"]) == [0, 1, 2]
+    assert dataset.with_splits(fold).split("test").names == ["TP_Ia1I"]
+
+
+def test_generic_regression_and_value_count_mismatch(tmp_path):
+    vertices, faces = _sphere(0)
+    _write_ply(tmp_path / "a.ply", vertices, faces)
+    np.save(tmp_path / "a.npy", vertices[:, 0])
+    _write_ply(tmp_path / "b.ply", vertices, faces)
+    np.savetxt(tmp_path / "b.txt", vertices[:, 1])
+    common = dict(patch_configs=CONFIGS, cache_dir=tmp_path / "c", area=AREA, workers=0, progress=False)
+    dataset = load_regression(tmp_path, test=["b"], **common)
+    assert dataset.names == ["a", "b"] and dataset.splits["test"] == [1]
+    np.savetxt(tmp_path / "b.txt", vertices[:10, 1])
+    with pytest.warns(RuntimeWarning, match=r"b\.txt: has 10 values but .*b\.ply has 162 vertices"):
+        load_regression(tmp_path, **common)

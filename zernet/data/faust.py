@@ -1,0 +1,162 @@
+"""FAUST correspondence from the user's copy of the data set, in its official layout.
+
+    <root>/MPI-FAUST/training/registrations/tr_reg_000.ply ... tr_reg_099.ply
+
+``root`` may also point at the ``MPI-FAUST`` folder or directly at the ``registrations`` folder. The 100
+registrations share one connectivity (6890 vertices, 13776 faces), so the class of a vertex is its index:
+correspondence is 6890-way vertex classification. Standard split: 000-079 train (a seeded validation subset
+is carved from them), 080-099 test. Surfaces are scaled to area 15000 (the authors' setting, which their
+patch radius 5.5 assumes).
+
+Errors name the folder or file: the layout is not found, files are missing (all listed), a mesh has the
+wrong vertex count, or a mesh's connectivity differs from ``tr_reg_<first>.ply`` (its vertex indices then do
+not correspond, and training on it would teach wrong labels).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections.abc import Sequence
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from zernet.data.base import DatasetError, ShapeDataset
+from zernet.data.preprocess import ShapeSource, build_dataset, file_key
+from zernet.surface import Surface, load_surface
+
+__all__ = ["FAUST_AREA", "FAUST_VERTICES", "load_faust", "find_registrations", "faust_patch_configs"]
+
+FAUST_AREA = 15000.0
+FAUST_VERTICES = 6890
+_PATTERN = "tr_reg_{:03d}.ply"
+
+
+def faust_patch_configs(n_scales: int = 1, **overrides):
+    """The authors' settings at area 15000: r0 = 5.5 (then 11, 22 for more scales), 12000 samples, 50 per
+    patch, samples closer than r0/4 left out (``inner_radius``), centre value subtracted."""
+    from zernet.patches import PatchConfig
+
+    settings = {"n_samples": 12000, "patch_size": 50, "inner_radius": 0.25, "subtract_center": True}
+    settings.update(overrides)
+    return [PatchConfig(r0=5.5 * 2**s, **settings) for s in range(n_scales)]
+
+
+def find_registrations(root: str | os.PathLike) -> Path:
+    """The folder holding ``tr_reg_XXX.ply``: ``root`` itself, ``root/training/registrations`` or
+    ``root/MPI-FAUST/training/registrations``. Raises DatasetError naming what was looked for."""
+    root = Path(os.path.expanduser(os.fspath(root)))
+    if not root.exists():
+        raise DatasetError(f"FAUST folder {root} does not exist")
+    if not root.is_dir():
+        raise DatasetError(f"FAUST root {root} is a file; give the folder that contains MPI-FAUST")
+    candidates = [root / "MPI-FAUST" / "training" / "registrations", root / "training" / "registrations", root]
+    for folder in candidates:
+        if folder.is_dir() and any(folder.glob("tr_reg_*.ply")):
+            return folder
+    raise DatasetError(
+        f"{root}: no FAUST registrations found. Expected the official layout "
+        f"{root}/MPI-FAUST/training/registrations/tr_reg_000.ply ... tr_reg_099.ply "
+        "(or a root pointing at MPI-FAUST or at the registrations folder itself)"
+    )
+
+
+def _faces_digest(faces: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(faces, dtype=np.int64).tobytes()).hexdigest()
+
+
+def _load_registration(path: str, n_vertices: int, faces_digest: str, reference: str) -> tuple[Surface, np.ndarray]:
+    """ShapeSource loader: one registration, checked against the reference connectivity."""
+    surface = load_surface(path)
+    if surface.n_vertices != n_vertices:
+        raise DatasetError(f"{path}: has {surface.n_vertices} vertices, but FAUST registrations have "
+                           f"{n_vertices} (as {reference} does)")
+    if surface.faces is None or _faces_digest(surface.faces) != faces_digest:
+        raise DatasetError(f"{path}: its connectivity (faces) differs from {reference}; FAUST registrations share "
+                           "one connectivity, and correspondence by vertex index needs it")
+    return surface, np.arange(n_vertices, dtype=np.int64)
+
+
+def load_faust(
+    root: str | os.PathLike,
+    patch_configs=None,
+    cache_dir: str | os.PathLike = ".zernet-cache",
+    area: float | None = FAUST_AREA,
+    train_indices: Sequence[int] = range(0, 80),
+    test_indices: Sequence[int] = range(80, 100),
+    n_val: int | float = 8,
+    seed: int = 0,
+    n_vertices: int | None = FAUST_VERTICES,
+    feature_kind: str = "xyz",
+    workers: int | None = None,
+    strict: bool = True,
+    progress: bool = True,
+) -> ShapeDataset:
+    """The FAUST correspondence data set (classification, one class per template vertex).
+
+    Args:
+        root: see the module docstring.
+        patch_configs: PatchConfig list (default :func:`faust_patch_configs`).
+        cache_dir: preprocessing cache.
+        area: target surface area (default 15000; None keeps the files' scale).
+        train_indices, test_indices: registration numbers XXX of each split (defaults: the standard split).
+        n_val: validation shapes carved from the training ones (count or fraction), seeded by ``seed``.
+        n_vertices: the expected vertex count of every registration (None: take the first file's).
+        strict: a shape that fails stops everything (default: with correspondence by vertex index, a
+            broken registration means a broken copy of the data set).
+
+    Returns a :class:`ShapeDataset` with ``correspondence = True`` and ``num_classes`` = vertex count.
+    """
+    folder = find_registrations(root)
+    train_indices, test_indices = [int(i) for i in train_indices], [int(i) for i in test_indices]
+    overlap = sorted(set(train_indices) & set(test_indices))
+    if overlap:
+        raise DatasetError(f"FAUST: registrations {overlap[:5]} are in both the train and the test split")
+    wanted = sorted(set(train_indices) | set(test_indices))
+    if not wanted:
+        raise DatasetError("FAUST: no registrations selected (train_indices and test_indices are empty)")
+    paths = {i: folder / _PATTERN.format(i) for i in wanted}
+    missing = [p.name for p in paths.values() if not p.is_file()]
+    if missing:
+        shown = ", ".join(missing[:10]) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
+        raise DatasetError(f"{folder}: {len(missing)} of {len(wanted)} FAUST registrations are missing: {shown}")
+
+    # The first registration is the connectivity reference every other one is checked against.
+    reference_path = paths[wanted[0]]
+    reference = load_surface(reference_path)
+    if reference.faces is None:
+        raise DatasetError(f"{reference_path}: has no faces; FAUST registrations are triangle meshes")
+    if n_vertices is not None and reference.n_vertices != n_vertices:
+        raise DatasetError(f"{reference_path}: has {reference.n_vertices} vertices, but FAUST registrations have "
+                           f"{n_vertices}")
+    count = reference.n_vertices
+    digest = _faces_digest(reference.faces)
+
+    sources = [
+        ShapeSource(
+            name=paths[i].stem,
+            load=partial(_load_registration, str(paths[i]), count, digest, reference_path.name),
+            key=file_key(paths[i]) + f"|faces={digest}",
+        )
+        for i in wanted
+    ]
+    dataset = build_dataset(
+        sources,
+        patch_configs if patch_configs else faust_patch_configs(),
+        cache_dir,
+        area,
+        task="classification",
+        num_classes=count,
+        split_names={"train": [paths[i].stem for i in train_indices], "test": [paths[i].stem for i in test_indices]},
+        n_val=n_val,
+        seed=seed,
+        feature_kind=feature_kind,
+        workers=workers,
+        strict=strict,
+        progress=progress,
+        correspondence=True,
+        info={"kind": "faust", "root": str(folder)},
+    )
+    return dataset

@@ -1,0 +1,224 @@
+"""Scalar-field regression: a per-vertex value to predict on each surface.
+
+Two layouts:
+
+- **Aneurysm** (:func:`load_aneurysm`): the ZerNet authors' MATLAB files ``<root>/TP_Ia<ID>I.mat`` with
+  ``X`` (V, 3) positions at area 100, ``F`` (T, 3) 1-based triangles and ``J2m`` (V, 1) finite-element wall
+  stress (see the data set's README). Surfaces are kept at area 100; if a different area is forced, the
+  stress scales with the square root of the area (area exponent 0.5), as stress of a pressurised thin shell
+  scales with its size.
+- **Generic** (:func:`load_regression`): meshes (.ply/.obj/.off/.stl) each with a per-vertex value file of
+  the same stem (``bunny.ply`` + ``bunny.npy`` or ``bunny.txt``, one value per vertex), or .mat files with a
+  named field. The target's area exponent is given by the user (0 for dimensionless values).
+
+Leave-one-out cross-validation over chosen shapes: :func:`leave_one_out_splits` gives one fold's splits for
+``dataset.with_splits(...)``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from zernet.data.base import DatasetError, ShapeDataset, carve_validation
+from zernet.data.preprocess import ShapeSource, build_dataset, file_key
+from zernet.data.segmentation import MESH_EXTENSIONS, find_meshes
+from zernet.surface import Surface, load_surface
+
+__all__ = [
+    "ANEURYSM_AREA",
+    "PAPER_CASES",
+    "load_aneurysm",
+    "load_regression",
+    "leave_one_out_splits",
+    "aneurysm_patch_configs",
+    "read_values",
+]
+
+ANEURYSM_AREA = 100.0
+#: The five held-out cases of the paper's Table 3.
+PAPER_CASES = ("TP_Ia105I", "TP_Ia166I", "TP_Ia182I", "TP_Ia32I", "TP_Ia33I")
+VALUE_EXTENSIONS = (".npy", ".txt")
+
+
+def aneurysm_patch_configs(n_scales: int = 1, **overrides):
+    """Patch settings for the aneurysms at area 100, same relative patch size and sampling density as the
+    paper's FAUST setting: r0 = 5.5 · sqrt(100 / 15000) ≈ 0.45 (a disk covers 0.63 % of the surface) and
+    12000 samples per surface, so a disk holds ~76 samples of which ``patch_size = 50`` are fitted.
+    Scale s has radius 0.45 · 2**s. ``overrides`` go to every PatchConfig."""
+    from zernet.patches import PatchConfig
+
+    settings = {"n_samples": 12000, "patch_size": 50}
+    settings.update(overrides)
+    return [PatchConfig(r0=0.45 * 2**s, **settings) for s in range(n_scales)]
+
+
+def read_values(path: str | os.PathLike) -> np.ndarray:
+    """Per-vertex values from a .npy file or a text file (one per line), as (L,) float64."""
+    path = Path(path)
+    try:
+        values = np.load(path, allow_pickle=False) if path.suffix.lower() == ".npy" else np.loadtxt(
+            path, dtype=np.float64, comments="#", ndmin=1)
+    except Exception as error:
+        raise DatasetError(f"{path}: cannot read values: {type(error).__name__}: {error}") from error
+    values = np.asarray(values, dtype=np.float64)
+    if values.ndim == 2 and values.shape[1] == 1:
+        values = values[:, 0]
+    if values.ndim != 1:
+        raise DatasetError(f"{path}: expected one value per vertex (a 1-D array), got shape {values.shape}")
+    if not np.all(np.isfinite(values)):
+        bad = int(np.flatnonzero(~np.isfinite(values))[0])
+        raise DatasetError(f"{path}: value {bad} is {values[bad]}; targets must be finite")
+    return values
+
+
+def _load_mat_field(path: str, field: str) -> tuple[Surface, np.ndarray]:
+    """ShapeSource loader: a .mat surface and its named per-vertex field (removed from the surface)."""
+    surface = load_surface(path)
+    if field not in surface.fields:
+        raise DatasetError(f"{path}: no per-vertex field {field!r} (it has {sorted(surface.fields) or 'none'})")
+    target = np.asarray(surface.fields[field], dtype=np.float64)
+    if target.ndim != 1:
+        raise DatasetError(f"{path}: field {field!r} has shape {target.shape}; expected one value per vertex")
+    fields = {k: v for k, v in surface.fields.items() if k != field}
+    return Surface(surface.vertices, surface.faces, surface.normals, fields, surface.name), target
+
+
+def _load_mesh_values(mesh_path: str, value_path: str) -> tuple[Surface, np.ndarray]:
+    """ShapeSource loader: a mesh and the per-vertex values of its companion file."""
+    surface = load_surface(mesh_path)
+    values = read_values(value_path)
+    if len(values) != surface.n_vertices:
+        raise DatasetError(f"{value_path}: has {len(values)} values but {mesh_path} has {surface.n_vertices} "
+                           "vertices (one value per vertex expected)")
+    return surface, values
+
+
+def leave_one_out_splits(names: Sequence[str], held_out: str, n_val: int | float = 2, seed: int = 0) -> dict[str, list[int]]:
+    """Splits of one leave-one-out fold: test = ``held_out``, val = ``n_val`` seeded shapes of the others,
+    train = the rest. Indices refer to ``names`` (use ``dataset.names``); apply with ``dataset.with_splits``.
+    """
+    names = list(names)
+    if held_out not in names:
+        raise DatasetError(f"leave-one-out: {held_out!r} is not a shape of the data set (e.g. {names[:3]})")
+    test = names.index(held_out)
+    train, val = carve_validation([i for i in range(len(names)) if i != test], n_val, seed)
+    return {"train": train, "val": val, "test": [test]}
+
+
+def _splits_for(names: list[str], test: Sequence[str] | str | None, where: Path) -> dict[str, list[str]]:
+    if test is None:
+        return {"train": list(names), "test": []}
+    test = [test] if isinstance(test, str) else [str(t) for t in test]
+    unknown = sorted(set(test) - set(names))
+    if unknown:
+        raise DatasetError(f"{where}: test shapes {unknown[:5]} not found (names are file stems, e.g. {names[0]!r})")
+    return {"train": [n for n in names if n not in set(test)], "test": test}
+
+
+def load_aneurysm(
+    root: str | os.PathLike,
+    patch_configs=None,
+    cache_dir: str | os.PathLike = ".zernet-cache",
+    area: float | None = ANEURYSM_AREA,
+    field: str = "J2m",
+    test: Sequence[str] | str | None = None,
+    n_val: int | float = 2,
+    seed: int = 0,
+    feature_kind: str = "xyz",
+    workers: int | None = None,
+    strict: bool = False,
+    progress: bool = True,
+) -> ShapeDataset:
+    """The aneurysm wall-stress data set: every ``*.mat`` file under ``root`` (not recursive).
+
+    ``test``: held-out case name(s) (e.g. "TP_Ia105I"); default none (use :func:`leave_one_out_splits` for
+    the paper's folds). The target is ``field`` (default J2m), area exponent 0.5.
+    """
+    root = Path(os.path.expanduser(os.fspath(root)))
+    if not root.is_dir():
+        raise DatasetError(f"aneurysm folder {root} does not exist" if not root.exists()
+                           else f"aneurysm root {root} is a file; give the folder holding the TP_Ia*I.mat files")
+    files = sorted(root.glob("*.mat"))
+    if not files:
+        raise DatasetError(f"{root}: no .mat files; expected the authors' layout TP_Ia<ID>I.mat (X, F, {field})")
+    sources = [
+        ShapeSource(name=path.stem, load=partial(_load_mat_field, str(path), field),
+                    key=file_key(path) + f"|{field}", target_exponent=0.5)
+        for path in files
+    ]
+    names = [s.name for s in sources]
+    return build_dataset(
+        sources, patch_configs if patch_configs else aneurysm_patch_configs(), cache_dir, area,
+        task="regression", num_classes=None, split_names=_splits_for(names, test, root), n_val=n_val, seed=seed,
+        feature_kind=feature_kind, workers=workers, strict=strict, progress=progress,
+        info={"kind": "aneurysm", "root": str(root), "field": field, "paper_cases": list(PAPER_CASES)},
+    )
+
+
+def load_regression(
+    root: str | os.PathLike,
+    patch_configs=None,
+    cache_dir: str | os.PathLike = ".zernet-cache",
+    area: float | None = None,
+    field: str | None = None,
+    target_exponent: float = 0.0,
+    test: Sequence[str] | str | None = None,
+    test_fraction: float | None = None,
+    n_val: int | float = 0.1,
+    seed: int = 0,
+    feature_kind: str = "xyz",
+    workers: int | None = None,
+    strict: bool = False,
+    progress: bool = True,
+) -> ShapeDataset:
+    """A generic per-vertex regression data set from the folder ``root`` (recursive).
+
+    Each mesh ``<stem>.ply|.obj|.off|.stl`` needs ``<stem>.npy`` or ``<stem>.txt`` beside it; each ``.mat``
+    file needs ``field`` (its named per-vertex array). ``area``: target area (None keeps the files' scale);
+    ``target_exponent``: the target's area exponent. ``test``: names (paths relative to root, without
+    extension) of the test shapes, or ``test_fraction`` for a seeded random share; neither: no test split.
+    """
+    root = Path(os.path.expanduser(os.fspath(root)))
+    if not root.is_dir():
+        raise DatasetError(f"regression folder {root} does not exist" if not root.exists()
+                           else f"regression root {root} is a file; give the folder of meshes and value files")
+    if not patch_configs:
+        raise DatasetError("regression: give patch_configs (a patch radius suited to the surfaces' area)")
+    sources, missing = [], []
+    for path in find_meshes(root, MESH_EXTENSIONS + (".mat",)):
+        name = str(path.relative_to(root).with_suffix(""))
+        if path.suffix.lower() == ".mat":
+            if field is None:
+                raise DatasetError(f"{path}: .mat files need field= (the name of the per-vertex target array)")
+            sources.append(ShapeSource(name, partial(_load_mat_field, str(path), field),
+                                       file_key(path) + f"|{field}", target_exponent))
+            continue
+        companions = [path.with_suffix(ext) for ext in VALUE_EXTENSIONS if path.with_suffix(ext).is_file()]
+        if not companions:
+            missing.append(str(path.relative_to(root)))
+            continue
+        sources.append(ShapeSource(name, partial(_load_mesh_values, str(path), str(companions[0])),
+                                   file_key(path, companions[0]), target_exponent))
+    if missing:
+        shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
+        raise DatasetError(f"{root}: no per-vertex value file (<stem>.npy or <stem>.txt) for {len(missing)} "
+                           f"mesh(es): {shown}")
+    if not sources:
+        raise DatasetError(f"{root}: no meshes ({', '.join(MESH_EXTENSIONS)}) or .mat files found")
+    names = [s.name for s in sources]
+    if test is None and test_fraction is not None:
+        if not 0 < test_fraction < 1:
+            raise DatasetError(f"test_fraction must be in (0, 1), got {test_fraction}")
+        count = min(len(names) - 1, max(1, int(round(test_fraction * len(names)))))
+        test = [names[i] for i in sorted(np.random.default_rng(seed + 7919).permutation(len(names))[:count])]
+    return build_dataset(
+        sources, patch_configs, cache_dir, area, task="regression", num_classes=None,
+        split_names=_splits_for(names, test, root), n_val=n_val, seed=seed, feature_kind=feature_kind,
+        workers=workers, strict=strict, progress=progress,
+        info={"kind": "regression", "root": str(root), "field": field, "target_exponent": target_exponent},
+    )

@@ -1,0 +1,295 @@
+"""Part segmentation: meshes with per-vertex or per-face labels.
+
+Two layouts, both handled by :func:`load_segmentation`:
+
+1. **One label file per mesh** with the same stem: ``meshes/<rel>/<stem>.ply`` (or .obj/.off/.stl) and
+   ``labels/<rel>/<stem>.txt`` (or ``.npy``, or ``.seg``/``.eseg``), where ``labels`` may be the mesh folder
+   itself. This is the layout of the human-segmentation benchmark of Maron et al. 2017 for its non-FAUST
+   parts (``meshes/train/adobe/...``, ``segs/train/adobe/...``): meshes and their per-face label files.
+2. **One label file shared by same-topology meshes**: ``labels`` is a single text file (e.g. the
+   benchmark's ``faust_corrected.txt`` / ``faust_seg.txt``) with one label per line, used for every mesh —
+   the benchmark's FAUST meshes all share one connectivity, so one per-face labelling serves all of them.
+
+Label files hold one integer per line (text, whitespace-separated also accepted) or a 1-D .npy array.
+
+Per-vertex or per-face is decided by the count: N values for N vertices = per vertex, F values for F faces =
+per face (``label_kind`` forces one when N == F). Anything else is an error naming the label file, the mesh
+and all three counts.
+
+**Per-face -> per-vertex rule**: each vertex takes the label with the largest total area among its incident
+faces (area-weighted majority vote); an exact tie goes to the smallest label. A vertex used by no face
+gets label 0.
+
+**0- or 1-based labels** (``label_base="auto"``): the benchmark's files number the 8 parts 1..8. Over all
+label files of the data set: if no file contains 0 and some file contains ``num_classes``, the labels are
+1-based and 1 is subtracted; otherwise they are 0-based. After that every label must lie in
+0..num_classes-1, or the error names the file and the offending value. The detected base is stored in
+``dataset.info["label_base"]``. Pass ``label_base=0`` or ``1`` to skip the detection.
+
+Test split: mesh paths with a folder called ``test`` (the benchmark's ``meshes/test/shrec``) form the test
+split when there are any; otherwise ``test`` names them, or a seeded ``test_fraction`` of the meshes is used.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from zernet.data.base import DatasetError, ShapeDataset
+from zernet.data.preprocess import ShapeSource, build_dataset, file_key
+from zernet.surface import Surface, load_surface, validate_surface
+
+__all__ = [
+    "MESH_EXTENSIONS",
+    "LABEL_EXTENSIONS",
+    "HUMAN_PART_NAMES",
+    "load_segmentation",
+    "read_labels",
+    "face_to_vertex_labels",
+    "find_meshes",
+]
+
+MESH_EXTENSIONS = (".ply", ".obj", ".off", ".stl")
+LABEL_EXTENSIONS = (".txt", ".npy", ".seg", ".eseg", ".labels")
+#: The 8 parts of Maron et al. 2017's human-segmentation benchmark, in its label order (label 1 = head).
+HUMAN_PART_NAMES = ("head", "torso", "upper arm", "lower arm", "hand", "upper leg", "lower leg", "foot")
+
+
+def find_meshes(root: Path, extensions: Sequence[str] = MESH_EXTENSIONS) -> list[Path]:
+    """Mesh files under ``root`` (recursive, sorted)."""
+    return sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in extensions)
+
+
+def read_labels(path: str | os.PathLike) -> np.ndarray:
+    """Integer labels from a text file (one per line or whitespace-separated) or a .npy file: (L,) int64."""
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".npy":
+            values = np.load(path, allow_pickle=False)
+        else:
+            values = np.loadtxt(path, dtype=np.float64, comments="#", ndmin=1)
+    except Exception as error:
+        raise DatasetError(f"{path}: cannot read labels: {type(error).__name__}: {error}") from error
+    values = np.asarray(values).reshape(-1)
+    if values.size == 0:
+        raise DatasetError(f"{path}: label file is empty")
+    if not np.all(np.isfinite(values)) or np.any(values != np.round(values)):
+        bad = int(np.flatnonzero(~np.isfinite(values) | (values != np.round(values)))[0])
+        raise DatasetError(f"{path}: label {bad} (line {bad + 1}) is {values[bad]!r}, not an integer")
+    return values.astype(np.int64)
+
+
+def face_to_vertex_labels(faces: np.ndarray, face_labels: np.ndarray, face_areas: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Per-vertex labels by the area-weighted majority of the incident faces (ties: smallest label).
+
+    faces (F, 3), face_labels (F,) >= 0, face_areas (F,). Returns (n_vertices,) int64; vertices used by no
+    face get 0.
+    """
+    n_labels = int(face_labels.max()) + 1
+    votes = np.zeros((n_vertices, n_labels))
+    for corner in range(3):
+        np.add.at(votes, (faces[:, corner], face_labels), face_areas)
+    # argmax returns the first (smallest) label among equal maxima.
+    return votes.argmax(axis=1).astype(np.int64)
+
+
+def _resolve_labels(mesh_path: Path, surface: Surface, raw: np.ndarray, label_path: Path, label_kind: str,
+                    base: int, num_classes: int) -> np.ndarray:
+    """Labels of one mesh as per-vertex classes 0..num_classes-1, with the errors of the module docstring."""
+    n, f = surface.n_vertices, surface.n_faces
+    count = len(raw)
+    if label_kind == "vertex" or (label_kind == "auto" and count == n):
+        if count != n:
+            raise DatasetError(f"{label_path}: has {count} labels but {mesh_path} has {n} vertices "
+                               "(label_kind='vertex' needs one label per vertex)")
+        kind = "vertex"
+    elif label_kind == "face" or (label_kind == "auto" and count == f):
+        if count != f:
+            raise DatasetError(f"{label_path}: has {count} labels but {mesh_path} has {f} faces "
+                               "(label_kind='face' needs one label per face)")
+        kind = "face"
+    else:
+        raise DatasetError(f"{label_path}: has {count} labels but {mesh_path} has {n} vertices and {f} faces; "
+                           "expected one label per vertex or one per face")
+    labels = raw - base
+    if labels.min() < 0 or labels.max() >= num_classes:
+        bad = labels.min() if labels.min() < 0 else labels.max()
+        raise DatasetError(f"{label_path}: label {bad + base} is outside the {num_classes} classes "
+                           f"({base}..{num_classes - 1 + base} with {base}-based labels)")
+    if kind == "face":
+        labels = face_to_vertex_labels(surface.faces, labels, surface.face_areas(), n)
+    return labels
+
+
+def _load_labelled_mesh(mesh_path: str, label_path: str, label_kind: str, base: int, num_classes: int,
+                        repair: bool) -> tuple[Surface, np.ndarray]:
+    """ShapeSource loader: the mesh and its per-vertex labels.
+
+    Without repair, the mesh is read and validated by :func:`~zernet.surface.load_surface`. With repair,
+    the labels are resolved on the mesh exactly as stored (a repair drops faces and merges vertices, which
+    would break the order a label file refers to) and the repair is applied afterwards, the per-vertex
+    labels following the merged vertices.
+    """
+    if not repair:
+        surface = load_surface(mesh_path)
+    else:
+        surface = _read_as_stored(mesh_path)
+    labels = _resolve_labels(Path(mesh_path), surface, read_labels(label_path), Path(label_path), label_kind,
+                             base, num_classes)
+    if repair:
+        labelled = validate_surface(surface.with_fields({"__labels__": labels}), repair=True)
+        labels = np.asarray(labelled.fields["__labels__"]).astype(np.int64)
+        fields = {k: v for k, v in labelled.fields.items() if k != "__labels__"}
+        surface = Surface(labelled.vertices, labelled.faces, labelled.normals, fields, labelled.name)
+    return surface, labels
+
+
+def _read_as_stored(mesh_path: str) -> Surface:
+    """A mesh exactly as stored (vertex and face order kept, no validation yet)."""
+    import trimesh
+
+    options = {"maintain_order": True} if mesh_path.lower().endswith(".obj") else {}
+    try:
+        mesh = trimesh.load(mesh_path, process=False, force="mesh", **options)
+    except Exception as error:
+        raise DatasetError(f"{mesh_path}: cannot read the mesh: {type(error).__name__}: {error}") from error
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))))
+    if len(faces) == 0:
+        raise DatasetError(f"{mesh_path}: has no faces; segmentation needs triangle meshes")
+    return Surface(np.asarray(mesh.vertices), faces, name=mesh_path)
+
+
+def _label_file_for(mesh: Path, mesh_root: Path, label_root: Path) -> Path | None:
+    """The label file of ``mesh``: same relative folder and stem under ``label_root``, or the same stem
+    anywhere under it when unique (the benchmark keeps ``segs/train/adobe/x.txt`` for
+    ``meshes/train/adobe/x.off``)."""
+    relative = mesh.relative_to(mesh_root).with_suffix("")
+    for extension in LABEL_EXTENSIONS:
+        candidate = label_root / relative.parent / (relative.name + extension)
+        if candidate.is_file() and candidate != mesh:
+            return candidate
+    matches = [p for p in label_root.rglob(mesh.stem + ".*") if p.suffix.lower() in LABEL_EXTENSIONS]
+    return matches[0] if len(matches) == 1 else None
+
+
+def load_segmentation(
+    meshes: str | os.PathLike,
+    labels: str | os.PathLike | None = None,
+    patch_configs=None,
+    cache_dir: str | os.PathLike = ".zernet-cache",
+    area: float | None = 15000.0,
+    num_classes: int = 8,
+    class_names: Sequence[str] | None = None,
+    label_base: int | str = "auto",
+    label_kind: str = "auto",
+    test: Sequence[str] | None = None,
+    test_fraction: float = 0.2,
+    n_val: int | float = 0.1,
+    seed: int = 0,
+    feature_kind: str = "xyz",
+    workers: int | None = None,
+    strict: bool = False,
+    repair: bool = False,
+    progress: bool = True,
+) -> ShapeDataset:
+    """A part-segmentation data set (per-vertex classification).
+
+    Args:
+        meshes: folder of meshes (searched recursively) or a single mesh file.
+        labels: folder of per-mesh label files, or one label file shared by every mesh; default: the mesh
+            folder (label files next to the meshes).
+        patch_configs: PatchConfig list (required: segmentation data comes at any scale; for human bodies
+            at area 15000 use :func:`zernet.data.faust.faust_patch_configs`).
+        area: target surface area (default 15000, human bodies as in the paper; None keeps the files').
+        num_classes: number of parts (8 for the human benchmark).
+        class_names: names for plots (default :data:`HUMAN_PART_NAMES` when num_classes == 8).
+        label_base: "auto" (see the module docstring), 0 or 1.
+        label_kind: "auto", "vertex" or "face".
+        test: names (mesh paths relative to ``meshes``, without extension) of the test meshes; default: meshes
+            under a ``test`` folder, else a seeded ``test_fraction``.
+        n_val, seed: validation shapes carved from the training ones.
+        strict: stop at the first failing mesh instead of leaving it out.
+        repair: merge duplicate vertices and drop degenerate faces (labels follow).
+    """
+    mesh_root = Path(os.path.expanduser(os.fspath(meshes)))
+    if not mesh_root.exists():
+        raise DatasetError(f"segmentation meshes: {mesh_root} does not exist")
+    mesh_files = [mesh_root] if mesh_root.is_file() else find_meshes(mesh_root)
+    if mesh_root.is_file():
+        mesh_root = mesh_root.parent
+    if not mesh_files:
+        raise DatasetError(f"{mesh_root}: no mesh files ({', '.join(MESH_EXTENSIONS)}) found")
+    label_root = Path(os.path.expanduser(os.fspath(labels))) if labels is not None else mesh_root
+    if not label_root.exists():
+        raise DatasetError(f"segmentation labels: {label_root} does not exist")
+    if label_kind not in ("auto", "vertex", "face"):
+        raise DatasetError(f"label_kind must be 'auto', 'vertex' or 'face', got {label_kind!r}")
+
+    # Pair every mesh with its label file.
+    pairs: list[tuple[Path, Path]] = []
+    unlabelled = []
+    for mesh in mesh_files:
+        label = label_root if label_root.is_file() else _label_file_for(mesh, mesh_root, label_root)
+        if label is None:
+            unlabelled.append(str(mesh.relative_to(mesh_root)))
+        else:
+            pairs.append((mesh, label))
+    if unlabelled:
+        shown = ", ".join(unlabelled[:8]) + (f" and {len(unlabelled) - 8} more" if len(unlabelled) > 8 else "")
+        raise DatasetError(f"{label_root}: no label file (same name, {'/'.join(LABEL_EXTENSIONS)}) for "
+                           f"{len(unlabelled)} mesh(es): {shown}")
+
+    # Label base, decided once over all label files.
+    label_values = {label: read_labels(label) for label in {label for _, label in pairs}}
+    if label_base == "auto":
+        has_zero = any((values == 0).any() for values in label_values.values())
+        has_top = any((values == num_classes).any() for values in label_values.values())
+        base = 1 if (not has_zero and has_top) else 0
+    elif label_base in (0, 1):
+        base = int(label_base)
+    else:
+        raise DatasetError(f"label_base must be 'auto', 0 or 1, got {label_base!r}")
+
+    names = [str(mesh.relative_to(mesh_root).with_suffix("")) for mesh, _ in pairs]
+    sources = [
+        ShapeSource(
+            name=name,
+            load=partial(_load_labelled_mesh, str(mesh), str(label), label_kind, base, num_classes, repair),
+            key=file_key(mesh, label) + f"|{label_kind}|{base}|{num_classes}|{repair}",
+        )
+        for name, (mesh, label) in zip(names, pairs)
+    ]
+
+    if test is not None:
+        test_names = [str(t) for t in test]
+        unknown = sorted(set(test_names) - set(names))
+        if unknown:
+            raise DatasetError(f"{mesh_root}: test meshes {unknown[:5]} not found (names are paths relative to "
+                               f"the mesh folder without extension, e.g. {names[0]!r})")
+    elif any("test" in Path(name).parts[:-1] for name in names):
+        test_names = [name for name in names if "test" in Path(name).parts[:-1]]
+    else:
+        if not 0 < test_fraction < 1:
+            raise DatasetError(f"test_fraction must be in (0, 1), got {test_fraction}")
+        count = min(len(names) - 1, max(1, int(round(test_fraction * len(names)))))
+        order = np.random.default_rng(seed + 7919).permutation(len(names))
+        test_names = [names[i] for i in sorted(order[:count])]
+    train_names = [name for name in names if name not in set(test_names)]
+    if class_names is None and num_classes == len(HUMAN_PART_NAMES):
+        class_names = HUMAN_PART_NAMES
+
+    if not patch_configs:
+        raise DatasetError("segmentation: give patch_configs (e.g. [{'r0': 5.5}] for human bodies at area 15000)")
+    return build_dataset(
+        sources, patch_configs, cache_dir, area,
+        task="classification", num_classes=num_classes,
+        split_names={"train": train_names, "test": test_names},
+        n_val=n_val, seed=seed, feature_kind=feature_kind, workers=workers, strict=strict, repair=False,
+        progress=progress,
+        info={"kind": "segmentation", "meshes": str(mesh_root), "labels": str(label_root), "label_base": base,
+              "class_names": list(class_names) if class_names is not None else None},
+    )
