@@ -13,8 +13,10 @@ import trimesh
 from torch_geometric.nn import FeaStConv
 
 from zernet.nn.baselines import FeaStNet, PaperZernikeConv, PaperZerNet
+from zernet.nn.conv import ZernikeConv
 from zernet.nn.geometry import Geometry
 from zernet.nn.models import build_model
+from zernet.nn.reference import MatrixOperator
 from zernet.patches import PatchConfig, build_patch_operator
 from zernet.surface import Surface
 from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
@@ -119,8 +121,12 @@ def test_feastnet_batch_of_two_surfaces_equals_separate_runs(sphere, other):
 # ------------------------------------------------------------------------------- paper formulation
 
 
-def _toy_operator(n_vertices=7, n_samples=40, patch=9, n_max=2, ridge=0.01, seed=0):
-    """A hand-made operator (random patches and interpolation) with only what the paper's layer reads."""
+def _toy_operator(n_vertices=7, n_samples=40, patch=9, n_max=2, ridge=0.01, subtract_center=False, seed=0):
+    """A hand-made operator: random patches and interpolation, plus the matching precomputed matrix.
+
+    It has what the paper's layer reads (``patch_sample_index``, ``patch_basis``, ``interpolation``,
+    ``config``) and what ZernikeConv reads (``apply``, ``k``), the latter from the closed-form ridge fit.
+    """
     rng = np.random.default_rng(seed)
     k = num_bases(n_max)
     index = rng.integers(0, n_samples, size=(n_vertices, patch))
@@ -131,26 +137,37 @@ def _toy_operator(n_vertices=7, n_samples=40, patch=9, n_max=2, ridge=0.01, seed
     cols = rng.integers(0, n_vertices, size=3 * n_samples)
     weights = rng.dirichlet(np.ones(3), size=n_samples).ravel()
     interpolation = scipy.sparse.csr_matrix((weights, (rows, cols)), shape=(n_samples, n_vertices))
-    config = SimpleNamespace(ridge=ridge, subtract_center=False)
-    return SimpleNamespace(k=k, n_max=n_max, patch_sample_index=index, patch_basis=basis,
-                           interpolation=interpolation, config=config)
+    dense = interpolation.toarray()
+    matrix = np.zeros((n_vertices * k, n_vertices))
+    for p in range(n_vertices):
+        valid = index[p] >= 0
+        b, s = basis[p][valid], dense[index[p][valid]]
+        if subtract_center:
+            s = s - np.eye(n_vertices)[p]
+        matrix[p * k : (p + 1) * k] = np.linalg.solve(b.T @ b + ridge * np.eye(k), b.T @ s)
+    precomputed = MatrixOperator(matrix, k)
+    config = SimpleNamespace(ridge=ridge, subtract_center=subtract_center)
+    return SimpleNamespace(k=k, n_max=n_max, n_vertices=n_vertices, patch_sample_index=index,
+                           patch_basis=basis, interpolation=interpolation, config=config,
+                           apply=precomputed.apply, matrix=precomputed.matrix)
 
 
-def test_paper_conv_fit_and_rotated_max_against_direct_formula():
+@pytest.mark.parametrize("subtract_center", [False, True])
+def test_paper_fit_is_the_ridge_least_squares_solution(subtract_center):
+    op = _toy_operator(subtract_center=subtract_center)
+    conv = PaperZernikeConv(3, 4, k=op.k).double()
+    x = torch.randn(op.n_vertices, 3, dtype=torch.float64)
+    torch.testing.assert_close(conv.fit(x, op), op.apply(x), rtol=1e-10, atol=1e-12)
+    override = PaperZernikeConv(3, 4, k=op.k, ridge=0.5).double()
+    assert not torch.allclose(override.fit(x, op), op.apply(x))
+
+
+def test_paper_conv_is_max_over_rotated_kernel_copies():
     op = _toy_operator()
     torch.manual_seed(0)
-    conv = PaperZernikeConv(3, 4, k=op.k, rotations=5).double()
-    x = torch.randn(7, 3, dtype=torch.float64)
-    # fit: per vertex, ridge least squares on the valid samples
-    samples = op.interpolation @ x.numpy()
-    expected = []
-    for p in range(7):
-        valid = op.patch_sample_index[p] >= 0
-        b, f = op.patch_basis[p][valid], samples[op.patch_sample_index[p][valid]]
-        expected.append(np.linalg.solve(b.T @ b + 0.01 * np.eye(op.k), b.T @ f))
+    conv = PaperZernikeConv(3, 4, k=op.k, angular_resolution=5).double()
+    x = torch.randn(op.n_vertices, 3, dtype=torch.float64)
     coeffs = conv.fit(x, op)
-    np.testing.assert_allclose(coeffs.detach().numpy(), np.stack(expected), rtol=1e-10, atol=1e-12)
-    # rotated kernel copies at 2πa/s, max over a
     responses = torch.stack([
         torch.einsum("nki,kio->no", coeffs, rotate_coefficients(conv.weight, 2 * math.pi * a / 5, dim=0))
         for a in range(5)
@@ -158,9 +175,45 @@ def test_paper_conv_fit_and_rotated_max_against_direct_formula():
     torch.testing.assert_close(conv(x, op), responses.amax(0) + conv.bias)
 
 
+@pytest.mark.parametrize("s", [1, 2, 4, 7, 16])
+def test_paper_conv_equals_zernikeconv_max_pooling_on_toy_operator(s):
+    op = _toy_operator(n_max=5, patch=30, subtract_center=True)
+    torch.manual_seed(s)
+    ours = ZernikeConv(3, 6, k=op.k, angular_resolution=s, pooling="max")
+    paper = PaperZernikeConv(3, 6, k=op.k, angular_resolution=s, ridge=None)
+    paper.load_state_dict(ours.state_dict())
+    x = torch.randn(op.n_vertices, 3)
+    # float64: the same map up to rounding
+    torch.testing.assert_close(paper.double()(x.double(), op), ours.double()(x.double(), op), rtol=1e-9, atol=1e-10)
+    # float32: the per-call solve loses about cond(BᵀB + λI) ~ 5e3 times the float32 epsilon
+    expected = ours.float()(x, op)
+    torch.testing.assert_close(paper.float()(x, op), expected, rtol=0, atol=1e-3 * expected.abs().max().item())
+
+
+def test_paper_zernet_is_zernet_with_the_paper_layer():
+    op = _toy_operator(n_max=3, patch=20)
+    geometry = Geometry(operators=[op])
+    options = dict(widths=(8, 12, 16), n_max=3, angular_resolution=4)
+    torch.manual_seed(5)
+    zernet = build_model("zernet", 3, 4, **options).eval()
+    after_zernet = torch.rand(1)
+    torch.manual_seed(5)
+    paper = build_model("paper-zernet", 3, 4, **options).eval()
+    assert torch.equal(torch.rand(1), after_zernet)  # same RNG consumption: same dropout draws in training
+    assert isinstance(paper, PaperZerNet)
+    assert all(isinstance(conv, PaperZernikeConv) for block in paper.blocks for conv in block.convs)
+    assert paper.state_dict().keys() == zernet.state_dict().keys()
+    for key, value in zernet.state_dict().items():
+        assert torch.equal(paper.state_dict()[key], value), key
+    x = torch.randn(op.n_vertices, 3, dtype=torch.float64)
+    torch.testing.assert_close(paper.double()(x, geometry), zernet.double()(x, geometry), rtol=1e-9, atol=1e-10)
+    with pytest.raises(ValueError, match="pooling"):
+        build_model("paper-zernet", 3, 4, pooling="continuous")
+
+
 @pytest.mark.parametrize("fixture", ["sphere", "sphere_centered"])
-def test_paper_fit_equals_precomputed_operator(fixture, request):
-    """The per-layer ridge fit reproduces zernet's once-per-surface sparse operator (same λ convention)."""
+def test_paper_fit_equals_precomputed_patch_operator(fixture, request):
+    """On a real surface, the per-layer fit reproduces zernet's once-per-surface sparse operator."""
     surface, geometry = request.getfixturevalue(fixture)
     operator = geometry.operators[0]
     conv = PaperZernikeConv(3, 2, k=operator.k).double()
@@ -168,27 +221,25 @@ def test_paper_fit_equals_precomputed_operator(fixture, request):
     torch.testing.assert_close(conv.fit(x, operator), operator.apply(x), rtol=1e-7, atol=1e-9)
 
 
-@pytest.mark.parametrize("rotations", [1, 4, 7])
-def test_paper_conv_equals_zernikeconv_max_pooling(sphere, rotations):
-    from zernet.nn.conv import ZernikeConv
-
+@pytest.mark.parametrize("s", [1, 4, 16])
+def test_paper_conv_equals_zernikeconv_max_pooling(sphere, s):
     surface, geometry = sphere
     operator = geometry.operators[0]
     torch.manual_seed(2)
-    ours = ZernikeConv(3, 5, k=operator.k, rotations=rotations, pooling="max")
-    paper = PaperZernikeConv(3, 5, k=operator.k, rotations=rotations)
-    with torch.no_grad():
-        paper.weight.copy_(ours.weight)
-        paper.bias.copy_(ours.bias)
+    ours = ZernikeConv(3, 5, k=operator.k, angular_resolution=s, pooling="max")
+    paper = PaperZernikeConv(3, 5, k=operator.k, angular_resolution=s)
+    paper.load_state_dict(ours.state_dict())
     x = _features(surface)
-    torch.testing.assert_close(paper(x, operator), ours(x, operator), rtol=1e-4, atol=1e-5)
+    expected = ours(x, operator)
+    torch.testing.assert_close(paper(x, operator), expected, rtol=0, atol=1e-3 * expected.abs().max().item())
+    x = x.double()
+    torch.testing.assert_close(paper.double()(x, operator), ours.double()(x, operator), rtol=1e-7, atol=1e-9)
 
 
 def test_paper_zernet_model_forward_backward_and_batch(sphere, other):
     (s1, g1), (s2, g2) = sphere, other
-    model = build_model("paper-zernet", 3, 4, k=g1.operators[0].k, **SMALL)
-    assert isinstance(model, PaperZerNet)
-    assert [c.out_channels for c in model.convs] == [8, 12]
+    model = build_model("paper-zernet", 3, 4, n_max=g1.operators[0].n_max, angular_resolution=4, **SMALL)
+    assert [c.out_channels for b in model.blocks for c in b.convs] == [8, 12]
     out = model(_features(s1), g1)
     assert out.shape == (s1.n_vertices, 4)
     out.square().mean().backward()
@@ -210,8 +261,8 @@ def test_same_seed_same_training_step(name, sphere):
 
     def one_step():
         torch.manual_seed(123)
-        model = build_model(name, 3, 3, k=geometry.operators[0].k, **SMALL) if name == "paper-zernet" \
-            else build_model(name, 3, 3, **SMALL)
+        options = dict(n_max=geometry.operators[0].n_max, angular_resolution=4) if name == "paper-zernet" else {}
+        model = build_model(name, 3, 3, **options, **SMALL)
         optimiser = torch.optim.Adam(model.parameters(), lr=1e-2)
         loss = torch.nn.functional.cross_entropy(model(x, geometry), target)
         loss.backward()

@@ -1,43 +1,45 @@
 """Reference models that zernet is measured against, in the same harness (issue 5).
 
-Two models share zernet's model signature ``model(x (N, C_in), geometry) -> (N, C_out)`` and are
-registered with :func:`zernet.nn.models.register_model`, so training, evaluation and the benchmark
-report select them by name like any zernet model:
+Both share zernet's model signature ``model(x (N, C_in), geometry) -> (N, C_out)``, its options for widths
+(``widths`` or ``task``), activation and dropout, and are registered with
+:func:`zernet.nn.models.register_model`, so training, evaluation and the benchmark report select them by
+name (``model.name: feastnet``) like any zernet model.
 
 ``"feastnet"`` — :class:`FeaStNet`
     Verma et al. 2018, "FeaStNet: Feature-Steered Graph Convolutions for 3D Shape Analysis", built on
-    PyTorch Geometric's :class:`torch_geometric.nn.FeaStConv` (the library's layer, not a rewrite).
-    It convolves over the mesh edge graph (``geometry.edge_index``) with self-loops added, as FeaStNet
-    does. Settings taken from the FeaStNet paper's single-scale FAUST network
-    (``Lin16 -> Conv32 -> Conv64 -> Conv128 -> Lin256 -> Lin(C)``): a linear input layer to 16
-    features before the first convolution, ``M = 8`` feature-steering heads, the translation-invariant
-    steering weights ``softmax_h(u_h^T (x_j - x_i) + c_h)`` (the variant FeaStConv implements) and mean
-    aggregation over the neighbourhood including the vertex itself. The convolution and linear widths
-    are configurable: by default they are the ZerNet paper's single-scale widths
-    ``(64, 128, 256, 512)`` so that the two methods are compared at equal widths; pass
-    ``widths=(32, 64, 128, 256)`` for FeaStNet's own network. Activations are ReLU (FeaStNet uses
-    ReLU); dropout sits before the output layer, where zernet's models put it.
+    PyTorch Geometric's :class:`torch_geometric.nn.FeaStConv` (the library's layer, not a rewrite). It
+    convolves over the mesh edge graph (``geometry.edge_index``) with self-loops added, as FeaStNet does.
+    Settings from the FeaStNet paper's single-scale FAUST network
+    (``Lin16 -> Conv32 -> Conv64 -> Conv128 -> Lin256 -> Lin(C)``): a linear input layer to 16 features
+    before the first convolution, ``M = 8`` feature-steering heads, translation-invariant steering weights
+    ``q_h = softmax_h(u_h^T (x_j - x_i) + c_h)`` (the variant ``FeaStConv`` implements, and the one the
+    FeaStNet paper reports best on FAUST), mean aggregation over the neighbourhood including the vertex
+    itself, ReLU. The convolution and linear widths are by default zernet's for the task (the ZerNet
+    paper's single-scale ``(64, 128, 256, 512)`` for correspondence), so that both methods are compared at
+    equal widths; ``widths=(32, 64, 128, 256)`` gives FeaStNet's own network. Dropout sits before the output
+    layer, where zernet's models put it.
 
 ``"paper-zernet"`` — :class:`PaperZerNet` built from :class:`PaperZernikeConv`
-    The ZerNet paper's own discretisation (section "Discretization") as the authors' release runs it:
-    at **every layer and every step** each vertex's patch samples are gathered from the current
-    features (barycentric interpolation, then the patch's sample ids), the Zernike coefficients are
-    obtained by re-solving a ridge-regularised least-squares problem on the ``(N, k, k)`` normal
-    equations, the kernel is rotated to ``s`` discrete angles (``2π a / s``) with the ``2×2`` rotation
-    of each ``±m`` coefficient pair, and the ``s`` responses are max-pooled. It is mathematically the
-    same map as :class:`zernet.nn.conv.ZernikeConv` with ``pooling="max"`` — zernet only computes
-    the (feature-independent) fit once per surface as a sparse operator and replaces the ``s`` rotated
-    copies by the harmonic form — so its outputs agree with ZernikeConv's to float32 rounding for the
-    same weights. It exists to measure, in one run, what those two changes buy.
+    The ZerNet paper's own discretisation (section 3.2.2) as the authors' release runs it: at **every
+    layer and every step**, each vertex's patch samples are gathered from the current features
+    (barycentric interpolation, then the patch's sample ids), the Zernike coefficients are obtained by
+    re-solving the ridge-regularised least-squares problem on the ``(N, k, k)`` normal equations, the
+    kernel is turned to ``s`` angles ``2π a / s`` (``s`` explicitly rotated copies,
+    :func:`zernet.nn.reference.rotated_kernel_responses`) and the ``s`` responses are max-pooled.
+    It is the same map as :class:`zernet.nn.conv.ZernikeConv` with ``pooling="max"`` — zernet computes the
+    feature-independent fit once per surface as a sparse operator and replaces the ``s`` rotated copies by
+    the harmonic form — so for the same weights the outputs agree to rounding: ~1e-12 relative in float64;
+    in float32 the per-call solve loses about ``cond(BᵀB + λI)`` times the float32 epsilon (the fit uses
+    the operator's own ridge ``λ`` by default; see :class:`PaperZernikeConv`). The network is zernet's
+    :class:`~zernet.nn.models.ZerNet` with every convolution swapped, with identical initial weights for the
+    same seed and an interchangeable state dict. It exists to measure, in one run, what the two changes buy.
 
-Both models accept a batch of several surfaces (a block-diagonal :class:`~zernet.nn.geometry.Geometry`
-from ``Geometry.concatenate``): FeaStNet's graph has no edges between surfaces, and every patch of a
-concatenated operator only sees its own surface's samples.
+Both accept a batch of surfaces (a block-diagonal :class:`~zernet.nn.geometry.Geometry`): FeaStNet's graph
+has no edges between surfaces and each patch of a concatenated operator only sees its own surface.
 """
 
 from __future__ import annotations
 
-import math
 import weakref
 from collections.abc import Sequence
 
@@ -46,14 +48,18 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.nn import FeaStConv
 
-from zernet.zernike import n_max_for, rotation_matrix
-
-from .models import register_model
+from .models import TASK_WIDTHS, ZerNet, register_model
+from .reference import RotatedKernelConv
 
 __all__ = ["FeaStNet", "PaperZernikeConv", "PaperZerNet", "ridge_normal_matrix"]
 
 
-def _check_widths(widths: Sequence[int]) -> tuple[int, ...]:
+def _resolve_widths(widths: Sequence[int] | None, task: str | None) -> tuple[int, ...]:
+    if widths is None:
+        task = task or "correspondence"
+        if task not in TASK_WIDTHS:
+            raise ValueError(f"unknown task {task!r} for default widths; one of {sorted(TASK_WIDTHS)}")
+        widths = TASK_WIDTHS[task]
     widths = tuple(int(w) for w in widths)
     if len(widths) < 2 or min(widths) < 1:
         raise ValueError(
@@ -61,6 +67,14 @@ def _check_widths(widths: Sequence[int]) -> tuple[int, ...]:
             f"e.g. (64, 128, 256, 512); got {widths}"
         )
     return widths
+
+
+def _activation(name: str) -> nn.Module:
+    if name == "relu":
+        return nn.ReLU()
+    if name == "elu":
+        return nn.ELU()
+    raise ValueError(f"activation must be 'relu' or 'elu', got {name!r}")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -72,19 +86,27 @@ def _check_widths(widths: Sequence[int]) -> tuple[int, ...]:
 class FeaStNet(nn.Module):
     r"""FeaStNet (Verma et al. 2018) on PyTorch Geometric's :class:`~torch_geometric.nn.FeaStConv`.
 
-    ``x -> [Lin(input_width), ReLU] -> (FeaStConv(w_i, heads), ReLU)_i -> Lin(widths[-1]), ReLU
-    -> Dropout -> Lin(out_channels)``
+    ``x -> [Lin(input_width), σ] -> (FeaStConv(w_i, heads), σ)_i -> Lin(widths[-1]), σ -> Dropout
+    -> Lin(out_channels)``
+
+    .. math::
+        \mathbf{x}'_i = \frac{1}{|\mathcal{N}(i) \cup \{i\}|} \sum_{j \in \mathcal{N}(i) \cup \{i\}}
+            \sum_{h=1}^{M} q_h(\mathbf{x}_i, \mathbf{x}_j)\, W_h \mathbf{x}_j + \mathbf{b},\qquad
+        q_h = \operatorname{softmax}_h\big(\mathbf{u}_h^\top(\mathbf{x}_j - \mathbf{x}_i) + c_h\big)
 
     Args:
         in_channels: input features per vertex ``C_in`` (e.g. 3 for xyz).
         out_channels: outputs per vertex ``C_out`` (classes, or 1 for regression).
-        widths: convolution widths followed by the hidden linear width; default ``(64, 128, 256, 512)``
-            (the ZerNet paper's single-scale correspondence network). FeaStNet's own FAUST network is
+        widths: convolution widths followed by the hidden linear width; default from ``task`` (zernet's
+            table: ``(64, 128, 256, 512)`` for correspondence). FeaStNet's own FAUST network is
             ``(32, 64, 128, 256)``.
+        task: ``"correspondence"``, ``"segmentation"`` or ``"regression"``: zernet's widths for the task
+            when ``widths`` is not given.
         heads: feature-steering heads ``M`` per convolution (FeaStNet: 8).
-        input_width: width of the linear layer applied before the first convolution (FeaStNet: 16);
-            ``None`` or ``0`` convolves the raw input features directly.
-        dropout: dropout probability before the output layer.
+        input_width: width of the linear layer before the first convolution (FeaStNet: 16); ``None`` or
+            ``0`` convolves the raw input features directly.
+        activation: ``"relu"`` (FeaStNet) or ``"elu"``.
+        dropout: dropout probability before the output layer (0.25, as zernet's models).
         add_self_loops: include the vertex itself in its neighbourhood (FeaStNet does).
 
     Shapes:
@@ -97,29 +119,31 @@ class FeaStNet(nn.Module):
         self,
         in_channels: int,
         out_channels: int,
-        widths: Sequence[int] = (64, 128, 256, 512),
+        widths: Sequence[int] | None = None,
+        task: str | None = None,
         heads: int = 8,
         input_width: int | None = 16,
+        activation: str = "relu",
         dropout: float = 0.25,
         add_self_loops: bool = True,
     ) -> None:
         super().__init__()
-        widths = _check_widths(widths)
-        if heads < 1:
+        if int(heads) < 1:
             raise ValueError(f"heads must be >= 1, got {heads}")
         self.in_channels = int(in_channels)
         self.out_channels = int(out_channels)
-        self.widths = widths
+        self.widths = _resolve_widths(widths, task)
         self.heads = int(heads)
-        self.input = nn.Linear(in_channels, input_width) if input_width else None
-        channels = input_width if input_width else in_channels
+        self.act = _activation(activation)
+        self.input = nn.Linear(self.in_channels, int(input_width)) if input_width else None
+        channels = int(input_width) if input_width else self.in_channels
         self.convs = nn.ModuleList()
-        for width in widths[:-1]:
-            self.convs.append(FeaStConv(channels, width, heads=heads, add_self_loops=add_self_loops))
+        for width in self.widths[:-1]:
+            self.convs.append(FeaStConv(channels, width, heads=self.heads, add_self_loops=add_self_loops))
             channels = width
-        self.hidden = nn.Linear(channels, widths[-1])
+        self.hidden = nn.Linear(channels, self.widths[-1])
         self.dropout = nn.Dropout(dropout)
-        self.output = nn.Linear(widths[-1], out_channels)
+        self.output = nn.Linear(self.widths[-1], self.out_channels)
 
     def reset_parameters(self) -> None:
         for module in self.modules():
@@ -127,7 +151,9 @@ class FeaStNet(nn.Module):
                 module.reset_parameters()
 
     def forward(self, x: Tensor, geometry) -> Tensor:
-        """``x`` ``(N, C_in)``, ``geometry`` with ``edge_index`` ``(2, E)`` -> ``(N, C_out)``."""
+        """``x`` ``(N, C_in)``, ``geometry.edge_index`` ``(2, E)`` -> ``(N, C_out)``."""
+        if x.dim() != 2 or x.shape[1] != self.in_channels:
+            raise ValueError(f"FeaStNet expects x of shape (N, {self.in_channels}), got {tuple(x.shape)}")
         edge_index = getattr(geometry, "edge_index", None)
         if edge_index is None:
             raise ValueError(
@@ -135,13 +161,11 @@ class FeaStNet(nn.Module):
                 "from a triangle mesh (point clouds have no edges; use a zernet model for them)"
             )
         edge_index = edge_index.to(device=x.device)
-        if x.dim() != 2 or x.shape[1] != self.in_channels:
-            raise ValueError(f"feastnet expects x of shape (N, {self.in_channels}), got {tuple(x.shape)}")
         if self.input is not None:
-            x = torch.relu(self.input(x))
+            x = self.act(self.input(x))
         for conv in self.convs:
-            x = torch.relu(conv(x, edge_index))
-        x = torch.relu(self.hidden(x))
+            x = self.act(conv(x, edge_index))
+        x = self.act(self.hidden(x))
         return self.output(self.dropout(x))
 
 
@@ -150,102 +174,98 @@ class FeaStNet(nn.Module):
 # --------------------------------------------------------------------------------------------------
 
 
-def ridge_normal_matrix(basis: Tensor, valid: Tensor, ridge: float) -> Tensor:
-    """Ridge-regularised normal matrices of every patch's least-squares fit.
+def ridge_normal_matrix(basis: Tensor, ridge: float) -> Tensor:
+    """Ridge-regularised normal matrices ``BᵀB + λ I`` of every patch's least-squares fit.
 
     Args:
-        basis: ``(N, n, k)`` Zernike values at each patch's samples (rows of absent samples ignored).
-        valid: ``(N, n)`` bool, which samples exist.
-        ridge: ``λ``; the system is ``(BᵀB + λ I) a = Bᵀ f``.
+        basis: ``(N, n, k)`` Zernike values at each patch's samples, zero rows for absent samples.
+        ridge: ``λ``.
 
     Returns:
         ``(N, k, k)``.
     """
-    b = basis * valid.unsqueeze(-1).to(basis.dtype)
-    gram = b.transpose(1, 2) @ b
+    gram = basis.transpose(1, 2) @ basis
     eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
     return gram + ridge * eye
 
 
 class _PatchTensors:
-    """The operator's patch data (sample ids, basis values, interpolation) as tensors on one device."""
+    """An operator's constant patch data (sample ids, Zernike values, interpolation) on one device."""
 
     def __init__(self, operator, dtype: torch.dtype, device: torch.device) -> None:
         index = torch.as_tensor(np.asarray(operator.patch_sample_index), dtype=torch.long)
-        self.valid = (index >= 0).to(device)
+        valid = index >= 0
         self.index = index.clamp(min=0).to(device)
-        self.basis = torch.as_tensor(np.asarray(operator.patch_basis), dtype=dtype, device=device)
+        self.mask = valid.unsqueeze(-1).to(dtype=dtype, device=device)  # (N, n, 1)
+        basis = torch.as_tensor(np.asarray(operator.patch_basis), dtype=dtype, device=device)
+        self.basis = basis * self.mask  # (N, n, k), zero where a patch has no sample
         interp = operator.interpolation.tocoo()
         self.interp_rows = torch.as_tensor(interp.row, dtype=torch.long, device=device)
         self.interp_cols = torch.as_tensor(interp.col, dtype=torch.long, device=device)
-        self.interp_vals = torch.as_tensor(interp.data, dtype=dtype, device=device)
+        self.interp_vals = torch.as_tensor(interp.data, dtype=dtype, device=device).unsqueeze(1)
         self.n_samples = int(interp.shape[0])
+        self.n_vertices = int(index.shape[0])
 
 
-class PaperZernikeConv(nn.Module):
-    r"""Zernike convolution as the ZerNet paper discretises it, re-fitting patches at every call.
+class PaperZernikeConv(RotatedKernelConv):
+    r"""Zernike convolution as the ZerNet paper discretises it: the patch fit is re-solved at every call.
 
-    For vertex ``p`` with patch samples ``j`` (values ``f_j`` interpolated from the vertex features,
-    minus ``f_p`` when the operator was built with ``subtract_center``) and Zernike values ``B_{jk}``:
+    For vertex ``p`` with patch samples ``j`` — values ``f_j`` interpolated from the vertex features
+    (minus ``f_p`` when the operator was built with ``subtract_center``) and Zernike values ``B_{jk}`` —
 
     .. math::
         F_p = (B_p^\top B_p + \lambda I)^{-1} B_p^\top f_p \in \mathbb{R}^{k \times C_{in}},\qquad
-        y_p = \max_{a < s} \sum_{k, c} F_p[k, c]\,(R(2\pi a / s)\, G)[k, c, :] + b
+        \mathbf{y}_p = \max_{a < s}\; F_p \cdot \mathrm{Rot}(2\pi a / s)\, G + \mathbf{b}.
 
-    with ``R(φ)`` the Zernike rotation (:func:`zernet.zernike.rotation_matrix`). The fit is solved
-    with :func:`torch.linalg.solve` on the ``(N, k, k)`` normal equations in every forward pass, like
-    the authors' release (which uses ``λ = 0.01``); by default ``λ`` is the operator's own
-    ``config.ridge`` so that the result equals zernet's precomputed operator — pass ``ridge`` to
-    override.
+    The normal equations are built from ``operator.patch_basis`` and solved with
+    :func:`torch.linalg.solve` in every forward pass, like the authors' release (which uses ``λ = 0.01``).
+    By default ``λ`` is the operator's own ``config.ridge``, the convention ``zernet.patches`` uses to
+    precompute its sparse operator, so ``fit(x, op)`` equals ``op.apply(x)`` to rounding and this layer
+    equals :class:`~zernet.nn.conv.ZernikeConv` (same ``weight`` and ``bias``, ``pooling="max"``);
+    pass ``ridge=0.01`` for the release's value.
+
+    The kernel contraction is :class:`~zernet.nn.reference.RotatedKernelConv`'s: ``s`` explicitly rotated
+    copies of the kernel, cost linear in ``s``. Parameters, initialisation and state dict are
+    :class:`~zernet.nn.conv.ZernikeConv`'s.
 
     Args:
         in_channels: ``C_in``.
         out_channels: ``C_out``.
-        k: number of Zernike bases (must match the operator's ``k``).
-        rotations: angular resolution ``s`` (number of rotated kernel copies).
-        ridge: ``λ``; ``None`` takes ``operator.config.ridge``.
+        n_max: highest Zernike degree (5: ``k = 21``, the paper's); must match the operator.
+        angular_resolution: ``s``, the number of rotated kernel copies.
+        pooling: ``"max"`` (the paper's angular max pooling), ``"mean"`` or ``"none"``.
         bias: learn an additive bias.
+        k: alternatively the number of bases (overrides ``n_max``).
+        ridge: ``λ`` of the fit; ``None`` takes ``operator.config.ridge``.
 
     Shapes:
-        - input: ``x`` ``(N, C_in)``; ``operator`` a :class:`~zernet.patches.PatchOperator` over the same
-          ``N`` vertices (with ``patch_sample_index``, ``patch_basis``, ``interpolation``, ``config``).
-        - output: ``(N, C_out)``.
+        - input: ``x`` ``(N, C_in)``; ``operator`` a :class:`~zernet.patches.PatchOperator` of the same ``N``
+          vertices (``patch_sample_index`` ``(N, n)``, ``patch_basis`` ``(N, n, k)``, ``interpolation``
+          ``(M, N)``, ``config``).
+        - output: ``(N, C_out)`` (``(N, s, C_out)`` for ``pooling="none"``).
     """
 
     def __init__(
         self,
         in_channels: int,
         out_channels: int,
-        k: int = 21,
-        rotations: int = 4,
-        ridge: float | None = None,
+        n_max: int = 5,
+        angular_resolution: int = 16,
+        pooling: str = "max",
         bias: bool = True,
+        k: int | None = None,
+        ridge: float | None = None,
     ) -> None:
-        super().__init__()
-        if rotations < 1:
-            raise ValueError(f"rotations (angular resolution s) must be >= 1, got {rotations}")
-        self.in_channels = int(in_channels)
-        self.out_channels = int(out_channels)
-        self.k = int(k)
-        self.n_max = n_max_for(self.k)
-        self.rotations = int(rotations)
-        self.ridge = ridge
-        self.weight = nn.Parameter(torch.empty(self.k, self.in_channels, self.out_channels))
-        self.bias = nn.Parameter(torch.empty(self.out_channels)) if bias else None
-        angles = torch.arange(self.rotations, dtype=torch.float64) * (2.0 * math.pi / self.rotations)
-        self.register_buffer("rotation", rotation_matrix(angles, self.n_max).float(), persistent=False)
+        super().__init__(in_channels, out_channels, n_max=n_max, angular_resolution=angular_resolution,
+                         pooling=pooling, bias=bias, k=k)
+        if ridge is not None and float(ridge) < 0:
+            raise ValueError(f"ridge must be >= 0, got {ridge}")
+        self.ridge = None if ridge is None else float(ridge)
         self._patches: tuple | None = None
-        self.reset_parameters()
-
-    def reset_parameters(self) -> None:
-        bound = 1.0 / math.sqrt(self.k * self.in_channels)
-        nn.init.uniform_(self.weight, -bound, bound)
-        if self.bias is not None:
-            nn.init.zeros_(self.bias)
 
     def _patch_tensors(self, operator, dtype: torch.dtype, device: torch.device) -> _PatchTensors:
-        # The operator's constant patch data is moved to the device once per (operator, dtype, device);
-        # the least-squares solve itself is redone in every forward pass.
+        # Constant patch data moves to the device once per (operator, dtype, device); the least-squares
+        # problem itself is solved again in every forward pass.
         if self._patches is not None:
             ref, key, tensors = self._patches
             if ref() is operator and key == (dtype, device):
@@ -260,67 +280,58 @@ class PaperZernikeConv(nn.Module):
 
     def fit(self, x: Tensor, operator) -> Tensor:
         """Zernike coefficients of every patch by ridge least squares: ``(N, C)`` -> ``(N, k, C)``."""
-        if operator.k != self.k:
-            raise ValueError(f"layer has k={self.k} Zernike bases but the operator has k={operator.k}")
+        if x.dim() != 2:
+            raise ValueError(f"{self.__class__.__name__}: x must be (N, C), got {tuple(x.shape)}")
+        if getattr(operator, "k", self.k) != self.k:
+            raise ValueError(f"{self.__class__.__name__} has k={self.k} bases but the operator has k={operator.k}")
         patches = self._patch_tensors(operator, x.dtype, x.device)
-        n_vertices = x.shape[0]
-        if patches.index.shape[0] != n_vertices:
-            raise ValueError(
-                f"operator covers {patches.index.shape[0]} vertices but x has {n_vertices} rows"
-            )
-        # Per-vertex features -> sample values (barycentric interpolation), then each patch's samples.
+        if patches.n_vertices != x.shape[0]:
+            raise ValueError(f"operator covers {patches.n_vertices} vertices but x has {x.shape[0]} rows")
+        # Vertex features -> sample values (barycentric interpolation) -> each patch's samples (N, n, C).
         samples = x.new_zeros(patches.n_samples, x.shape[1]).index_add(
-            0, patches.interp_rows, x[patches.interp_cols] * patches.interp_vals.unsqueeze(1)
+            0, patches.interp_rows, x[patches.interp_cols] * patches.interp_vals
         )
-        values = samples[patches.index]  # (N, n, C)
+        values = samples[patches.index]
         if getattr(operator.config, "subtract_center", False):
             values = values - x.unsqueeze(1)
-        mask = patches.valid.unsqueeze(-1).to(x.dtype)
-        values = values * mask
-        basis = patches.basis * mask  # (N, n, k)
-        ridge = float(operator.config.ridge if self.ridge is None else self.ridge)
-        normal = ridge_normal_matrix(basis, patches.valid, ridge)  # (N, k, k)
-        rhs = basis.transpose(1, 2) @ values  # (N, k, C)
+        values = values * patches.mask
+        ridge = operator.config.ridge if self.ridge is None else self.ridge
+        normal = ridge_normal_matrix(patches.basis, float(ridge))  # (N, k, k)
+        rhs = patches.basis.transpose(1, 2) @ values  # (N, k, C)
         return torch.linalg.solve(normal, rhs)
 
-    def forward(self, x: Tensor, operator) -> Tensor:
-        """``x`` ``(N, C_in)`` -> ``(N, C_out)``: fit, ``s`` rotated kernel copies, max over them."""
-        coeffs = self.fit(x, operator)  # (N, k, C_in)
-        n = coeffs.shape[0]
-        rotation = self.rotation.to(dtype=x.dtype, device=x.device)  # (s, k, k)
-        # Rotated kernel copies (k, C_in, s, C_out): Rot(φ_a) G for every a.
-        kernels = torch.einsum("akl,lio->kiao", rotation, self.weight.to(x.dtype))
-        response = coeffs.reshape(n, -1) @ kernels.reshape(self.k * self.in_channels, -1)
-        out = response.view(n, self.rotations, self.out_channels).amax(dim=1)
-        if self.bias is not None:
-            out = out + self.bias
-        return out
+    def coefficients(self, x: Tensor, operator) -> Tensor:
+        """The per-call least-squares fit :meth:`fit`, checked: ``(N, k, C_in)``."""
+        if x.dim() != 2 or x.shape[1] != self.in_channels:
+            raise ValueError(f"{self.__class__.__name__}: x must be (N, {self.in_channels}), got {tuple(x.shape)}")
+        return self.fit(x, operator)
 
-    def extra_repr(self) -> str:
+    def __repr__(self) -> str:
+        ridge = "operator" if self.ridge is None else self.ridge
         return (
-            f"{self.in_channels}, {self.out_channels}, k={self.k}, rotations={self.rotations}, "
-            f"ridge={'operator' if self.ridge is None else self.ridge}"
+            f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, n_max={self.n_max}, "
+            f"k={self.k}, angular_resolution={self.angular_resolution}, pooling={self.pooling!r}, "
+            f"ridge={ridge}, bias={self.bias is not None})"
         )
 
 
 @register_model("paper-zernet")
-class PaperZerNet(nn.Module):
-    r"""The ZerNet paper's single-scale network with its own layer formulation (:class:`PaperZernikeConv`).
+class PaperZerNet(ZerNet):
+    r"""The ZerNet paper's single-scale network with the paper's own layer (:class:`PaperZernikeConv`).
 
-    ``(PaperZernikeConv(w_i, s), ReLU)_i -> Lin(widths[-1]), ReLU -> Dropout -> Lin(out_channels)``,
-    the paper's ``Conv64 -> Conv128 -> Conv256 -> Lin512 -> Lin(C)`` at the default widths.
+    Exactly :class:`~zernet.nn.models.ZerNet` (same options, blocks, head, initial weights for a given seed
+    and state-dict keys) with every :class:`~zernet.nn.conv.ZernikeConv` replaced by a
+    :class:`PaperZernikeConv` holding the same weights: per-layer least-squares fit and ``s`` rotated
+    kernel copies with max pooling. The paper's ``Conv64 -> Conv128 -> Conv256 -> Lin512 -> Lin(C)`` at
+    the default (correspondence) widths.
 
     Args:
-        in_channels: ``C_in``.
-        out_channels: ``C_out``.
-        widths: convolution widths followed by the hidden linear width.
-        k: Zernike bases per patch (21 in the paper).
-        rotations: angular resolution ``s`` of every convolution.
+        in_channels, out_channels, widths, task, n_max, angular_resolution, pooling, activation, dropout,
+        norm, scale: as :class:`~zernet.nn.models.ZerNet` (``pooling`` ``"max"`` or ``"mean"``).
         ridge: ``λ`` of the per-layer fit; ``None`` uses the operator's (see :class:`PaperZernikeConv`).
-        dropout: dropout probability before the output layer (0.25 in the authors' release).
 
     Shapes:
-        - input: ``x`` ``(N, C_in)``; ``geometry.operators[0]`` the single-scale patch operator.
+        - input: ``x`` ``(N, C_in)``; ``geometry.operators[scale]`` a patch operator.
         - output: ``(N, C_out)``.
     """
 
@@ -328,30 +339,30 @@ class PaperZerNet(nn.Module):
         self,
         in_channels: int,
         out_channels: int,
-        widths: Sequence[int] = (64, 128, 256, 512),
-        k: int = 21,
-        rotations: int = 4,
-        ridge: float | None = None,
+        widths: Sequence[int] | None = None,
+        task: str | None = None,
+        n_max: int = 5,
+        angular_resolution: int = 16,
+        pooling: str = "max",
+        activation: str = "relu",
         dropout: float = 0.25,
+        norm: str | None = None,
+        scale: int = 0,
+        ridge: float | None = None,
     ) -> None:
-        super().__init__()
-        widths = _check_widths(widths)
-        self.in_channels = int(in_channels)
-        self.out_channels = int(out_channels)
-        self.widths = widths
-        channels = in_channels
-        self.convs = nn.ModuleList()
-        for width in widths[:-1]:
-            self.convs.append(PaperZernikeConv(channels, width, k=k, rotations=rotations, ridge=ridge))
-            channels = width
-        self.hidden = nn.Linear(channels, widths[-1])
-        self.dropout = nn.Dropout(dropout)
-        self.output = nn.Linear(widths[-1], out_channels)
-
-    def forward(self, x: Tensor, geometry) -> Tensor:
-        """``x`` ``(N, C_in)``, ``geometry.operators[0]`` -> ``(N, C_out)``."""
-        operator = geometry.operators[0]
-        for conv in self.convs:
-            x = torch.relu(conv(x, operator))
-        x = torch.relu(self.hidden(x))
-        return self.output(self.dropout(x))
+        if pooling not in ("max", "mean"):
+            raise ValueError(f"paper-zernet pools over s rotated kernels: pooling must be 'max' or 'mean', got {pooling!r}")
+        super().__init__(in_channels, out_channels, widths=widths, task=task, n_max=n_max,
+                         angular_resolution=angular_resolution, pooling=pooling, activation=activation,
+                         dropout=dropout, norm=norm, scale=scale)
+        self.ridge = ridge
+        # Swap the layers without touching the global RNG, so that the weights and the later dropout draws
+        # are those of ZerNet built with the same seed.
+        with torch.random.fork_rng(devices=[]):
+            for block in self.blocks:
+                for i, conv in enumerate(block.convs):
+                    paper = PaperZernikeConv(conv.in_channels, conv.out_channels, n_max=conv.n_max,
+                                             angular_resolution=conv.angular_resolution, pooling=conv.pooling,
+                                             bias=conv.bias is not None, ridge=ridge)
+                    paper.load_state_dict(conv.state_dict())
+                    block.convs[i] = paper
