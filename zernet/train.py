@@ -33,13 +33,13 @@ Checkpoints contain only tensors and plain containers (dicts, lists, strings, nu
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import logging
 import math
 import random
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import fields as dataclass_fields
 from pathlib import Path
 from typing import Any
 
@@ -76,8 +76,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "val_count": None,        # or an exact number (overrides val_fraction); neither: the loader's default
     },
     "patch": {
-        "area": None,             # every surface is scaled to this total area first (None: keep as is)
-        "scales": [],             # one PatchConfig dict per scale, e.g. {r0: 5.5, n_samples: 12000}
+        "area": None,             # every surface is scaled to this total area first (None: the data set's default)
+        "scales": [],             # one PatchConfig dict per scale, e.g. {r0: 5.5}; []: the data set's default
     },
     "model": {
         "name": "zernet",
@@ -236,15 +236,20 @@ def resolve_config(config: dict) -> dict:
         raise ConfigError(f"data.val_fraction must be in [0, 1), got {data_cfg['val_fraction']}")
 
     model_cfg = resolved["model"]
-    if not isinstance(model_cfg.get("name"), str):
-        raise ConfigError("model.name must name a model (e.g. zernet, zernet-multiscale, feastnet)")
+    from zernet.nn.models import available_models
+
+    models = available_models()
+    if model_cfg.get("name") not in models:
+        # Checked here, before any preprocessing, so a typo fails in a second rather than after minutes.
+        raise ConfigError(f"model.name {model_cfg.get('name')!r} is not a model (known: {', '.join(models)})")
 
     patch_cfg = resolved["patch"]
     _check_number(patch_cfg, "patch.area", positive=True, allow_none=True)
     scales = patch_cfg["scales"]
-    if not isinstance(scales, list) or not scales:
-        raise ConfigError("patch.scales must be a non-empty list of patch settings, one per scale (e.g. [{r0: 5.5}])")
-    known = {f.name for f in dataclass_fields(PatchConfig)}
+    if not isinstance(scales, list):
+        raise ConfigError("patch.scales must be a list of patch settings, one per scale (e.g. [{r0: 5.5}]), "
+                          "or [] for the data set's default")
+    known = {f.name for f in dataclasses.fields(PatchConfig)}
     for i, scale in enumerate(scales):
         if not isinstance(scale, dict):
             raise ConfigError(f"patch.scales.{i} must be a mapping of PatchConfig fields, got {scale!r}")
@@ -312,63 +317,30 @@ def resolve_device(name: str) -> torch.device:
 # --------------------------------------------------------------------------------------------------------
 
 
-# data.kind -> (module, loader function) in zernet.data.
-DATA_KINDS = {
-    "synthetic": ("zernet.data.synthetic", "make_synthetic_dataset"),
-    "faust": ("zernet.data.faust", "load_faust"),
-    "segmentation": ("zernet.data.segmentation", "load_segmentation"),
-    "regression": ("zernet.data.regression", "load_regression"),
-    "aneurysm": ("zernet.data.regression", "load_aneurysm"),
-}
-# Arguments the training loop supplies itself; a config must not set them under data.
-_LOADER_OWN = {"patch_configs", "cache_dir", "area", "n_val", "feature_kind", "workers", "progress"}
-
-
 def build_dataset(config: dict, progress: bool = True, workers: int | None = None):
     """The :class:`~zernet.data.ShapeDataset` a resolved configuration describes (preprocessed and cached).
 
-    ``data.kind`` picks the loader (:data:`DATA_KINDS`); ``patch.scales``, ``patch.area``, ``cache_dir``,
-    ``data.val_fraction``/``data.val_count`` (-> ``n_val``) and ``data.features`` (-> ``feature_kind``) are
-    handed to it, and every other ``data`` key is passed through by name (e.g. ``root``, ``test``, ``task``).
+    Hands ``data.kind`` to :func:`zernet.data.load_dataset` with ``patch.scales``, ``patch.area``,
+    ``cache_dir``, ``data.seed``, ``data.val_fraction``/``data.val_count`` and ``data.features`` (as
+    ``feature_kind``); every other ``data`` key is a loader option passed by name (``root``, ``test``, ...).
     """
-    import importlib
-    import inspect
+    from zernet.data import DATASET_KINDS, load_dataset
 
-    data_cfg = dict(config["data"])
-    kind = data_cfg.pop("kind")
-    if kind not in DATA_KINDS:
-        raise ConfigError(f"data.kind {kind!r} is not a data set kind (known: {', '.join(DATA_KINDS)})")
-    module_name, function_name = DATA_KINDS[kind]
-    loader = getattr(importlib.import_module(module_name), function_name)
-    accepted = set(inspect.signature(loader).parameters)
-
-    arguments: dict[str, Any] = {"patch_configs": patch_configs(config), "cache_dir": config["cache_dir"],
-                                 "progress": progress, "workers": workers}
-    val_count, val_fraction = data_cfg.pop("val_count", None), data_cfg.pop("val_fraction", None)
-    if val_count is not None:
-        arguments["n_val"] = int(val_count)
-    elif val_fraction is not None:
-        # A fraction of exactly 0 means "no validation shapes" (the loaders read a float 0 as a count).
-        arguments["n_val"] = float(val_fraction) if val_fraction > 0 else 0
-    if "features" in data_cfg:
-        arguments["feature_kind"] = data_cfg.pop("features")
-    area = config["patch"]["area"]
-    if "area" in accepted:
-        if area is not None or kind in ("regression", "segmentation"):
-            arguments["area"] = area
-    elif area is not None:
-        raise ConfigError(f"patch.area: the {kind} data set has a fixed area; remove patch.area (or set it to null)")
-    for key, value in data_cfg.items():
-        if key in _LOADER_OWN:
-            raise ConfigError(f"data.{key}: set this through the config's own key instead "
-                              "(patch.area, cache_dir, data.val_count/val_fraction, data.features)")
-        if key not in accepted:
-            options = sorted(accepted - _LOADER_OWN)
-            raise ConfigError(f"unknown key data.{key} for data.kind {kind} (known: "
-                              f"kind, seed, val_fraction, val_count, features, {', '.join(options)})")
-        arguments[key] = value
-    arguments = {k: v for k, v in arguments.items() if k in accepted}
-    return loader(**arguments)
+    options = dict(config["data"])
+    kind = options.pop("kind")
+    if kind not in DATASET_KINDS:
+        raise ConfigError(f"data.kind {kind!r} is not a data set kind (known: {', '.join(DATASET_KINDS)})")
+    for key in ("val_fraction", "val_count"):
+        if options.get(key) is None:
+            options.pop(key, None)  # let the loader's default apply
+    if "features" in options:
+        options["feature_kind"] = options.pop("features")
+    try:
+        return load_dataset(kind, patch_configs=patch_configs(config), area=config["patch"]["area"],
+                            cache_dir=config["cache_dir"], progress=progress, workers=workers, **options)
+    except TypeError as error:
+        # An option the loader does not take: a configuration problem under data.
+        raise ConfigError(f"data (kind {kind}): {error}") from None
 
 
 def _is_correspondence(dataset, config: dict) -> bool:
@@ -691,6 +663,13 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
 
     task = dataset.task
     loss_name = _loss_name(config, task)
+    # What predict() needs to preprocess a new surface exactly like the training shapes.
+    preprocess_spec = {
+        "patch_configs": [_plain(dataclasses.asdict(c)) for c in dataset.patch_configs],
+        "area": None if dataset.target_area is None else float(dataset.target_area),
+        "feature_kind": str(dataset.feature_kind),
+        "class_names": _plain(dataset.info.get("class_names")),
+    }
     first = dataset[train_idx[0]]
     out_channels = int(dataset.num_classes) if task == "classification" else 1
     spec = _model_spec(config, first.features.shape[1], out_channels)
@@ -795,6 +774,7 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
             "num_classes": None if dataset.num_classes is None else int(dataset.num_classes),
             "correspondence": _is_correspondence(dataset, config),
             "target_stats": target_stats,
+            "preprocess": preprocess_spec,
             "model": _cpu_state_dict(model),
             "optimizer": _cpu_state_dict(optimizer),
             "state": copy.deepcopy(state),
@@ -1078,20 +1058,21 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
         (N,) int64 class indices or (N,) float32 values (regression, in the units of the training targets,
         i.e. area-normalised); with ``probabilities=True`` a tuple (prediction, probabilities).
     """
-    from zernet.data import prepare_surface
+    from zernet.data import prepare_record
+    from zernet.patches import PatchConfig
     from zernet.surface import load_surface
 
     path = _checkpoint_path(checkpoint)
     checkpoint = load_checkpoint(path)
-    config = checkpoint["config"]
+    config, spec = checkpoint["config"], checkpoint["preprocess"]
     if not hasattr(surface, "vertices"):
         surface = load_surface(surface)
-    record = prepare_surface(
+    record = prepare_record(
         surface,
-        patch_configs=patch_configs(config),
-        area=config["patch"]["area"],
+        [PatchConfig(**c) for c in spec["patch_configs"]],
         cache_dir=config["cache_dir"] if cache_dir is None else cache_dir,
-        feature_kind=config["data"].get("features", "xyz"),
+        target_area=spec["area"],
+        feature_kind=spec["feature_kind"],
     )
     device = resolve_device(device or config["train"]["device"])
     model = _build_model(checkpoint["model_spec"]).to(device)

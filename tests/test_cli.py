@@ -1,0 +1,134 @@
+"""The ``zernet`` command: help texts, one-line errors with exit code 2, train -> evaluate -> predict files."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from zernet.cli import DEMO_CONFIG, main
+
+REPO = Path(__file__).resolve().parent.parent
+SUBCOMMANDS = ("preprocess", "train", "evaluate", "predict", "demo")
+
+
+def tiny_config(cache_dir) -> dict:
+    """Six 200-vertex creatures and a small model: a full train/evaluate/predict cycle in seconds."""
+    return {
+        "data": {"kind": "synthetic", "task": "segmentation", "n_shapes": 6, "n_vertices": 200,
+                 "test_fraction": 0.34, "val_count": 1, "seed": 0},
+        "patch": {"scales": [{"r0": 5.0, "n_samples": 800, "patch_size": 20, "n_max": 3}]},
+        "model": {"name": "zernet", "widths": [8, 8, 16], "angular_resolution": 2, "dropout": 0.1},
+        "train": {"epochs": 1, "seed": 0, "threads": 1, "lr": 1e-2},
+        "eval": {"renders": 0, "plots": False},
+        "cache_dir": str(cache_dir),
+    }
+
+
+def write_config(path: Path, config: dict) -> Path:
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+@pytest.mark.parametrize("command", SUBCOMMANDS)
+def test_every_subcommand_has_help(command, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main([command, "--help"])
+    assert exit_info.value.code == 0
+    assert f"usage: zernet {command}" in capsys.readouterr().out
+
+
+def test_entry_point_help_runs_as_a_program():
+    result = subprocess.run([sys.executable, "-m", "zernet.cli", "--help"], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 0
+    for command in SUBCOMMANDS:
+        assert command in result.stdout
+
+
+def one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+def test_missing_config_file_exits_2(tmp_path, capsys):
+    assert main(["train", str(tmp_path / "nope.yaml")]) == 2
+    assert "config file not found" in one_line_error(capsys)
+
+
+def test_bad_config_key_exits_2(tmp_path, capsys):
+    config = tiny_config(tmp_path / "cache")
+    config["train"]["epoch"] = 3  # typo for epochs
+    assert main(["train", str(write_config(tmp_path / "bad.yaml", config))]) == 2
+    assert "unknown key train.epoch" in one_line_error(capsys)
+
+
+def test_unknown_model_exits_2(tmp_path, capsys):
+    config = tiny_config(tmp_path / "cache")
+    path = write_config(tmp_path / "c.yaml", config)
+    assert main(["train", str(path), "--set", "model.name=nosuchnet"]) == 2
+    err = one_line_error(capsys)
+    assert "nosuchnet" in err and "zernet" in err
+
+
+def test_bad_override_exits_2(tmp_path, capsys):
+    path = write_config(tmp_path / "c.yaml", tiny_config(tmp_path / "cache"))
+    assert main(["train", str(path), "--set", "train.epochs"]) == 2
+    assert "section.key=value" in one_line_error(capsys)
+
+
+def test_missing_run_folder_exits_2(tmp_path, capsys):
+    assert main(["evaluate", str(tmp_path / "no_run")]) == 2
+    assert "no_run" in one_line_error(capsys)
+
+
+def test_train_evaluate_predict(tmp_path, capsys):
+    path = write_config(tmp_path / "c.yaml", tiny_config(tmp_path / "cache"))
+    run_dir = tmp_path / "run"
+    assert main(["train", str(path), "--run-dir", str(run_dir), "--no-progress", "--workers", "0"]) == 0
+    assert (run_dir / "metrics.json").is_file()
+    capsys.readouterr()
+
+    # Training the same folder again without --resume is refused, with a hint.
+    assert main(["train", str(path), "--run-dir", str(run_dir), "--no-progress"]) == 2
+    assert "--resume" in one_line_error(capsys)
+
+    assert main(["evaluate", str(run_dir), "--split", "val", "--no-progress"]) == 0
+    assert json.loads((run_dir / "metrics-val.json").read_text())["split"] == "val"
+
+    from zernet.data.synthetic import make_creature
+
+    surface, _, _ = make_creature(77, n_vertices=150)
+    mesh_path = tmp_path / "shape.ply"
+    trimesh.Trimesh(surface.vertices, surface.faces, process=False).export(mesh_path)
+    prefix = tmp_path / "out" / "shape"
+    assert main(["predict", str(run_dir), str(mesh_path), "--out", str(prefix), "--probabilities"]) == 0
+    prediction = np.load(tmp_path / "out" / "shape.npy")
+    assert prediction.shape == (150,) and prediction.dtype == np.int64
+    assert np.load(tmp_path / "out" / "shape_probabilities.npy").shape == (150, 4)
+    coloured = trimesh.load(tmp_path / "out" / "shape.ply", process=False)
+    assert len(coloured.vertices) == 150
+    assert coloured.visual.vertex_colors.shape == (150, 4)
+
+    assert main(["predict", str(run_dir), str(tmp_path / "missing.ply"), "--out", str(prefix)]) == 2
+    assert "missing.ply" in one_line_error(capsys)
+
+
+def test_demo_yaml_matches_the_built_in_demo():
+    """configs/demo.yaml (commented, for users) and the built-in copy (for installed wheels) agree."""
+    assert yaml.safe_load((REPO / "configs" / "demo.yaml").read_text()) == DEMO_CONFIG
+
+
+def test_shipped_configs_are_valid():
+    from zernet.train import load_config, resolve_config
+
+    for path in sorted((REPO / "configs").glob("*.yaml")):
+        resolve_config(load_config(path))
