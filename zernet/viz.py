@@ -24,6 +24,7 @@ matplotlib.use("Agg")  # before pyplot: render to files only, never open a windo
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib import colors as mcolors  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
 __all__ = ["VIEWS", "render_surface", "render_comparison", "plot_error_curve", "plot_training_curves"]
@@ -117,7 +118,8 @@ def _draw(ax, surface, values, norm, cmap, view: str, up: str, point_size: float
         rgba = cmap(norm(_face_values(faces, values)))
         shade = 0.55 + 0.45 * np.abs(facing)  # two-sided lighting from the camera
         rgba[:, :3] *= shade[:, None]
-        collection = Poly3DCollection(triangles, facecolors=rgba, edgecolors="none", linewidths=0)
+        # Edges in the face colour hide the hairline seams antialiasing leaves between adjacent triangles.
+        collection = Poly3DCollection(triangles, facecolors=rgba, edgecolors=rgba, linewidths=0.3)
         ax.add_collection3d(collection)
     else:
         size = point_size if point_size is not None else max(0.5, 4000.0 / len(points))
@@ -332,6 +334,7 @@ def plot_training_curves(history: Sequence[Mapping[str, float]], path: str | os.
         else:
             ax.text(0.5, 0.5, f"no {name} recorded", ha="center", va="center", transform=ax.transAxes)
         ax.set_xlabel("epoch")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel(name)
         ax.grid(True, alpha=0.3)
     if title:
