@@ -154,18 +154,15 @@ class _Geodesics:
         return np.asarray(self._heat.compute_distance(int(source)))
 
 
-def _connected_component(faces: np.ndarray, n: int, start: int) -> np.ndarray:
-    """Boolean mask of the vertices connected to ``start`` through edges."""
+def _component_labels(faces: np.ndarray, n: int) -> np.ndarray:
+    """(n,) connected-component id of every vertex (through mesh edges)."""
     import scipy.sparse as sp
-    from scipy.sparse.csgraph import breadth_first_order
+    from scipy.sparse.csgraph import connected_components
 
     rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
     cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
     graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)).tocsr()
-    order = breadth_first_order(graph, start, directed=False, return_predecessors=False)
-    mask = np.zeros(n, dtype=bool)
-    mask[order] = True
-    return mask
+    return connected_components(graph, directed=False)[1]
 
 
 def geodesic_diameter(surface_or_vertices, faces=None, n_sweeps: int = 4, seed: int = 0) -> float:
@@ -227,12 +224,8 @@ def geodesic_errors(surface_or_vertices, pred, target, faces=None, diameter: flo
         # Different vertices with the same (true, predicted) pair share one geodesic computation.
         pairs, inverse = np.unique(np.stack([target[wrong], pred[wrong]], axis=1), axis=0, return_inverse=True)
         # Pairs in different connected components have no geodesic: count them as infinitely wrong.
-        lengths = np.empty(len(pairs))
-        component_of = {}
-        for k, (a, b) in enumerate(pairs):
-            if a not in component_of:
-                component_of[a] = _connected_component(faces, n, int(a))
-            lengths[k] = geo.pair(a, b) if component_of[a][b] else np.inf
+        component = _component_labels(faces, n)
+        lengths = np.array([geo.pair(a, b) if component[a] == component[b] else np.inf for a, b in pairs])
         errors[wrong] = lengths[np.asarray(inverse).reshape(-1)] / diameter
     return errors
 
