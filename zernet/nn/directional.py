@@ -27,8 +27,8 @@ reference direction after the minimal rotation taking ``n_q`` onto ``n_p``: a di
 **Fit.** With ``A`` the scalar patch operator (``PatchOperator.matrix``, row ``p k + j``, column ``q``), the
 Zernike coefficients of the transported channel in ``p``'s patch are, per order ``ℓ``,
 ``α_p(j, ℓ) = Σ_q A[(p, j), q] ĥ_q(ℓ) e^{-iℓγ_qp}``: with ``C_ℓ = A ⊙ cos ℓγ`` and ``S_ℓ = A ⊙ sin ℓγ``,
-``α_a = C_ℓ a - S_ℓ b`` and ``α_b = S_ℓ a + C_ℓ b``. :class:`DirectionalOperator` holds all orders as
-one real sparse matrix, built once per surface and cached on the patch operator.
+``α_a = C_ℓ a - S_ℓ b`` and ``α_b = S_ℓ a + C_ℓ b``. :class:`DirectionalOperator` holds, per order, ``C_ℓ`` and
+``S_ℓ`` as one real sparse matrix, built once per surface and cached on the patch operator.
 
 **Convolution.** The local field at ``p`` is ``F_p(r, θ; ψ) = Σ_{j, r} α_p[j, r] Z_j(r, θ) T_r(ψ)`` with
 ``T = (1, cos ψ, sin ψ, ..., cos Lψ, sin Lψ)``; a kernel is ``g(r, θ; ψ) = Σ_{j, r} G[j, r] Z_j T_r``.
@@ -258,80 +258,98 @@ class DirectionalOperator:
     r"""Transported Zernike fit of directional channels of Fourier order ``<= L``, for one surface.
 
     ``apply`` maps per-vertex channels ``h`` (``(N, 2L + 1, C)``, Fourier layout) to the Zernike
-    coefficients of their transports into every vertex's patch, ``α[p, j, r, c]``; see the module
-    docstring for the formula. One real sparse matrix ``matrix`` of shape ``(N k (2L + 1), N (2L + 1))``,
-    row ``(p k + j)(2L + 1) + r``, column ``q (2L + 1) + r'``, with ``nnz(A) (1 + 4L)`` non-zeros.
+    coefficients of their transports into every vertex's patch, ``α[p, j, r, c]`` (module docstring).
+    Order 0 needs no transport and goes through the scalar operator itself. For each order ``ℓ >= 1``
+    one real sparse matrix ``phases[ℓ - 1]`` of shape ``(2 N k, N)`` interleaves ``C_ℓ = A ⊙ cos ℓγ``
+    (row ``2 (p k + j)``) and ``S_ℓ = A ⊙ sin ℓγ`` (row ``2 (p k + j) + 1``); it is applied to
+    ``[a_ℓ | b_ℓ]`` at once and ``α_a = C_ℓ a - S_ℓ b``, ``α_b = S_ℓ a + C_ℓ b``. Extra storage:
+    ``2 L nnz(A)`` entries.
 
     Attributes:
+        operator: the scalar patch operator (``apply``, ``k``, ``matrix``, ``frames``).
         n_vertices: ``N``.
         k: Zernike bases per patch.
         n_max: their highest radial degree.
         order: ``L``.
-        matrix: ``scipy.sparse.csr_matrix`` float64.
-        frames: ``(N, 3, 3)`` per-vertex frames ``(e1, e2, n)`` the transport angles were computed from.
+        phases: list of ``L`` ``scipy.sparse.csr_matrix`` float64, ``(2 N k, N)``.
     """
 
-    def __init__(self, matrix: sp.csr_matrix, n_vertices: int, k: int, order: int, frames: np.ndarray) -> None:
-        d = fourier_dim(order)
-        if matrix.shape != (n_vertices * k * d, n_vertices * d):
-            raise ValueError(
-                f"directional operator matrix must be ({n_vertices}*{k}*{d}, {n_vertices}*{d}), got {matrix.shape}"
-            )
-        self.n_vertices = int(n_vertices)
-        self.k = int(k)
+    def __init__(self, operator, phases: Sequence[sp.csr_matrix]) -> None:
+        self.operator = operator
+        self.k = int(operator.k)
+        self.n_vertices = int(operator.matrix.shape[1])
         self.n_max = n_max_for(self.k)
-        self.order = int(order)
-        self.matrix = matrix.tocsr()
-        self.frames = frames
-        self._transpose = self.matrix.T.tocsr()
+        self.order = len(phases)
+        shape = (2 * self.n_vertices * self.k, self.n_vertices)
+        for ell, m in enumerate(phases, start=1):
+            if m.shape != shape:
+                raise ValueError(f"phase matrix of order {ell} must be {shape}, got {m.shape}")
+        self.phases = [m.tocsr() for m in phases]
         self._torch: dict = {}
 
     @classmethod
     def from_patch_operator(cls, operator, order: int) -> DirectionalOperator:
         """Build from a :class:`~zernet.patches.PatchOperator` (its ``matrix``, ``k`` and ``frames``)."""
-        a = operator.matrix.tocoo()
+        fourier_dim(order)
+        a = operator.matrix.tocsr()
         k = int(operator.k)
         n = int(a.shape[1])
-        frames = np.asarray(operator.frames, dtype=np.float64)
-        d = fourier_dim(order)
-        rows = a.row.astype(np.int64)
-        cols = a.col.astype(np.int64)
-        vals = a.data.astype(np.float64)
-        if order > 0:
-            centers = rows // k
-            pairs, inverse = np.unique(centers * n + cols, return_inverse=True)
-            gamma = transport_angles(frames, pairs // n, pairs % n)[inverse.reshape(-1)]
-        out_rows, out_cols, out_vals = [rows * d], [cols * d], [vals]
+        if order == 0:
+            return cls(operator, [])
+        frames = getattr(operator, "frames", None)
+        if frames is None:
+            raise ValueError("directional channels of order >= 1 need the operator's tangent frames (operator.frames)")
+        frames = np.asarray(frames, dtype=np.float64)
+        a.sort_indices()
+        rows = np.repeat(np.arange(a.shape[0], dtype=np.int64), np.diff(a.indptr))
+        cols = a.indices.astype(np.int64)
+        centers = rows // k
+        pairs, inverse = np.unique(centers * n + cols, return_inverse=True)
+        gamma = transport_angles(frames, pairs // n, pairs % n)
+        # Interleave C_ℓ and S_ℓ rows: same sparsity as A, twice the rows.
+        indptr = np.zeros(2 * a.shape[0] + 1, dtype=np.int64)
+        counts = np.diff(a.indptr)
+        indptr[1::2] = counts
+        indptr[2::2] = counts
+        indptr = np.cumsum(indptr)
+        row_starts = a.indptr[:-1]
+        # position of every entry of A inside the interleaved arrays (cos copy; the sin copy follows its row)
+        offset = np.repeat(indptr[0:-1:2] - row_starts, counts) + np.arange(a.nnz)
+        indices = np.empty(2 * a.nnz, dtype=a.indices.dtype)
+        indices[offset] = a.indices
+        indices[offset + np.repeat(counts, counts)] = a.indices
+        phases = []
         for ell in range(1, order + 1):
-            c, s = vals * np.cos(ell * gamma), vals * np.sin(ell * gamma)
-            ra, rb = rows * d + 2 * ell - 1, rows * d + 2 * ell
-            ca, cb = cols * d + 2 * ell - 1, cols * d + 2 * ell
-            # α_a = C a - S b ; α_b = S a + C b
-            out_rows += [ra, ra, rb, rb]
-            out_cols += [ca, cb, ca, cb]
-            out_vals += [c, -s, s, c]
-        matrix = sp.csr_matrix(
-            (np.concatenate(out_vals), (np.concatenate(out_rows), np.concatenate(out_cols))),
-            shape=(a.shape[0] * d, n * d),
-        )
-        return cls(matrix, n, k, order, frames)
+            angle = ell * gamma
+            data = np.empty(2 * a.nnz, dtype=np.float64)
+            data[offset] = a.data * np.cos(angle)[inverse.reshape(-1)]
+            data[offset + np.repeat(counts, counts)] = a.data * np.sin(angle)[inverse.reshape(-1)]
+            phases.append(sp.csr_matrix((data, indices, indptr), shape=(2 * a.shape[0], n)))
+        return cls(operator, phases)
 
-    def _tensors(self, dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
-        key = (dtype, torch.device(device))
+    def _tensors(self, ell: int, dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
+        key = (ell, dtype, torch.device(device))
         if key not in self._torch:
-            self._torch[key] = (_torch_csr(self.matrix, dtype, device), _torch_csr(self._transpose, dtype, device))
+            m = self.phases[ell - 1]
+            self._torch[key] = (_torch_csr(m, dtype, device), _torch_csr(m.T.tocsr(), dtype, device))
         return self._torch[key]
 
     def apply(self, x: Tensor) -> Tensor:
         """``x`` ``(N, 2L + 1, C)`` -> ``(N, k, 2L + 1, C)``, in ``x``'s dtype and device, differentiable."""
         d = fourier_dim(self.order)
-        if x.dim() != 3 or x.shape[0] != self.n_vertices or x.shape[1] != d:
-            raise ValueError(
-                f"expected directional input ({self.n_vertices}, {d}, C) for order {self.order}, got {tuple(x.shape)}"
-            )
-        matrix, transpose = self._tensors(x.dtype, x.device)
-        y = _SparseApply.apply(x.reshape(self.n_vertices * d, -1).contiguous(), matrix, transpose)
-        return y.view(self.n_vertices, self.k, d, x.shape[2])
+        n, k = self.n_vertices, self.k
+        if x.dim() != 3 or x.shape[0] != n or x.shape[1] != d:
+            raise ValueError(f"expected directional input ({n}, {d}, C) for order {self.order}, got {tuple(x.shape)}")
+        c = x.shape[2]
+        parts = [self.operator.apply(x[:, 0].contiguous()).unsqueeze(2)]
+        for ell in range(1, self.order + 1):
+            matrix, transpose = self._tensors(ell, x.dtype, x.device)
+            ab = x[:, 2 * ell - 1 : 2 * ell + 1].reshape(n, 2 * c)  # [a_ℓ | b_ℓ]
+            y = _SparseApply.apply(ab, matrix, transpose).view(n, k, 2, 2, c)  # [C, S] x [a, b]
+            alpha_a = y[:, :, 0, 0] - y[:, :, 1, 1]
+            alpha_b = y[:, :, 1, 0] + y[:, :, 0, 1]
+            parts.append(torch.stack([alpha_a, alpha_b], dim=2))
+        return torch.cat(parts, dim=2)
 
     __call__ = apply
 
