@@ -26,6 +26,7 @@ import logging
 import multiprocessing
 import os
 import re
+import sys
 import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -251,6 +252,47 @@ def _worker_init() -> None:
     torch.set_num_threads(1)
 
 
+def _pool_context():
+    """Start method for the worker pool.
+
+    forkserver (or spawn) starts workers from a fresh interpreter, never a fork of a process that may
+    already run torch/OpenMP threads. Both re-import the main script in each worker, which is impossible
+    when the main module is not a real file (``python - < script``); fork is used there.
+    """
+    methods = multiprocessing.get_all_start_methods()
+    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
+    if main_file is not None and not os.path.isfile(main_file) and "fork" in methods:
+        return multiprocessing.get_context("fork")
+    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+
+
+def _run_pool(jobs: list, workers: int, in_flight_limit: int, record) -> set[str]:
+    """Run jobs in a process pool with at most ``in_flight_limit`` submitted at once; returns the names
+    finished (all of them unless the pool broke)."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    finished: set[str] = set()
+
+    def collect(futures) -> None:
+        for future in futures:
+            name, error = future.result()
+            finished.add(name)
+            record(name, error)
+
+    try:
+        with ProcessPoolExecutor(workers, mp_context=_pool_context(), initializer=_worker_init) as pool:
+            running: set = set()
+            for job in jobs:
+                running.add(pool.submit(_prepare_one, job))
+                if len(running) >= in_flight_limit:
+                    done, running = wait(running, return_when=FIRST_COMPLETED)
+                    collect(done)
+            collect(running)
+    except BrokenProcessPool as error:
+        logger.warning("preprocessing pool broke: %s", error)
+    return finished
+
+
 def preprocess_shapes(
     sources: Sequence[ShapeSource],
     patch_configs,
@@ -264,8 +306,9 @@ def preprocess_shapes(
     """Preprocess every source into ``cache_dir`` (see the module docstring). Returns {name: failure reason}.
 
     workers: processes to use; None = number of CPUs (at most the number of shapes to do); 0 or 1 = in this
-        process. Pool workers start from a fresh interpreter (forkserver/spawn), never a fork of a process
-        that may already run torch threads.
+        process. Pool workers start from a fresh interpreter (forkserver/spawn; see ``_pool_context``), so a
+        script calling this needs the usual ``if __name__ == "__main__":`` guard. If the pool breaks, the
+        remaining shapes are processed in this process with a warning.
     max_in_flight: shapes submitted but not finished at any time (default 2 per worker), which bounds memory.
     """
     from tqdm.auto import tqdm
@@ -301,20 +344,14 @@ def preprocess_shapes(
             for job in jobs:
                 record(*_prepare_one(job))
         else:
-            method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
-            in_flight_limit = max_in_flight or 2 * workers
-            pending = iter(jobs)
-            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method),
-                                     initializer=_worker_init) as pool:
-                running = set()
-                for job in pending:
-                    running.add(pool.submit(_prepare_one, job))
-                    if len(running) >= in_flight_limit:
-                        done, running = wait(running, return_when=FIRST_COMPLETED)
-                        for future in done:
-                            record(*future.result())
-                for future in running:
-                    record(*future.result())
+            done_names = _run_pool(jobs, workers, max_in_flight or 2 * workers, record)
+            leftover = [job for job in jobs if job[0].name not in done_names]
+            if leftover:
+                # The pool broke (a worker killed, e.g. out of memory, or a start-up failure): finish here.
+                warnings.warn(f"preprocessing worker pool failed; processing the remaining {len(leftover)} shapes "
+                              "in this process", RuntimeWarning, stacklevel=2)
+                for job in leftover:
+                    record(*_prepare_one(job))
     finally:
         bar.close()
     return failures
