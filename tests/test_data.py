@@ -128,6 +128,10 @@ def test_parallel_workers_match_in_process(tmp_path):
     for a, b in zip(parallel, serial):
         np.testing.assert_allclose(a.features, b.features)
         assert (a.geometry.operators[0].matrix != b.geometry.operators[0].matrix).nnz == 0
+    lazy = build_dataset(sources, cache_dir=tmp_path / "s", workers=0, in_memory=False, **common)
+    assert not lazy.in_memory and serial.in_memory
+    np.testing.assert_array_equal(lazy.target(1), serial[1].target)
+    np.testing.assert_allclose(lazy[1].features, serial[1].features)
 
 
 # ------------------------------------------------------------------------------------------------- FAUST

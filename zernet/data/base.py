@@ -208,6 +208,14 @@ class ShapeDataset(Sequence[ShapeRecord]):
         item = self._items[index]
         return item if isinstance(item, ShapeRecord) else item()
 
+    def target(self, index: int) -> np.ndarray | None:
+        """The target of shape ``index`` without building its operators (cheap for cached data sets)."""
+        item = self._items[index]
+        if isinstance(item, ShapeRecord):
+            return item.target
+        read_target = getattr(item, "target", None)
+        return read_target() if read_target is not None else item().target
+
     def index(self, name: str) -> int:
         """Position of the shape called ``name``."""
         try:

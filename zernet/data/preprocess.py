@@ -378,6 +378,13 @@ class _CachedRecord:
         self.path, self.name, self.configs = path, name, configs
         self.cache_dir, self.task, self.feature_kind = cache_dir, task, feature_kind
 
+    def target(self) -> np.ndarray | None:
+        """Only the target, read from the cache file (no operators built)."""
+        with np.load(self.path, allow_pickle=False) as data:
+            if "target" not in data.files:
+                return None
+            return _as_target(data["target"], self.task, int(data["vertices"].shape[0]), self.name)
+
     def __call__(self) -> ShapeRecord:
         surface, target, scale = _read_shape(self.path)
         return _make_record(surface, target, scale, self.name, self.configs, self.cache_dir, self.task,
