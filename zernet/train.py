@@ -362,10 +362,33 @@ def _build_model(spec: dict) -> torch.nn.Module:
         raise ConfigError(f"model.name: {error.args[0] if error.args else error}") from None
 
 
-def _model_spec(config: dict, in_channels: int, out_channels: int) -> dict:
+def _model_spec(config: dict, in_channels: int, out_channels: int, patch_configs: Sequence) -> dict:
+    """Name, channel counts and options of the model; the Zernike degree follows the patch operators.
+
+    A model's ``n_max`` (or ``k``, the number of bases) must match the operators', so unless the config
+    sets it explicitly it is taken from the patch settings — changing ``patch.scales.*.n_max`` alone then
+    just works instead of failing with a shape mismatch.
+    """
+    import inspect
+
+    from zernet.nn.models import MODEL_REGISTRY, available_models
+    from zernet.zernike import num_bases
+
+    name = config["model"]["name"]
     options = {k: v for k, v in config["model"].items() if k != "name"}
-    return {"name": config["model"]["name"], "in_channels": int(in_channels),
-            "out_channels": int(out_channels), "options": options}
+    degrees = {int(c.n_max) for c in patch_configs}
+    if len(degrees) == 1 and "n_max" not in options and "k" not in options:
+        available_models()  # registers the plug-in models
+        try:
+            accepted = inspect.signature(MODEL_REGISTRY[name]).parameters
+        except (KeyError, TypeError, ValueError):
+            accepted = {}
+        n_max = degrees.pop()
+        if "n_max" in accepted:
+            options["n_max"] = n_max
+        elif "k" in accepted:
+            options["k"] = num_bases(n_max)
+    return {"name": name, "in_channels": int(in_channels), "out_channels": int(out_channels), "options": options}
 
 
 class _Batch:
@@ -411,7 +434,7 @@ def _target_stats(dataset, indices: Sequence[int]) -> dict:
     """Mean and standard deviation of every training vertex's target (regression standardisation)."""
     total, total_sq, count = 0.0, 0.0, 0
     for i in indices:
-        target = np.asarray(dataset[i].target, dtype=np.float64)
+        target = np.asarray(dataset.target(i), dtype=np.float64)  # no operator build for cached shapes
         total += target.sum()
         total_sq += (target**2).sum()
         count += target.size
@@ -672,7 +695,7 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
     }
     first = dataset[train_idx[0]]
     out_channels = int(dataset.num_classes) if task == "classification" else 1
-    spec = _model_spec(config, first.features.shape[1], out_channels)
+    spec = _model_spec(config, first.features.shape[1], out_channels, dataset.patch_configs)
 
     if checkpoint is not None:
         target_stats = checkpoint["target_stats"]
@@ -950,8 +973,8 @@ def _evaluate_model(model, checkpoint: dict, dataset, indices: Sequence[int], de
         stats = checkpoint.get("target_stats")
         if stats is not None:
             # The honest reference: predicting the training mean everywhere.
-            constant = [zmetrics.regression_scores(np.full(len(dataset[i].target), stats["mean"]),
-                                                   dataset[i].target) for i in indices]
+            constant = [zmetrics.regression_scores(np.full(len(dataset.target(i)), stats["mean"]),
+                                                   dataset.target(i)) for i in indices]
             result["baseline"] = {"training_mean_MAPE": float(np.mean([c["MAPE"] for c in constant])),
                                   "training_mean_RRMSE": float(np.mean([c["RRMSE"] for c in constant]))}
     result["per_shape"] = per_shape
@@ -998,7 +1021,7 @@ def _write_plots(run_dir: Path, history: list[dict], metrics: dict, kept: list[d
                 title=f"{item['name']}: matched vertex height", error_max=0.1))
         elif metrics["kind"] == "segmentation":
             written.append(viz.render_comparison(
-                surface, pred, target, error, path, error_label="wrong label", class_names=class_names,
+                surface, pred, target, error, path, error_label="wrong label", class_names=class_names, error_max=1.0,
                 title=f"{item['name']}: {np.mean(pred == target):.1%} correct"))
         else:
             written.append(viz.render_comparison(
