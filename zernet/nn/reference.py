@@ -111,11 +111,13 @@ class MatrixOperator:
         if key not in self._cache:
             def to_torch(m):
                 m = m.tocsr()
+                m.sort_indices()
                 return torch.sparse_csr_tensor(
                     torch.as_tensor(m.indptr, dtype=torch.int64),
                     torch.as_tensor(m.indices, dtype=torch.int64),
                     torch.as_tensor(m.data),
                     size=m.shape,
+                    check_invariants=False,  # built from a canonical scipy CSR matrix
                 ).to(dtype=dtype, device=device)
 
             self._cache[key] = (to_torch(self.matrix), to_torch(self.matrix.T))
