@@ -332,6 +332,8 @@ def main(argv: list[str] | None = None) -> int:
             raise
         user_error = isinstance(error, _user_errors())
         message = str(error.args[0]) if isinstance(error, KeyError) and error.args else str(error)
+        # One line, even for messages that list several problems (e.g. shapes that failed to preprocess).
+        message = "; ".join(line.strip() for line in message.splitlines() if line.strip()) or type(error).__name__
         if user_error:
             print(f"zernet {args.command}: error: {message}", file=sys.stderr)
             return EXIT_USER_ERROR

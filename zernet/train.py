@@ -812,8 +812,9 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
         if state["stopped"] and state["stop_reason"] != "epoch budget":
             logger.info(f"stopping after epoch {epoch}: {state['stop_reason']}")
 
+    best_text = "n/a" if state["best_metric"] is None else f"{state['best_metric']:.4g}"
     logger.info(f"training done: {state['epoch']} epochs in {state['train_seconds']:.1f} s; best epoch "
-                f"{state['best_epoch']} ({monitor} {state['best_metric']})")
+                f"{state['best_epoch']} ({monitor} {best_text})")
 
     best = load_checkpoint(run_dir / "best.pt")
     model.load_state_dict(best["model"])
