@@ -56,6 +56,14 @@ def sphere_centered():
 
 
 @pytest.fixture(scope="module")
+def turned():
+    surface = _surface(2, 1.3)
+    rotation = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    surface = Surface(vertices=surface.vertices @ rotation.T, faces=surface.faces, name="ico2-turned")
+    return surface, _geometry(surface)
+
+
+@pytest.fixture(scope="module")
 def other():
     surface = _surface(1, 0.9)
     return surface, _geometry(surface)
@@ -147,7 +155,7 @@ def _toy_operator(n_vertices=7, n_samples=40, patch=9, n_max=2, ridge=0.01, subt
         matrix[p * k : (p + 1) * k] = np.linalg.solve(b.T @ b + ridge * np.eye(k), b.T @ s)
     precomputed = MatrixOperator(matrix, k)
     config = SimpleNamespace(ridge=ridge, subtract_center=subtract_center)
-    return SimpleNamespace(k=k, n_max=n_max, n_vertices=n_vertices, patch_sample_index=index,
+    return SimpleNamespace(k=k, n_max=n_max, n_vertices=n_vertices, lam=ridge, patch_sample_index=index,
                            patch_basis=basis, interpolation=interpolation, config=config,
                            apply=precomputed.apply, matrix=precomputed.matrix)
 
@@ -236,8 +244,11 @@ def test_paper_conv_equals_zernikeconv_max_pooling(sphere, s):
     torch.testing.assert_close(paper.double()(x, operator), ours.double()(x, operator), rtol=1e-7, atol=1e-9)
 
 
-def test_paper_zernet_model_forward_backward_and_batch(sphere, other):
-    (s1, g1), (s2, g2) = sphere, other
+def test_paper_zernet_model_forward_backward_and_batch(sphere, turned):
+    # A batch of two surfaces with the same ridge λ (a concatenated operator carries one λ; see the
+    # PaperZernikeConv docstring): the mesh and a turned copy of it, so the patch fits are the same.
+    (s1, g1), (s2, g2) = sphere, turned
+    assert g1.operators[0].lam == pytest.approx(g2.operators[0].lam, rel=1e-9)
     model = build_model("paper-zernet", 3, 4, n_max=g1.operators[0].n_max, angular_resolution=4, **SMALL)
     assert [c.out_channels for b in model.blocks for c in b.convs] == [8, 12]
     out = model(_features(s1), g1)

@@ -44,6 +44,7 @@ import weakref
 from collections.abc import Sequence
 
 import numpy as np
+import scipy.sparse
 import torch
 from torch import Tensor, nn
 from torch_geometric.nn import FeaStConv
@@ -189,22 +190,59 @@ def ridge_normal_matrix(basis: Tensor, ridge: float) -> Tensor:
     return gram + ridge * eye
 
 
+class _SampleGather(torch.autograd.Function):
+    """``y = S x`` for a CSR ``S`` with its transpose stored for the backward (deterministic, no re-sorting)."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, S: Tensor, St: Tensor) -> Tensor:
+        ctx.St = St
+        return S @ x
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        return ctx.St @ grad.contiguous(), None, None
+
+
+def _csr_tensor(matrix: scipy.sparse.csr_matrix, dtype: torch.dtype, device: torch.device) -> Tensor:
+    matrix = matrix.tocsr()
+    matrix.sort_indices()
+    return torch.sparse_csr_tensor(
+        torch.as_tensor(matrix.indptr, dtype=torch.int64),
+        torch.as_tensor(matrix.indices, dtype=torch.int64),
+        torch.as_tensor(matrix.data, dtype=dtype),
+        size=matrix.shape,
+    ).to(device)
+
+
 class _PatchTensors:
-    """An operator's constant patch data (sample ids, Zernike values, interpolation) on one device."""
+    """An operator's constant patch data on one device: the sample gather and the Zernike values.
+
+    ``gather`` is the ``(N n, N)`` map from vertex features to the values at every patch's samples: the rows of
+    ``operator.interpolation`` picked by ``patch_sample_index`` (zero rows where it is -1), minus the centre
+    vertex when the operator subtracts it. It is a sparse product with a stored transpose rather than two
+    index gathers, whose accumulating backward is not deterministic on CPU.
+    """
 
     def __init__(self, operator, dtype: torch.dtype, device: torch.device) -> None:
-        index = torch.as_tensor(np.asarray(operator.patch_sample_index), dtype=torch.long)
-        valid = index >= 0
-        self.index = index.clamp(min=0).to(device)
-        self.mask = valid.unsqueeze(-1).to(dtype=dtype, device=device)  # (N, n, 1)
-        basis = torch.as_tensor(np.asarray(operator.patch_basis), dtype=dtype, device=device)
-        self.basis = basis * self.mask  # (N, n, k), zero where a patch has no sample
-        interp = operator.interpolation.tocoo()
-        self.interp_rows = torch.as_tensor(interp.row, dtype=torch.long, device=device)
-        self.interp_cols = torch.as_tensor(interp.col, dtype=torch.long, device=device)
-        self.interp_vals = torch.as_tensor(interp.data, dtype=dtype, device=device).unsqueeze(1)
-        self.n_samples = int(interp.shape[0])
-        self.n_vertices = int(index.shape[0])
+        index = np.asarray(operator.patch_sample_index)
+        n_vertices, width = index.shape
+        valid = (index >= 0).ravel()
+        gather = operator.interpolation.tocsr()[np.where(valid, index.ravel(), 0)]
+        gather = scipy.sparse.diags(valid.astype(np.float64)) @ gather
+        if getattr(operator.config, "subtract_center", False):
+            rows = np.flatnonzero(valid)
+            centre = scipy.sparse.csr_matrix(
+                (np.ones(len(rows)), (rows, rows // width)), shape=(n_vertices * width, n_vertices)
+            )
+            gather = gather - centre
+        gather = gather.tocsr()
+        gather.eliminate_zeros()
+        self.gather = _csr_tensor(gather, dtype, device)
+        self.gather_t = _csr_tensor(gather.T.tocsr(), dtype, device)
+        basis = np.asarray(operator.patch_basis) * (index >= 0)[..., None]
+        self.basis = torch.as_tensor(basis, dtype=dtype, device=device)  # (N, n, k), 0 where no sample
+        self.n_vertices = int(n_vertices)
+        self.width = int(width)
 
 
 class PaperZernikeConv(RotatedKernelConv):
@@ -218,11 +256,15 @@ class PaperZernikeConv(RotatedKernelConv):
         \mathbf{y}_p = \max_{a < s}\; F_p \cdot \mathrm{Rot}(2\pi a / s)\, G + \mathbf{b}.
 
     The normal equations are built from ``operator.patch_basis`` and solved with
-    :func:`torch.linalg.solve` in every forward pass, like the authors' release (which uses ``λ = 0.01``).
-    By default ``λ`` is the operator's own ``config.ridge``, the convention ``zernet.patches`` uses to
-    precompute its sparse operator, so ``fit(x, op)`` equals ``op.apply(x)`` to rounding and this layer
-    equals :class:`~zernet.nn.conv.ZernikeConv` (same ``weight`` and ``bias``, ``pooling="max"``);
-    pass ``ridge=0.01`` for the release's value.
+    :func:`torch.linalg.solve` in every forward pass, like the authors' release (which uses an absolute
+    ``λ = 0.01``). By default ``λ`` is the absolute value the operator was built with (``operator.lam``:
+    ``zernet.patches`` scales its relative ``config.ridge`` by the surface's typical patch eigenvalue), so
+    ``fit(x, op)`` equals ``op.apply(x)`` to rounding and this layer equals
+    :class:`~zernet.nn.conv.ZernikeConv` (same ``weight`` and ``bias``, ``pooling="max"``); pass
+    ``ridge=0.01`` for the release's absolute value. A block-diagonal operator of several surfaces
+    (``PatchOperator.concatenate``) carries a single ``lam`` (the first surface's), so in a batch of
+    surfaces whose ``λ`` differ the fit of the others differs from their precomputed operator by a
+    relative ``O(Δλ / eigenvalue)`` (about ``1e-3`` at most).
 
     The kernel contraction is :class:`~zernet.nn.reference.RotatedKernelConv`'s: ``s`` explicitly rotated
     copies of the kernel, cost linear in ``s``. Parameters, initialisation and state dict are
@@ -236,7 +278,7 @@ class PaperZernikeConv(RotatedKernelConv):
         pooling: ``"max"`` (the paper's angular max pooling), ``"mean"`` or ``"none"``.
         bias: learn an additive bias.
         k: alternatively the number of bases (overrides ``n_max``).
-        ridge: ``λ`` of the fit; ``None`` takes ``operator.config.ridge``.
+        ridge: absolute ``λ`` of the fit; ``None`` takes ``operator.lam``.
 
     Shapes:
         - input: ``x`` ``(N, C_in)``; ``operator`` a :class:`~zernet.patches.PatchOperator` of the same ``N``
@@ -287,15 +329,10 @@ class PaperZernikeConv(RotatedKernelConv):
         patches = self._patch_tensors(operator, x.dtype, x.device)
         if patches.n_vertices != x.shape[0]:
             raise ValueError(f"operator covers {patches.n_vertices} vertices but x has {x.shape[0]} rows")
-        # Vertex features -> sample values (barycentric interpolation) -> each patch's samples (N, n, C).
-        samples = x.new_zeros(patches.n_samples, x.shape[1]).index_add(
-            0, patches.interp_rows, x[patches.interp_cols] * patches.interp_vals
-        )
-        values = samples[patches.index]
-        if getattr(operator.config, "subtract_center", False):
-            values = values - x.unsqueeze(1)
-        values = values * patches.mask
-        ridge = operator.config.ridge if self.ridge is None else self.ridge
+        # Vertex features -> values at each patch's samples (barycentric interpolation), (N, n, C).
+        values = _SampleGather.apply(x.contiguous(), patches.gather, patches.gather_t)
+        values = values.view(patches.n_vertices, patches.width, x.shape[1])
+        ridge = operator.lam if self.ridge is None else self.ridge
         normal = ridge_normal_matrix(patches.basis, float(ridge))  # (N, k, k)
         rhs = patches.basis.transpose(1, 2) @ values  # (N, k, C)
         return torch.linalg.solve(normal, rhs)
@@ -328,7 +365,7 @@ class PaperZerNet(ZerNet):
     Args:
         in_channels, out_channels, widths, task, n_max, angular_resolution, pooling, activation, dropout,
         norm, scale: as :class:`~zernet.nn.models.ZerNet` (``pooling`` ``"max"`` or ``"mean"``).
-        ridge: ``λ`` of the per-layer fit; ``None`` uses the operator's (see :class:`PaperZernikeConv`).
+        ridge: absolute ``λ`` of the per-layer fit; ``None`` uses the operator's (see :class:`PaperZernikeConv`).
 
     Shapes:
         - input: ``x`` ``(N, C_in)``; ``geometry.operators[scale]`` a patch operator.
