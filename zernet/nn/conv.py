@@ -167,12 +167,12 @@ class _HarmonicContraction(torch.autograd.Function):
                     H[2 * f].zero_()
         ctx.plan = plan
         ctx.k_in = k_in
-        ctx.save_for_backward(X, G)
+        ctx.save_for_backward(X, G, WA, WB)
         return H
 
     @staticmethod
     def backward(ctx, dH: Tensor):
-        X, G = ctx.saved_tensors
+        X, G, WA, WB = ctx.saved_tensors
         plan: HarmonicPlan = ctx.plan
         dH = dH.contiguous()
         N = X.shape[0]
@@ -180,7 +180,6 @@ class _HarmonicContraction(torch.autograd.Function):
         k = len(plan.perm)
         dev = X.device
         perm = torch.as_tensor(plan.perm, device=dev)
-        WA, WB = _plan_weights(G, plan, perm)
         dF = dG = None
         if ctx.needs_input_grad[0]:
             dX = torch.empty(N, k * C_in, dtype=X.dtype, device=dev)
@@ -195,12 +194,16 @@ class _HarmonicContraction(torch.autograd.Function):
                     view.addmm_(dH[2 * f], WB[cols].t())
             if plan.identity:
                 dF = dX.view(N, k, C_in)
+            elif k == ctx.k_in:  # a permutation: gather back instead of zero-fill and scatter
+                inverse = torch.empty_like(perm)
+                inverse[perm] = torch.arange(k, device=dev)
+                dF = dX.view(N, k, C_in).index_select(1, inverse)
             else:
                 dF = torch.zeros(N, ctx.k_in, C_in, dtype=X.dtype, device=dev)
                 dF.index_copy_(1, perm, dX.view(N, k, C_in))
         if ctx.needs_input_grad[1]:
-            dWA = torch.zeros(k * C_in, C_out, dtype=X.dtype, device=dev)
-            dWB = torch.zeros(k * C_in, C_out, dtype=X.dtype, device=dev)
+            dWA = torch.empty(k * C_in, C_out, dtype=X.dtype, device=dev)  # every row belongs to a group
+            dWB = torch.empty(k * C_in, C_out, dtype=X.dtype, device=dev)
             for f, (a, b) in enumerate(plan.groups):
                 if a == b:
                     continue
@@ -209,6 +212,8 @@ class _HarmonicContraction(torch.autograd.Function):
                 torch.mm(X[:, cols].t(), dH[slab_a], out=dWA[cols])
                 if f > 0 and plan.has_sin[f]:
                     torch.mm(X[:, cols].t(), dH[2 * f], out=dWB[cols])
+                else:
+                    dWB[cols].zero_()
             sign = torch.as_tensor(plan.sign, dtype=X.dtype, device=dev).view(k, 1, 1)
             dG = torch.zeros_like(G)
             dG.index_add_(0, perm, dWA.view(k, C_in, C_out))
