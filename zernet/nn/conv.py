@@ -367,9 +367,6 @@ class ZernikeConv(nn.Module):
             return discrete_max(H, s)
         return evaluate_harmonics(H, equispaced_angles(s, H.dtype, H.device)).permute(1, 0, 2).contiguous()
 
-    def extra_repr(self) -> str:
-        return ""
-
     def __repr__(self) -> str:
         return (
             f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, n_max={self.n_max}, "
