@@ -346,10 +346,9 @@ class DirectionalOperator:
             matrix, transpose = self._tensors(ell, x.dtype, x.device)
             ab = x[:, 2 * ell - 1 : 2 * ell + 1].reshape(n, 2 * c)  # [a_ℓ | b_ℓ]
             y = _SparseApply.apply(ab, matrix, transpose).view(n, k, 2, 2, c)  # [C, S] x [a, b]
-            alpha_a = y[:, :, 0, 0] - y[:, :, 1, 1]
-            alpha_b = y[:, :, 1, 0] + y[:, :, 0, 1]
-            parts.append(torch.stack([alpha_a, alpha_b], dim=2))
-        return torch.cat(parts, dim=2)
+            parts.append((y[:, :, 0, 0] - y[:, :, 1, 1]).unsqueeze(2))  # α_a
+            parts.append((y[:, :, 1, 0] + y[:, :, 0, 1]).unsqueeze(2))  # α_b
+        return torch.cat(parts, dim=2) if len(parts) > 1 else parts[0]
 
     __call__ = apply
 
@@ -438,7 +437,9 @@ class DirectionalZernikeConv(nn.Module):
         y_p[t, o] = \sum_{x, c} α_p[x, c]\, W[x, c, t, o] + b[o]\,[t = 0],\qquad
         W[x, c, t, o] = \sum_y E[x, y, t]\, G[y, c, o]
 
-    with the fixed coupling ``E`` (:func:`coupling_tensor`). ``t`` runs over the output's real Fourier
+    with the fixed coupling ``E`` (:func:`coupling_tensor`), contracted block by block: output order ``μ``
+    only involves the inputs ``(j, r)`` with ``|m_j| ± ℓ_r = ±μ`` (about a quarter of a dense contraction
+    for the whole response). ``t`` runs over the output's real Fourier
     coefficients up to ``out_order`` (``output="fourier"``: the next layer's directional channel, exactly
     equivariant) or over ``s`` angles ``φ_a = 2π a / s`` (``output="samples"``: the exact response of
     ``s`` rotated kernels). The bias is direction-independent.
@@ -493,14 +494,34 @@ class DirectionalZernikeConv(nn.Module):
             coupling = coupling_tensor(self.n_max, self.order, out_order=self.out_order)
         else:
             coupling = coupling_tensor(self.n_max, self.order, samples=self.angular_resolution)
-        # (X, Y, T) -> (X T, Y) for one matmul with the kernel; float64, cast on use.
+        # Block structure: output order μ (Fourier) only sees the inputs x = (j, r) whose orders m_j ± ℓ_r
+        # reach ±μ, so the contraction is done per block (xs_b -> ts_b) instead of densely.
         x_dim, y_dim, t_dim = coupling.shape
         self.out_dim = t_dim
-        self.register_buffer(
-            "coupling",
-            torch.from_numpy(np.ascontiguousarray(coupling.transpose(0, 2, 1).reshape(x_dim * t_dim, y_dim))),
-            persistent=False,
-        )
+        if output == "fourier":
+            ranges = [(0, 1)] + [(2 * mu - 1, 2 * mu + 1) for mu in range(1, self.out_order + 1)]
+        else:
+            ranges = [(0, t_dim)]
+        blocks, block_x, entry_pos, entry_y, entry_val = [], [], [], [], []
+        pos = x_count = 0
+        for t0, t1 in ranges:
+            sub = coupling[:, :, t0:t1]  # (X, Y, T_b)
+            xs = np.flatnonzero(np.abs(sub).sum(axis=(1, 2)) > 0)
+            ix, iy, it = np.nonzero(sub[xs])
+            blocks.append((x_count, len(xs), t0, t1, pos))
+            x_count += len(xs)
+            block_x.append(xs)
+            entry_pos.append(pos + ix * (t1 - t0) + it)
+            entry_y.append(iy)
+            entry_val.append(sub[xs][ix, iy, it])
+            pos += len(xs) * (t1 - t0)
+        self._blocks = blocks  # (x offset, n_b, t0, t1, W offset), python ints
+        self._weight_rows = pos
+        as_long = lambda parts: torch.from_numpy(np.concatenate(parts).astype(np.int64))  # noqa: E731
+        self.register_buffer("block_x", as_long(block_x), persistent=False)
+        self.register_buffer("entry_pos", as_long(entry_pos), persistent=False)
+        self.register_buffer("entry_y", as_long(entry_y), persistent=False)
+        self.register_buffer("entry_val", torch.from_numpy(np.concatenate(entry_val)), persistent=False)  # float64
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -516,13 +537,21 @@ class DirectionalZernikeConv(nn.Module):
         if self.bias is not None:
             nn.init.zeros_(self.bias)
 
-    def effective_weight(self) -> Tensor:
-        """``W`` reshaped for the contraction: ``(k (2 L_in + 1) C_in, T C_out)``."""
-        x_dim = self.k * fourier_dim(self.order)
-        coupling = self.coupling.to(dtype=self.weight.dtype)
-        w = coupling @ self.weight.reshape(x_dim, -1)  # (X T, C_in C_out)
-        w = w.view(x_dim, self.out_dim, self.in_channels, self.out_channels).permute(0, 2, 1, 3)
-        return w.reshape(x_dim * self.in_channels, self.out_dim * self.out_channels)
+    def block_weights(self) -> list[Tensor]:
+        """``W`` per output block ``b``: ``(n_b C_in, T_b C_out)``, rows ``(x ∈ xs_b, c)``, columns ``(t ∈ ts_b, o)``.
+
+        ``W[x, c, t, o] = Σ_y E[x, y, t] G[y, c, o]`` over the few non-zero couplings ``E`` only.
+        """
+        c_in, c_out = self.in_channels, self.out_channels
+        g = self.weight.reshape(-1, c_in * c_out)
+        contribution = self.entry_val.to(g.dtype)[:, None] * g.index_select(0, self.entry_y)
+        w_all = g.new_zeros(self._weight_rows, c_in * c_out).index_add(0, self.entry_pos, contribution)
+        out = []
+        for _, nx, t0, t1, p0 in self._blocks:
+            tb = t1 - t0
+            w = w_all[p0 : p0 + nx * tb].view(nx, tb, c_in, c_out).permute(0, 2, 1, 3)
+            out.append(w.reshape(nx * c_in, tb * c_out))
+        return out
 
     def fit(self, x: Tensor, operator) -> Tensor:
         """Transported Zernike coefficients ``α``: ``(N, 2 L_in + 1, C_in)`` -> ``(N, k, 2 L_in + 1, C_in)``."""
@@ -543,7 +572,16 @@ class DirectionalZernikeConv(nn.Module):
         """``x`` ``(N, 2 L_in + 1, C_in)`` -> ``(N, 2 L_out + 1, C_out)`` or ``(N, s, C_out)``."""
         coeffs = self.fit(x, operator)
         n = coeffs.shape[0]
-        out = (coeffs.reshape(n, -1) @ self.effective_weight()).view(n, self.out_dim, self.out_channels)
+        alpha = coeffs.reshape(n, -1, self.in_channels)  # (N, X, C_in), x = j (2 L_in + 1) + r
+        parts = []
+        for (x0, nx, t0, t1, _), w in zip(self._blocks, self.block_weights()):
+            if nx == 0:  # orders beyond n_max + L_in: identically zero
+                parts.append(alpha.new_zeros(n, t1 - t0, self.out_channels))
+                continue
+            xs = self.block_x[x0 : x0 + nx]
+            a = alpha if nx == alpha.shape[1] else alpha.index_select(1, xs)
+            parts.append((a.reshape(n, nx * self.in_channels) @ w).view(n, t1 - t0, self.out_channels))
+        out = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
         if self.bias is not None:
             if self.output == "fourier":
                 out = torch.cat([out[:, :1] + self.bias, out[:, 1:]], dim=1)
@@ -610,15 +648,15 @@ class DirectionalPooling(nn.Module):
     Args:
         mode: ``"continuous"``, ``"discrete"`` or ``"mean"``.
         angular_resolution: ``s`` for ``"discrete"``.
-        newton_steps: refinement steps of the continuous max (6 converge to float64 rounding for the
-            degrees used here; 3 can leave ~1e-7 relative).
+        newton_steps: refinement steps of the continuous max (passed to
+            :func:`~zernet.nn.pooling.continuous_max`).
 
     Shapes:
         - input: ``(N, 2L + 1, C)`` Fourier coefficients.
         - output: ``(N, C)``.
     """
 
-    def __init__(self, mode: str = "continuous", angular_resolution: int = 4, newton_steps: int = 6) -> None:
+    def __init__(self, mode: str = "continuous", angular_resolution: int = 4, newton_steps: int = 3) -> None:
         super().__init__()
         if mode not in ("continuous", "discrete", "mean"):
             raise ValueError(f"pooling mode must be 'continuous', 'discrete' or 'mean', got {mode!r}")
