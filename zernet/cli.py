@@ -186,7 +186,10 @@ def _cmd_train(args) -> int:
     run_dir = args.run_dir or Path("runs") / args.config.stem
     metrics = train(config, run_dir, resume=args.resume, progress=not args.no_progress,
                     overwrite=args.overwrite, workers=args.workers)
-    _print_metrics(metrics, run_dir)
+    from zernet.distributed import is_main
+
+    if is_main():  # under torchrun, rank 0 alone evaluated the model and reports
+        _print_metrics(metrics, run_dir)
     return 0
 
 

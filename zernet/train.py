@@ -9,6 +9,7 @@ The public entry points are:
 
   ``config.yaml``  the full configuration with defaults filled in;
   ``last.pt``      checkpoint after the latest epoch (model, optimiser, RNG states, history, config);
+  ``previous.pt``  the ``last.pt`` of the epoch before: ``resume`` falls back to it if last.pt is damaged;
   ``best.pt``      checkpoint of the epoch with the best validation metric;
   ``train.log``    what happened, one line per event and per epoch;
   ``metrics.json`` the validation-selected model evaluated on the test shapes;
@@ -48,7 +49,8 @@ import torch
 import torch.nn.functional as F
 import yaml
 
-from zernet.io_utils import atomic_save_torch, atomic_write_bytes
+from zernet.distributed import DistributedContext, is_main, setup as setup_distributed
+from zernet.io_utils import atomic_save_torch, atomic_write_bytes, snapshot_file
 
 __all__ = [
     "ConfigError",
@@ -567,20 +569,26 @@ class _TqdmHandler(logging.Handler):
             self.handleError(record)
 
 
-def _open_log(run_dir: Path, echo: bool = True) -> logging.Logger:
-    """A logger writing to ``run_dir/train.log`` (appending, so a resumed run keeps its history) and the console."""
+def _open_log(run_dir: Path, echo: bool = True, main: bool = True) -> logging.Logger:
+    """A logger writing to ``run_dir/train.log`` (appending, so a resumed run keeps its history) and the console.
+
+    ``main=False`` (ranks other than 0 of a distributed run): no file, and only warnings on the console.
+    """
     logger = logging.getLogger(f"zernet.run.{run_dir.resolve()}")
     logger.setLevel(logging.INFO)
     logger.propagate = False
     for handler in list(logger.handlers):
         logger.removeHandler(handler)
         handler.close()
-    file_handler = logging.FileHandler(run_dir / "train.log", mode="a", encoding="utf-8")
-    file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
-    logger.addHandler(file_handler)
+    if main:
+        file_handler = logging.FileHandler(run_dir / "train.log", mode="a", encoding="utf-8")
+        file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
+        logger.addHandler(file_handler)
     if echo:
         console = _TqdmHandler()
         console.setFormatter(logging.Formatter("%(message)s"))
+        if not main:
+            console.setLevel(logging.WARNING)
         logger.addHandler(console)
     return logger
 
@@ -634,11 +642,9 @@ def train(config: dict | None, run_dir: str | Path, resume: bool = False, progre
     """
     run_dir = Path(run_dir)
     last_path, best_path = run_dir / "last.pt", run_dir / "best.pt"
-    checkpoint = None
+    checkpoint, resume_note = None, None
     if resume:
-        if not last_path.is_file():
-            raise FileNotFoundError(f"cannot resume: {last_path} does not exist (no epoch has finished yet?)")
-        checkpoint = load_checkpoint(last_path)
+        checkpoint, resume_note = _load_resume_checkpoint(run_dir)
     else:
         if config is None:
             raise ConfigError("train needs a configuration (or resume=True with an existing run folder)")
@@ -646,34 +652,79 @@ def train(config: dict | None, run_dir: str | Path, resume: bool = False, progre
         if last_path.exists() and not overwrite:
             raise ConfigError(f"{run_dir} already holds a run (last.pt); resume it with --resume or choose "
                               "another --run-dir")
-        for stale in (last_path, best_path, run_dir / "metrics.json", run_dir / "train.log"):
-            if stale.exists():
+        for stale in (last_path, run_dir / "previous.pt", best_path, run_dir / "metrics.json",
+                      run_dir / "train.log"):
+            if stale.exists() and is_main():  # in a distributed run only rank 0 touches the run folder
                 stale.unlink()
     run_dir.mkdir(parents=True, exist_ok=True)
-    logger = _open_log(run_dir)
+    logger = _open_log(run_dir, main=is_main())
+    ctx = None
     try:
+        if resume_note:
+            logger.warning(resume_note)
         if checkpoint is not None:
             config = _merge_resume_config(checkpoint["config"], config, logger)
-        atomic_write_bytes(run_dir / "config.yaml",
-                           yaml.safe_dump(_plain(config), sort_keys=False).encode("utf-8"))
-        return _train(config, run_dir, checkpoint, progress, logger, workers)
+        # Joins the torchrun process group, if any (see zernet.distributed); a no-op for one process.
+        ctx = setup_distributed(resolve_device(config["train"]["device"]))
+        if ctx.is_main:
+            atomic_write_bytes(run_dir / "config.yaml",
+                               yaml.safe_dump(_plain(config), sort_keys=False).encode("utf-8"))
+        return _train(config, run_dir, checkpoint, progress, logger, workers, ctx)
     finally:
+        if ctx is not None:
+            ctx.close()
         _close_log(logger)
 
 
+def _load_resume_checkpoint(run_dir: Path) -> tuple[dict, str | None]:
+    """The checkpoint to resume from, and a note when it is not ``last.pt``.
+
+    ``last.pt`` is used when it loads. If it is missing or unusable (truncated, corrupt, crafted), the newest
+    usable of ``previous.pt`` (the last.pt of the epoch before) and ``best.pt`` is taken instead: training
+    from any checkpoint is deterministic, so the final weights are the same, only an epoch is repeated.
+    """
+    last = run_dir / "last.pt"
+    problems: list[str] = []
+    try:
+        return load_checkpoint(last), None
+    except FileNotFoundError:
+        problems.append(f"{last} does not exist")
+    except ValueError as error:
+        problems.append(str(error))
+    candidates = []
+    for name in ("previous.pt", "best.pt"):
+        try:
+            candidates.append((load_checkpoint(run_dir / name), run_dir / name))
+        except FileNotFoundError:
+            pass
+        except ValueError as error:
+            problems.append(str(error))
+    if not candidates:
+        if len(problems) == 1 and not last.exists():
+            raise FileNotFoundError(f"cannot resume: {last} does not exist (no epoch has finished yet?)")
+        raise ValueError(f"cannot resume {run_dir}: no usable checkpoint: " + "; ".join(problems))
+    checkpoint, path = max(candidates, key=lambda item: item[0]["state"]["epoch"])
+    note = (f"{problems[0]}; resuming from {path} (after epoch {checkpoint['state']['epoch']}) instead, "
+            "repeating the epochs after it")
+    return checkpoint, note
+
+
 def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool, logger: logging.Logger,
-           workers: int | None) -> dict:
+           workers: int | None, ctx: DistributedContext) -> dict:
     from tqdm.auto import tqdm
 
     tcfg = config["train"]
-    device = resolve_device(tcfg["device"])
+    device = ctx.device  # the configured device; cuda:LOCAL_RANK on each rank of a distributed GPU run
+    progress = progress and ctx.is_main
     if tcfg["threads"]:
         torch.set_num_threads(int(tcfg["threads"]))
     logger.info(("resuming" if checkpoint else "starting") + f" run in {run_dir} on {device} "
-                f"({torch.get_num_threads()} CPU threads)")
+                f"({torch.get_num_threads()} CPU threads"
+                + (f", {ctx.world_size} ranks, {ctx.backend})" if ctx.distributed else ")"))
 
     started = time.perf_counter()
-    dataset = build_dataset(config, progress=progress, workers=workers)
+    with ctx.main_first():  # rank 0 fills the cache; the other ranks then read it
+        dataset = build_dataset(config, progress=progress, workers=workers)
     preprocess_seconds = time.perf_counter() - started
     train_idx, val_idx = list(dataset.splits["train"]), list(dataset.splits.get("val", []))
     test_idx = list(dataset.splits.get("test", []))
@@ -719,6 +770,9 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
         _set_rng_state(checkpoint["rng"])
         logger.info(f"resumed after epoch {state['epoch']} (best {state['best_metric']} at epoch "
                     f"{state['best_epoch']})")
+    # DistributedDataParallel in a distributed run (averages the gradients over the ranks), else the model
+    # itself. Only the training forward goes through it; validation, checkpoints and evaluation use `model`.
+    net = ctx.wrap(model)
     n_params = sum(p.numel() for p in model.parameters())
     logger.info(f"model {spec['name']} ({n_params:,} parameters), loss {loss_name}, lr {tcfg['lr']}, "
                 f"{tcfg['shapes_per_step']} shape(s) per step")
@@ -731,8 +785,11 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
     while not state["stopped"] and state["epoch"] < epochs:
         epoch = state["epoch"] + 1
         epoch_started = time.perf_counter()
-        model.train()
-        order = [train_idx[i] for i in epoch_order(tcfg["seed"], epoch, len(train_idx))]
+        net.train()
+        ctx.seed_epoch(tcfg["seed"], epoch)  # distributed only: per-rank dropout, exact resume
+        # One process: the whole permutation. Rank r of W: its equal share order[r::W] (padded, see
+        # zernet.distributed.shard_indices), so every rank runs the same number of steps.
+        order = ctx.shard([train_idx[i] for i in epoch_order(tcfg["seed"], epoch, len(train_idx))])
         groups = step_groups(order, tcfg["shapes_per_step"])
         loss_sum, hit_sum, vertex_sum = 0.0, 0.0, 0
         bar = tqdm(groups, desc=f"epoch {epoch}/{epochs}", unit="step", leave=False, disable=not progress,
@@ -740,7 +797,7 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
         for step, group in enumerate(bar, start=1):
             batch = _Batch([dataset[i] for i in group], device, target_stats)
             optimizer.zero_grad(set_to_none=True)
-            output = model(batch.features, batch.geometry)
+            output = net(batch.features, batch.geometry)
             loss = _loss(loss_name, output, batch.target)
             if not torch.isfinite(loss):
                 raise FloatingPointError(
@@ -760,12 +817,15 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
                 postfix["acc"] = f"{hit_sum / vertex_sum:.3f}"
             bar.set_postfix(postfix)
         bar.close()
+        loss_sum, hit_sum, vertex_sum = ctx.sum_over_ranks(loss_sum, hit_sum, vertex_sum)
 
         entry = {"epoch": epoch, "train_loss": loss_sum / vertex_sum}
         if task == "classification":
             entry["train_accuracy"] = hit_sum / vertex_sum
         if val_idx:
-            entry.update(_validate(model, dataset, val_idx, device, loss_name, target_stats, task))
+            # Split over the ranks and recombined exactly: every rank sees the same metric and stops alike.
+            entry.update(ctx.mean_over_shards(
+                lambda part: _validate(model, dataset, part, device, loss_name, target_stats, task), val_idx))
         entry["seconds"] = time.perf_counter() - epoch_started
         state["train_seconds"] += entry["seconds"]
         state["history"].append(entry)
@@ -805,9 +865,13 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
         }
         # best.pt first: if the process dies between the two writes, last.pt still points at the previous
         # epoch, and resuming repeats this epoch identically and rewrites best.pt.
-        if improved:
-            atomic_save_torch(checkpoint, run_dir / "best.pt")
-        atomic_save_torch(checkpoint, run_dir / "last.pt")
+        # previous.pt keeps the last.pt of the epoch before: should last.pt ever be unreadable, resume falls
+        # back to it (see _load_resume_checkpoint). Only rank 0 writes in a distributed run.
+        if ctx.is_main:
+            if improved:
+                atomic_save_torch(checkpoint, run_dir / "best.pt")
+            snapshot_file(run_dir / "last.pt", run_dir / "previous.pt")
+            atomic_save_torch(checkpoint, run_dir / "last.pt")
         logger.info(_epoch_line(entry, epochs, improved))
         if state["stopped"] and state["stop_reason"] != "epoch budget":
             logger.info(f"stopping after epoch {epoch}: {state['stop_reason']}")
@@ -816,6 +880,10 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
     logger.info(f"training done: {state['epoch']} epochs in {state['train_seconds']:.1f} s; best epoch "
                 f"{state['best_epoch']} ({monitor} {best_text})")
 
+    if not ctx.is_main:
+        # Rank 0 alone evaluates the selected model on the test split and writes metrics.json.
+        return {"rank": ctx.rank, "epochs_trained": state["epoch"], "best_epoch": state["best_epoch"],
+                "stop_reason": state["stop_reason"]}
     best = load_checkpoint(run_dir / "best.pt")
     model.load_state_dict(best["model"])
     if test_idx:
