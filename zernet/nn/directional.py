@@ -83,6 +83,7 @@ __all__ = [
     "rotate_fourier",
     "DirectionalOperator",
     "directional_operator",
+    "coupling_tensor",
     "DirectionalZernikeConv",
     "DirectionalLifting",
     "DirectionalPooling",
