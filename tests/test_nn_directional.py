@@ -389,3 +389,63 @@ def test_registered_as_zernet_directional():
     model = build_model("zernet-directional", 3, 4, widths=(5, 6), k=K, angular_resolution=4)
     assert isinstance(model, D.DirectionalZerNet)
     assert model(torch.randn(9, 3), Geometry([_synthetic_operator(n=9)])).shape == (9, 4)
+
+
+# ------------------------------------------------------------------------------------ a real mesh
+
+
+@pytest.fixture(scope="module")
+def sphere_patches():
+    """Polar coordinates and the patch operator of a 162-vertex icosphere (n_max = 3)."""
+    trimesh = pytest.importorskip("trimesh")
+    from zernet.patches import PatchConfig, assemble_operator
+    from zernet.polar import compute_polar
+    from zernet.surface import Surface, sample_surface
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    surface = Surface(vertices=np.asarray(mesh.vertices, dtype=np.float64), faces=np.asarray(mesh.faces, dtype=np.int64))
+    config = PatchConfig(r0=0.6, n_samples=1500, patch_size=30, n_max=N_MAX)
+    samples = sample_surface(surface, config.n_samples, seed=0)
+    polar = compute_polar(surface, samples, config.r0, backend="fast")
+
+    def build(delta):
+        """Assemble with every frame turned by δ_p: angles measured from the turned e1 are θ - δ_p."""
+        angle = np.mod(polar.angle - delta[polar.center] + np.pi, 2 * np.pi) - np.pi
+        frames = _turn_frames(polar.frames, delta)
+        return assemble_operator(polar.center, polar.sample, polar.radius, angle, frames, samples.interpolation, config)
+
+    return build, surface.vertices.shape[0]
+
+
+def test_real_mesh_gauge_change_rotates_operator_rows(sphere_patches):
+    """Rebuilding from turned frames equals rotating every vertex's rows by +δ_p (rotate_coefficients)."""
+    build, n = sphere_patches
+    delta = np.random.default_rng(16).uniform(-np.pi, np.pi, n)
+    op, op_turned = build(np.zeros(n)), build(delta)
+    algebraic = _gauge_transform(MatrixOperator(op.matrix, K, op.frames), delta)
+    np.testing.assert_allclose(op_turned.matrix.toarray(), algebraic.matrix.toarray(), atol=1e-9)
+    np.testing.assert_allclose(op_turned.frames, algebraic.frames, atol=1e-12)
+
+
+def test_real_mesh_directional_model_is_invariant(sphere_patches):
+    build, n = sphere_patches
+    rng = np.random.default_rng(17)
+    any_turn = rng.uniform(-np.pi, np.pi, n)
+    quarter_turns = 2 * np.pi * rng.integers(0, 4, n) / 4
+    op = build(np.zeros(n))
+    torch.manual_seed(18)
+    x = torch.randn(n, 3)
+    for nonlinearity, pooling, delta in (("norm", "continuous", any_turn), ("regular", "discrete", quarter_turns)):
+        model = D.DirectionalZerNet(3, 4, widths=(8, 8, 16), k=K, pooling=pooling, nonlinearity=nonlinearity).eval()
+        if nonlinearity == "norm":
+            with torch.no_grad():
+                model.acts[0].norm_bias.uniform_(-0.5, 0.5)
+        y, y_turned = model(x, Geometry([op])), model(x, Geometry([build(delta)]))
+        torch.testing.assert_close(y_turned, y, rtol=0, atol=5e-6 * y.abs().max().item())
+    # the transported fit on the mesh: order-1 Fourier coefficients at p turn by δ_p
+    conv = D.DirectionalZernikeConv(3, 4, n_max=N_MAX, order=1, out_order=2).double()
+    h = torch.randn(n, 3, 3, dtype=torch.float64)
+    d = _per_vertex(any_turn)
+    y = conv(h, op)
+    y_turned = conv(D.rotate_fourier(h, d, dim=1), build(any_turn))
+    torch.testing.assert_close(y_turned, D.rotate_fourier(y, d, dim=1), rtol=0, atol=1e-10 * y.abs().max().item())
