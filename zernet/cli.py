@@ -18,22 +18,17 @@ __all__ = ["main", "build_parser", "DEMO_CONFIG", "demo_config"]
 
 # The built-in demo, used when the repository's configs/demo.yaml is not available (e.g. an installed wheel).
 # configs/demo.yaml carries the same settings with comments; a test keeps the two identical.
-DEMO_CONFIG = {'data': {'kind': 'synthetic',
-          'task': 'segmentation',
-          'n_shapes': 30,
-          'n_vertices': 1000,
-          'test_fraction': 0.2,
-          'val_count': 3,
-          'seed': 0},
- 'patch': {'area': None, 'scales': [{'r0': 2.5, 'n_samples': 4000, 'patch_size': 50, 'n_max': 5}]},
- 'model': {'name': 'zernet',
-           'widths': [16, 32, 64, 64],
-           'angular_resolution': 4,
-           'pooling': 'max',
-           'dropout': 0.1},
- 'train': {'epochs': 15, 'patience': 8, 'lr': 0.005, 'seed': 0, 'threads': None},
- 'eval': {'renders': 3},
- 'cache_dir': '.zernet-cache'}
+DEMO_CONFIG = {
+    "data": {"kind": "synthetic", "task": "segmentation", "n_shapes": 30, "n_vertices": 1000,
+             "test_fraction": 0.2, "val_count": 3, "seed": 0, "features": "xyz+normals"},
+    "patch": {"area": None,
+              "scales": [{"r0": 2.5, "n_samples": 4000, "patch_size": 50, "n_max": 5, "subtract_center": True}]},
+    "model": {"name": "zernet", "widths": [16, 32, 64, 64], "angular_resolution": 4, "pooling": "max",
+              "dropout": 0.1},
+    "train": {"epochs": 15, "patience": 6, "lr": 5.0e-3, "seed": 0, "threads": None},
+    "eval": {"renders": 3},
+    "cache_dir": ".zernet-cache",
+}
 
 EXIT_USER_ERROR = 2
 
