@@ -471,6 +471,10 @@ def _init_log_map_worker(points, faces, face_index, barycentric, frames, r0):
     else:
         solver = pp.MeshVectorHeatSolver(points, faces)
     basis_x, basis_y, _ = (np.asarray(b, dtype=np.float64) for b in solver.get_tangent_frames())
+    longest_edge = None
+    if faces is not None:
+        corners = points[faces]
+        longest_edge = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
     _WORKER.update(
         solver=solver,
         faces=faces,
@@ -479,6 +483,7 @@ def _init_log_map_worker(points, faces, face_index, barycentric, frames, r0):
         frames=frames,
         basis_x=basis_x,
         basis_y=basis_y,
+        longest_edge=longest_edge,
         r0=r0,
     )
 
@@ -518,8 +523,10 @@ def _log_map_chunk(task):
             coherence = np.min(
                 [np.einsum("nd,nd->n", unit[:, a], unit[:, b]) for a, b in ((0, 1), (1, 2), (0, 2))], axis=0
             )
-            touches_source = (corner_index == v).any(axis=1)  # its log map is ~1e-18, not exactly 0
-            straddles = (coherence < 0.0) & ~touches_source
+            # Only far from the source (a corner farther than twice the triangle's longest edge) can a
+            # triangle straddle the cut; near the source wide corner angles are normal.
+            far = lengths.min(axis=1) > 2.0 * w["longest_edge"][w["face_index"][js]]
+            straddles = (coherence < 0.0) & far
             radius[straddles] = np.einsum("nc,nc->n", weights, lengths)[straddles]
         tangent = vectors[:, :1] * w["basis_x"][v] + vectors[:, 1:] * w["basis_y"][v]
         angle = np.arctan2(tangent @ w["frames"][v, 1], tangent @ w["frames"][v, 0])
