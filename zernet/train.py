@@ -40,6 +40,7 @@ import logging
 import math
 import random
 import time
+import zipfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -517,6 +518,17 @@ def load_checkpoint(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
+    # torch.load does not check the zip CRCs, so flipped bytes in the stored tensors would load silently as
+    # wrong weights: check them first (torch writes them; it costs one read of the file).
+    if zipfile.is_zipfile(path):
+        try:
+            with zipfile.ZipFile(path) as archive:
+                damaged = archive.testzip()
+        except Exception as error:
+            damaged = f"? ({type(error).__name__}: {error})"
+        if damaged is not None:
+            raise ValueError(f"{path}: not a readable zernet checkpoint (stored record {damaged} fails its CRC "
+                             "check: the file is corrupt)")
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # truncated, corrupt, or holding objects weights_only refuses

@@ -13,7 +13,8 @@ objects and hands them to :func:`build_dataset`, which
 Steps 1-4 run in worker processes (``workers``; 0 or 1 runs them in this process) with a bounded number of
 shapes in flight, so memory stays at a few shapes per worker whatever the data set size. A worker returns
 only a short status; the records are then read back from the cache. A shape whose cache entry exists is
-skipped without loading its file. A shape that fails (unreadable file, label mismatch, ...) is reported
+skipped without loading its file (the entry is read back once to check it; a truncated or corrupt one is
+reported by file name and rebuilt). A shape that fails (unreadable file, label mismatch, ...) is reported
 with its name and reason and the others go on; :class:`PreprocessError` is raised at the end only when
 every shape failed or when ``strict=True``.
 """
@@ -192,17 +193,44 @@ def _write_shape(path: Path, surface: Surface, target: np.ndarray | None, scale:
 
 
 def _read_shape(path: Path) -> tuple[Surface, np.ndarray | None, float]:
-    with np.load(path, allow_pickle=False) as data:
-        fields = {key[6:]: data[key] for key in data.files if key.startswith("field:")}
-        surface = Surface(
-            data["vertices"],
-            data["faces"] if "faces" in data.files else None,
-            data["normals"] if "normals" in data.files else None,
-            fields,
-            str(data["surface_name"]),
-        )
-        target = data["target"] if "target" in data.files else None
-        return surface, target, float(data["scale"])
+    """Read a shape cache entry; :class:`DatasetError` naming the file if it is truncated or corrupt.
+
+    Every array is read in full, so the zip CRC of each member is checked: a damaged file cannot pass.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            fields = {key[6:]: data[key] for key in data.files if key.startswith("field:")}
+            surface = Surface(
+                data["vertices"],
+                data["faces"] if "faces" in data.files else None,
+                data["normals"] if "normals" in data.files else None,
+                fields,
+                str(data["surface_name"]),
+            )
+            target = data["target"] if "target" in data.files else None
+            return surface, target, float(data["scale"])
+    except FileNotFoundError:
+        raise
+    except Exception as error:  # BadZipFile, EOFError, KeyError, ValueError, zlib.error ...
+        raise DatasetError(f"{path}: shape cache file is unreadable ({type(error).__name__}: {error}); "
+                           "delete it or run the preprocessing again to rebuild it") from None
+
+
+def _usable_cache_entry(path: Path) -> bool:
+    """True if the cache entry exists and reads back; a damaged one is reported (named) and removed."""
+    if not path.is_file():
+        return False
+    try:
+        _read_shape(path)
+        return True
+    except DatasetError as error:
+        warnings.warn(f"{error} -- rebuilding it", RuntimeWarning, stacklevel=3)
+        logger.warning("%s -- rebuilding it", error)
+        try:
+            path.unlink()
+        except OSError:
+            pass  # rebuilt and atomically replaced anyway
+        return False
 
 
 # ------------------------------------------------------------------------------------------ per-shape work
@@ -293,6 +321,24 @@ def _run_pool(jobs: list, workers: int, in_flight_limit: int, record) -> set[str
     return finished
 
 
+#: Reason recorded for a shape whose worker process died while working on it.
+WORKER_DIED = ("the worker process died while preprocessing this shape (killed, e.g. by the out-of-memory "
+               "killer, or crashed in native code)")
+
+
+def _prepare_isolated(job: tuple) -> tuple[str, str | None] | None:
+    """Run one job in a fresh one-worker pool; (name, WORKER_DIED) if that worker dies, None if no pool starts."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    try:
+        with ProcessPoolExecutor(1, mp_context=_pool_context(), initializer=_worker_init) as pool:
+            return pool.submit(_prepare_one, job).result()
+    except BrokenProcessPool:
+        return job[0].name, WORKER_DIED
+    except OSError:  # no processes can be started here at all
+        return None
+
+
 def preprocess_shapes(
     sources: Sequence[ShapeSource],
     patch_configs,
@@ -323,8 +369,11 @@ def preprocess_shapes(
     jobs = []
     for source in sources:
         path = _cache_path(cache_dir, source, target_area, configs, repair)
-        if path is None or not path.is_file():
+        if path is None or not _usable_cache_entry(path):
             jobs.append((source, configs, str(cache_dir), target_area, repair, path))
+    if len(jobs) < len(sources):
+        logger.info("preprocess: %d of %d shapes already cached, %d to do", len(sources) - len(jobs),
+                    len(sources), len(jobs))
     failures: dict[str, str] = {}
     bar = tqdm(total=len(sources), initial=len(sources) - len(jobs), desc="preprocess", unit="shape",
                disable=not progress or not jobs, leave=False)
@@ -347,11 +396,18 @@ def preprocess_shapes(
             done_names = _run_pool(jobs, workers, max_in_flight or 2 * workers, record)
             leftover = [job for job in jobs if job[0].name not in done_names]
             if leftover:
-                # The pool broke (a worker killed, e.g. out of memory, or a start-up failure): finish here.
+                # The pool broke: a worker was killed (e.g. out of memory) or crashed, or workers cannot start
+                # here. Each remaining shape then runs in its own one-worker pool, so a shape that kills its
+                # worker is reported by name instead of taking this process down when retried here. Only if
+                # no worker ever finished a shape (a start-up problem) are the shapes processed in this process.
                 warnings.warn(f"preprocessing worker pool failed; processing the remaining {len(leftover)} shapes "
-                              "in this process", RuntimeWarning, stacklevel=2)
-                for job in leftover:
-                    record(*_prepare_one(job))
+                              "one at a time in fresh worker processes", RuntimeWarning, stacklevel=2)
+                outcomes = [_prepare_isolated(job) for job in leftover]
+                workers_work = bool(done_names) or any(o is not None and o[1] != WORKER_DIED for o in outcomes)
+                for job, outcome in zip(leftover, outcomes):
+                    if outcome is None or (outcome[1] == WORKER_DIED and not workers_work):
+                        outcome = _prepare_one(job)
+                    record(*outcome)
     finally:
         bar.close()
     return failures
