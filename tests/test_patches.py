@@ -1,0 +1,265 @@
+"""The patch operator: analytic coefficients, invariances, autograd, batching and the on-disk cache."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from zernet.patches import CacheWarning, PatchConfig, PatchOperator, assemble_operator, build_patch_operator, cache_key
+from zernet.polar import compute_polar
+from zernet.surface import Surface, sample_surface
+from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
+
+
+def grid_mesh(n, spacing):
+    """Square triangulated grid in the z = 0 plane centred at the origin; (V, F)."""
+    x, y = np.meshgrid((np.arange(n) - (n - 1) / 2) * spacing, (np.arange(n) - (n - 1) / 2) * spacing)
+    vertices = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    index = np.arange(n * n).reshape(n, n)
+    a, b, c, d = index[:-1, :-1].ravel(), index[:-1, 1:].ravel(), index[1:, :-1].ravel(), index[1:, 1:].ravel()
+    return vertices, np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+
+
+def bumpy_sphere(subdivisions=2, seed=0):
+    """An icosphere with random radial noise (no exact distance ties between vertices)."""
+    mesh = trimesh.creation.icosphere(subdivisions, radius=4.0)
+    rng = np.random.default_rng(seed)
+    return Surface(mesh.vertices * (1 + 0.03 * rng.standard_normal((len(mesh.vertices), 1))), mesh.faces)
+
+
+@pytest.fixture(scope="module")
+def plane():
+    vertices, faces = grid_mesh(41, 0.25)  # 10 × 10 square
+    return Surface(vertices, faces)
+
+
+def frame_angle(frames, p):
+    """Angle of e1 from the x axis for a vertex of the z = +1-normal plane."""
+    return np.arctan2(frames[p, 0, 1], frames[p, 0, 0])
+
+
+# ---------------------------------------------------------------------- analytic coefficients
+def test_plane_reproduces_zernike_coefficients():
+    vertices, faces = grid_mesh(25, 0.2)  # 4.8 × 4.8: fine enough for degree-5 fields to interpolate well
+    plane = Surface(vertices, faces)
+    r0 = 2.0
+    # ~400 samples per disk, all kept, so that patches cover the whole unit disk.
+    config = PatchConfig(r0=r0, n_samples=800, patch_size=1000, ridge=1e-8)
+    op = build_patch_operator(plane, config)
+    center = int(np.argmin(np.linalg.norm(plane.vertices, axis=1)))
+    assert np.allclose(op.frames[center, 2], [0, 0, 1])
+    alpha = frame_angle(op.frames, center)
+    x, y = (plane.vertices[:, :2] - plane.vertices[center, :2]).T / r0
+    for j in (0, 2, 4, 7, 12, 20):
+        field = zernike_basis(np.hypot(x, y), np.arctan2(y, x), 5)[:, j]
+        coeffs = op.apply(torch.from_numpy(field))[center].numpy()
+        # In the vertex's frame θ_frame = θ_global - α, so f(r, θ_frame + α): coefficients rotated by α.
+        expected = rotate_coefficients(np.eye(21)[j], alpha)
+        # Piecewise-linear interpolation of the degree-n field (grid step r0 / 10) leaks a few per cent
+        # into lower even modes; the coefficient itself is recovered to ~1 %.
+        assert abs(coeffs @ expected - 1.0) < 0.03, (j, coeffs @ expected)
+        assert np.abs(coeffs - expected).max() < 0.08, (j, coeffs, expected)
+
+
+def test_linear_fields_exact_and_constant_field(plane):
+    r0 = 1.5
+    # All samples of the disk (patch_size large), so the fit is well conditioned and the ridge negligible.
+    op = build_patch_operator(plane, PatchConfig(r0=r0, n_samples=2000, patch_size=500, ridge=1e-10))
+    rng = np.random.default_rng(0)
+    a, b, c = rng.standard_normal(3)
+    field = a + b * plane.vertices[:, 0] + c * plane.vertices[:, 1]
+    coeffs = op.apply(torch.from_numpy(field)).numpy()
+    interior = np.flatnonzero(np.abs(plane.vertices[:, :2]).max(axis=1) < 5 - r0)
+    # f = a' + r0 r (b' cos θ + c' sin θ) in each frame: only j = 0, 1, 2 and known values.
+    alpha = np.arctan2(op.frames[:, 0, 1], op.frames[:, 0, 0])
+    z0 = 1 / np.sqrt(np.pi)
+    z1 = 2 / np.sqrt(np.pi)  # Z_1^{±1} = 2 r cos/sin / √π
+    expected = np.zeros_like(coeffs)
+    expected[:, 0] = field / z0
+    # b x + c y with x = r0 r cos(θ + α): cos part (b cos α + c sin α), sin part (-b sin α + c cos α).
+    expected[:, 2] = r0 * (b * np.cos(alpha) + c * np.sin(alpha)) / z1  # j=2 is (n=1, m=+1) cos
+    expected[:, 1] = r0 * (-b * np.sin(alpha) + c * np.cos(alpha)) / z1  # j=1 is (n=1, m=-1) sin
+    assert np.abs(coeffs[interior] - expected[interior]).max() < 1e-5
+    # A constant field has only the piston coefficient, everywhere (boundary included).
+    constant = op.apply(torch.ones(op.n_vertices, dtype=torch.float64)).numpy()
+    assert np.allclose(constant[interior, 0], np.sqrt(np.pi), rtol=1e-6)
+    assert np.abs(constant[interior, 1:]).max() < 1e-6
+    # Truncated boundary patches: the ridge shrinks what the samples cannot see, never inflates it.
+    assert np.all(constant[:, 0] <= np.sqrt(np.pi) * (1 + 1e-6))
+
+
+def test_subtract_center_removes_constants(plane):
+    op = build_patch_operator(plane, PatchConfig(r0=1.5, n_samples=4000, subtract_center=True))
+    x = torch.from_numpy(3.0 + 0.0 * plane.vertices[:, 0])
+    assert torch.abs(op.apply(x)).max() < 1e-9
+    plain = build_patch_operator(plane, PatchConfig(r0=1.5, n_samples=4000))
+    f = torch.from_numpy(np.sin(plane.vertices[:, 0]) + plane.vertices[:, 1] ** 2)
+    # subtract_center fits f - f(p): the difference to the plain fit is f(p) times the fit of 1.
+    difference = plain.apply(f) - op.apply(f)
+    ones = plain.apply(torch.ones_like(f))
+    assert torch.allclose(difference, f[:, None] * ones, atol=1e-10)
+
+
+# ---------------------------------------------------------------------- invariances
+def test_rotating_frames_rotates_coefficients():
+    surface = bumpy_sphere()
+    config = PatchConfig(r0=1.5, n_samples=3000)
+    samples = sample_surface(surface, config.n_samples, seed=config.seed)
+    polar = compute_polar(surface, samples, config.r0)
+    op = assemble_operator(polar.center, polar.sample, polar.radius, polar.angle, polar.frames, samples.interpolation, config)
+    delta = np.random.default_rng(0).uniform(-np.pi, np.pi, surface.n_vertices)
+    # Turning e1 by +δ_p lowers every angle at p by δ_p.
+    turned = assemble_operator(
+        polar.center, polar.sample, polar.radius, polar.angle - delta[polar.center], polar.frames, samples.interpolation, config
+    )
+    field = torch.from_numpy(np.random.default_rng(1).standard_normal((surface.n_vertices, 3)))
+    a, b = op.apply(field).numpy(), turned.apply(field).numpy()
+    assert np.allclose(b, rotate_coefficients(a, delta[:, None], dim=1), atol=1e-9)
+
+
+def test_reindexing_vertices_permutes_operator():
+    surface = bumpy_sphere(seed=2)
+    config = PatchConfig(r0=1.5, n_samples=3000)
+    op = build_patch_operator(surface, config)
+    perm = np.random.default_rng(0).permutation(surface.n_vertices)  # new vertex i = old vertex perm[i]
+    inverse = np.argsort(perm)
+    moved = Surface(surface.vertices[perm], inverse[surface.faces])  # same faces, same order, same samples
+    op2 = build_patch_operator(moved, config)
+    x = np.random.default_rng(1).standard_normal((surface.n_vertices, 2))
+    y = op.apply(torch.from_numpy(x)).numpy()
+    y2 = op2.apply(torch.from_numpy(x[perm])).numpy()
+    assert np.allclose(y2, y[perm], atol=1e-9)
+
+
+def test_rigid_motion_leaves_coefficients_unchanged():
+    surface = bumpy_sphere(seed=3)
+    config = PatchConfig(r0=1.5, n_samples=3000)
+    op = build_patch_operator(surface, config)
+    rotation = trimesh.transformations.random_rotation_matrix(np.random.default_rng(5).random(3))[:3, :3]
+    moved = Surface(surface.vertices @ rotation.T + [10.0, -3.0, 2.0], surface.faces)
+    op2 = build_patch_operator(moved, config)
+    x = torch.from_numpy(np.random.default_rng(2).standard_normal((surface.n_vertices, 4)))
+    assert torch.allclose(op.apply(x), op2.apply(x), atol=1e-7)
+
+
+# ---------------------------------------------------------------------- apply and autograd
+def test_apply_matches_dense_and_follows_dtype():
+    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=800))
+    dense = op.matrix.toarray()
+    x = np.random.default_rng(0).standard_normal((op.n_vertices, 5))
+    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 1e-4)):
+        y = op.apply(torch.from_numpy(x).to(dtype))
+        assert y.dtype == dtype and y.shape == (op.n_vertices, op.k, 5)
+        assert np.allclose(y.double().numpy(), (dense @ x).reshape(op.n_vertices, op.k, 5), atol=tol)
+    single = op.apply(torch.from_numpy(x[:, 0]))
+    assert single.shape == (op.n_vertices, op.k)
+    assert torch.allclose(single, op.apply(torch.from_numpy(x))[..., 0])
+    with pytest.raises(ValueError):
+        op.apply(torch.zeros(op.n_vertices + 1, 2))
+
+
+def test_gradcheck_and_backward_is_transpose():
+    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3))
+    x = torch.randn(op.n_vertices, 2, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(op.apply, (x,), eps=1e-6, atol=1e-8, fast_mode=True)
+    g = torch.randn(op.n_vertices, op.k, 2, dtype=torch.float64)
+    (grad,) = torch.autograd.grad(op.apply(x), x, g)
+    assert np.allclose(grad.numpy(), op.matrix.T @ g.reshape(-1, 2).numpy())
+
+
+# ---------------------------------------------------------------------- truncated patches, components
+def test_boundary_sparse_and_isolated_vertices_are_finite():
+    vertices, faces = grid_mesh(11, 0.5)
+    vertices = np.concatenate([vertices, [[50.0, 50.0, 0.0]]])  # a vertex no face uses
+    surface = Surface(vertices, faces)
+    op = build_patch_operator(surface, PatchConfig(r0=0.8, n_samples=150, ridge=1e-3))
+    counts = (op.patch_sample_index >= 0).sum(axis=1)
+    assert counts[:-1].min() < op.k  # some patches have fewer samples than coefficients
+    assert counts[-1] == 0
+    x = torch.from_numpy(np.random.default_rng(0).standard_normal((surface.n_vertices, 3)))
+    y = op.apply(x)
+    assert torch.isfinite(y).all()
+    assert torch.all(y[-1] == 0)  # no samples: zero rows
+    # Ridge keeps the fit bounded: coefficients of a unit-bounded field stay moderate everywhere.
+    assert torch.abs(op.apply(torch.ones(surface.n_vertices, dtype=torch.float64))).max() < 20
+
+
+def test_two_components_and_concatenate():
+    a = bumpy_sphere(1, seed=0)
+    vertices, faces = grid_mesh(9, 0.5)
+    both = Surface(np.concatenate([a.vertices, vertices + [20, 0, 0]]), np.concatenate([a.faces, faces + a.n_vertices]))
+    config = PatchConfig(r0=1.5, n_samples=1500)
+    op = build_patch_operator(both, config)
+    coo = op.matrix.tocoo()
+    row_vertex = coo.row // op.k
+    assert np.all((row_vertex < a.n_vertices) == (coo.col < a.n_vertices))  # no coupling across components
+
+    ops = [build_patch_operator(a, config), build_patch_operator(Surface(vertices, faces), config)]
+    joined = PatchOperator.concatenate(ops)
+    x = torch.randn(joined.n_vertices, 3, dtype=torch.float64)
+    expected = torch.cat([ops[0].apply(x[: a.n_vertices]), ops[1].apply(x[a.n_vertices :])])
+    assert torch.allclose(joined.apply(x), expected)
+    assert joined.patch_sample_index.shape[0] == joined.n_vertices
+    assert joined.patch_basis.shape == joined.patch_sample_index.shape + (joined.k,)
+    assert joined.interpolation.shape == (sum(o.interpolation.shape[0] for o in ops), joined.n_vertices)
+
+
+# ---------------------------------------------------------------------- files and cache
+def test_save_load_round_trip(tmp_path):
+    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=800, inner_radius=0.3))
+    op.save(tmp_path / "op.npz")
+    back = PatchOperator.load(tmp_path / "op.npz")
+    assert (back.matrix != op.matrix).nnz == 0
+    assert back.config == op.config and back.lam == op.lam
+    assert np.array_equal(back.patch_sample_index, op.patch_sample_index)
+    assert np.array_equal(back.frames, op.frames)
+    assert np.allclose(back.patch_basis, op.patch_basis)
+    assert op.patch_radius[op.patch_sample_index >= 0].min() >= 0.3 / 2.0  # inner radius applied
+    assert PatchConfig.from_dict(op.config.to_dict()) == op.config
+
+
+def test_cache_hit_and_bad_files_are_rebuilt(tmp_path):
+    surface = bumpy_sphere(1)
+    config = PatchConfig(r0=2.0, n_samples=800)
+    op = build_patch_operator(surface, config, cache_dir=tmp_path)
+    path = tmp_path / f"{cache_key(surface, config)}.npz"
+    assert path.exists()
+    again = build_patch_operator(surface, config, cache_dir=tmp_path)
+    assert (again.matrix != op.matrix).nnz == 0
+
+    good = path.read_bytes()
+    other = build_patch_operator(surface, PatchConfig(r0=1.5, n_samples=800))
+    damaged = bytearray(good)
+    damaged[len(good) // 2] ^= 0xFF
+    bad_files = {
+        "corrupt": bytes(damaged),
+        "truncated": good[: len(good) // 3],
+        "stale key": other.to_bytes(key="0" * 64),
+        "garbage": b"not an npz file",
+    }
+    for label, data in bad_files.items():
+        path.write_bytes(data)
+        with pytest.warns(CacheWarning, match=path.name):
+            rebuilt = build_patch_operator(surface, config, cache_dir=tmp_path)
+        assert (rebuilt.matrix != op.matrix).nnz == 0, label
+        assert path.read_bytes() != data  # the bad file was replaced by a good one
+
+
+def test_version_mismatch_rejected(tmp_path, monkeypatch):
+    import zernet.patches as patches
+
+    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=500))
+    data = op.to_bytes(key="k")
+    monkeypatch.setattr(patches, "FORMAT_VERSION", patches.FORMAT_VERSION + 1)
+    with pytest.raises(ValueError, match="format version"):
+        PatchOperator.from_bytes(data, key="k", name="somefile.npz")
+
+
+def test_config_validation():
+    with pytest.raises(ValueError):
+        PatchConfig(r0=0.0)
+    with pytest.raises(ValueError):
+        PatchConfig(r0=1.0, backend="magic")
+    with pytest.raises(ValueError):
+        PatchConfig(r0=1.0, ridge=0.0)
+    assert PatchConfig(r0=1.0).k == num_bases(5) == 21
