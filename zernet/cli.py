@@ -25,7 +25,7 @@ DEMO_CONFIG = {
               "scales": [{"r0": 2.5, "n_samples": 4000, "patch_size": 50, "n_max": 5, "subtract_center": True}]},
     "model": {"name": "zernet", "widths": [16, 32, 64, 64], "angular_resolution": 4, "pooling": "max",
               "dropout": 0.1},
-    "train": {"epochs": 15, "patience": 6, "lr": 5.0e-3, "seed": 0, "threads": None},
+    "train": {"epochs": 12, "patience": 6, "lr": 5.0e-3, "seed": 0, "threads": None},
     "eval": {"renders": 3},
     "cache_dir": ".zernet-cache",
 }
