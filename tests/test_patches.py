@@ -194,7 +194,10 @@ def test_two_components_and_concatenate():
     row_vertex = coo.row // op.k
     assert np.all((row_vertex < a.n_vertices) == (coo.col < a.n_vertices))  # no coupling across components
 
-    ops = [build_patch_operator(a, config), build_patch_operator(Surface(vertices, faces), config)]
+    # Different patch widths exercise the padding of the patch arrays.
+    narrow = PatchConfig(r0=1.5, n_samples=1500, patch_size=30)
+    ops = [build_patch_operator(a, config), build_patch_operator(Surface(vertices, faces), narrow)]
+    assert ops[0].patch_sample_index.shape[1] != ops[1].patch_sample_index.shape[1]
     joined = PatchOperator.concatenate(ops)
     x = torch.randn(joined.n_vertices, 3, dtype=torch.float64)
     expected = torch.cat([ops[0].apply(x[: a.n_vertices]), ops[1].apply(x[a.n_vertices :])])
@@ -202,6 +205,10 @@ def test_two_components_and_concatenate():
     assert joined.patch_sample_index.shape[0] == joined.n_vertices
     assert joined.patch_basis.shape == joined.patch_sample_index.shape + (joined.k,)
     assert joined.interpolation.shape == (sum(o.interpolation.shape[0] for o in ops), joined.n_vertices)
+    second = joined.patch_sample_index[a.n_vertices :]
+    shift = ops[0].interpolation.shape[0]
+    assert np.array_equal(second[:, :30], np.where(ops[1].patch_sample_index >= 0, ops[1].patch_sample_index + shift, -1))
+    assert np.all(second[:, 30:] == -1)
 
 
 # ---------------------------------------------------------------------- files and cache

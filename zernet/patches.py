@@ -262,12 +262,12 @@ class PatchOperator:
             return out
 
         index = np.concatenate(
-            [np.where(op.patch_sample_index >= 0, op.patch_sample_index + off, -1) for op, off in zip(ops, sample_offset)]
+            [pad(np.where(op.patch_sample_index >= 0, op.patch_sample_index + off, -1), -1) for op, off in zip(ops, sample_offset)]
         )
         return PatchOperator(
             matrix=scipy.sparse.block_diag([op.matrix for op in ops], format="csr"),
             frames=np.concatenate([op.frames for op in ops]),
-            patch_sample_index=pad(index, -1) if index.shape[1] < width else index,
+            patch_sample_index=index,
             patch_radius=np.concatenate([pad(op.patch_radius, 0.0) for op in ops]),
             patch_angle=np.concatenate([pad(op.patch_angle, 0.0) for op in ops]),
             interpolation=scipy.sparse.block_diag([op.interpolation for op in ops], format="csr"),

@@ -410,8 +410,9 @@ def _accurate_polar(surface, samples, frames, r0, n_jobs):
     points = surface.vertices
     n = points.shape[0]
     pairs = cKDTree(points).sparse_distance_matrix(cKDTree(samples.points), r0, output_type="ndarray")
-    center = np.concatenate([pairs["i"].astype(np.int64), _exact_coincidences(points, samples.points)[0]])
-    sample = np.concatenate([pairs["j"].astype(np.int64), _exact_coincidences(points, samples.points)[1]])
+    zero_center, zero_sample = _exact_coincidences(points, samples.points)
+    center = np.concatenate([pairs["i"].astype(np.int64), zero_center])
+    sample = np.concatenate([pairs["j"].astype(np.int64), zero_sample])
     order = np.argsort(center, kind="stable")
     center, sample = center[order], sample[order]
     bounds = np.searchsorted(center, np.arange(n + 1))
