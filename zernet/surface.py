@@ -45,6 +45,8 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
+# Coordinates (and extents) must stay within 1/_MAX_COORDINATE.._MAX_COORDINATE so squared lengths stay finite.
+_MAX_COORDINATE = 1e150
 # Neighbourhood size for point-cloud normal estimation (PCA) and area estimation.
 _CLOUD_NEIGHBOURS = 16
 # Number of directions used to integrate the tangent-plane Voronoi cell of a cloud point.
@@ -439,6 +441,8 @@ def _load_trimesh(name: str, extension: str) -> Surface:
     except Exception as error:  # trimesh raises many types for a malformed file
         raise SurfaceError(f"{name}: cannot read the file: {type(error).__name__}: {error}") from error
 
+    if extension == ".ply":
+        _check_ply_counts(name, loaded)
     raw = loaded.metadata.get("_ply_raw", {}).get("vertex", {}).get("data", {}) if extension == ".ply" else {}
     raw = raw if isinstance(raw, Mapping) else {}
     if isinstance(loaded, trimesh.PointCloud):
@@ -457,6 +461,34 @@ def _load_trimesh(name: str, extension: str) -> Surface:
         vertices, faces, _, _ = _merge_coincident(vertices, faces, None, {})
     # File normals of a mesh are not kept: the face orientation defines the normals (vertex_normals()).
     return Surface(vertices, faces, None, _ply_fields(raw, len(vertices)), name)
+
+
+def _check_ply_counts(name: str, loaded) -> None:
+    """Compare what trimesh read with the element counts the PLY header declares.
+
+    trimesh silently returns a point cloud (faces dropped) or fewer elements for a truncated PLY; a file
+    that is shorter than its header says is an error, never a partial mesh.
+    """
+    with open(name, "rb") as handle:
+        head = handle.read(65536)
+    end = head.find(b"end_header")
+    if end < 0:
+        return  # trimesh read it without a header in the first 64 KiB: nothing to compare against
+    declared = {}
+    for line in head[:end].decode("ascii", errors="replace").splitlines():
+        parts = line.split()
+        if len(parts) == 3 and parts[0] == "element" and parts[2].isdigit():
+            declared[parts[1]] = int(parts[2])
+    n_vertices = len(getattr(loaded, "vertices", ()))
+    faces = getattr(loaded, "faces", None)
+    n_faces = 0 if faces is None else len(faces)
+    want_vertices, want_faces = declared.get("vertex"), declared.get("face", 0)
+    # Polygons are split into triangles, so a mesh may hold more triangles than the header's faces.
+    if (want_vertices is not None and n_vertices != want_vertices) or n_faces < want_faces:
+        raise SurfaceError(
+            f"{name}: the header declares {want_vertices} vertices and {want_faces} faces but only {n_vertices} "
+            f"vertices and {n_faces} faces could be read (truncated or corrupt file?)"
+        )
 
 
 def _ply_fields(raw: Mapping, n_vertices: int) -> dict[str, np.ndarray]:
@@ -493,6 +525,15 @@ def _load_mat(name: str) -> Surface:
         one_based = np.asarray(arrays.pop("F"))
         if one_based.ndim != 2 or one_based.shape[1] != 3:
             raise SurfaceError(f"{name}: 'F' must have shape (T, 3), got {one_based.shape}")
+        if one_based.dtype.kind not in "biuf":
+            raise SurfaceError(f"{name}: 'F' must hold vertex indices (numbers), got {one_based.dtype}")
+        if one_based.dtype.kind == "f":
+            # MATLAB stores indices as doubles by default; a NaN or 1.5 must not be truncated to an index.
+            whole = np.isfinite(one_based) & (one_based == np.round(one_based)) & (np.abs(one_based) < 2.0**53)
+            if not whole.all():
+                bad = int(np.argwhere(~whole)[0, 0])
+                raise SurfaceError(f"{name}: face {bad} = {one_based[bad].tolist()} in 'F' is not a whole vertex "
+                                   "index")
         if one_based.size and one_based.min() < 1:
             bad = int(np.argwhere(one_based < 1)[0, 0])
             raise SurfaceError(
@@ -576,6 +617,15 @@ def validate_surface(surface: Surface, repair: bool = False) -> Surface:
         raise SurfaceError(
             f"{name}: vertex {bad[0]} has a non-finite coordinate {vertices[bad[0]].tolist()} "
             f"({len(bad)} such vertices); NaN or infinite positions cannot be repaired"
+        )
+    # Areas are squared lengths: beyond ~1e154 they overflow float64 to inf, below ~1e-154 they underflow to 0,
+    # and every face would then look degenerate. Say what is really wrong instead.
+    extent = float(np.abs(vertices).max())
+    span = float((vertices.max(axis=0) - vertices.min(axis=0)).max())  # no norm: its squares underflow
+    if extent > _MAX_COORDINATE or 0.0 < span < 1.0 / _MAX_COORDINATE:
+        raise SurfaceError(
+            f"{name}: coordinates reach {extent:.3g} over a span of {span:.3g}; areas (squared lengths) cannot be "
+            f"computed in float64 outside 1e-150..1e150: rescale the file"
         )
     if normals is not None:
         if len(normals) != n:

@@ -57,6 +57,11 @@ def aneurysm_patch_configs(n_scales: int = 1, **overrides):
     return [PatchConfig(r0=0.45 * 2**s, **settings) for s in range(n_scales)]
 
 
+#: Largest magnitude accepted for a regression value: the training loop standardises targets with sums of
+#: squares, which overflow float64 beyond about 1e154.
+MAX_VALUE = 1e150
+
+
 def read_values(path: str | os.PathLike) -> np.ndarray:
     """Per-vertex values from a .npy file or a text file (one per line), as (L,) float64."""
     path = Path(path)
@@ -65,6 +70,8 @@ def read_values(path: str | os.PathLike) -> np.ndarray:
             path, dtype=np.float64, comments="#", ndmin=1)
     except Exception as error:
         raise DatasetError(f"{path}: cannot read values: {type(error).__name__}: {error}") from error
+    if np.asarray(values).dtype.kind not in "biuf":
+        raise DatasetError(f"{path}: values must be numbers, got an array of {np.asarray(values).dtype}")
     values = np.asarray(values, dtype=np.float64)
     if values.ndim == 2 and values.shape[1] == 1:
         values = values[:, 0]
@@ -73,6 +80,10 @@ def read_values(path: str | os.PathLike) -> np.ndarray:
     if not np.all(np.isfinite(values)):
         bad = int(np.flatnonzero(~np.isfinite(values))[0])
         raise DatasetError(f"{path}: value {bad} is {values[bad]}; targets must be finite")
+    if values.size and np.abs(values).max() > MAX_VALUE:
+        bad = int(np.argmax(np.abs(values)))
+        raise DatasetError(f"{path}: value {bad} is {values[bad]}; values beyond ±{MAX_VALUE:g} overflow the "
+                           "target statistics (their squares exceed float64): rescale the file")
     return values
 
 

@@ -77,9 +77,14 @@ def read_labels(path: str | os.PathLike) -> np.ndarray:
     values = np.asarray(values).reshape(-1)
     if values.size == 0:
         raise DatasetError(f"{path}: label file is empty")
-    if not np.all(np.isfinite(values)) or np.any(values != np.round(values)):
-        bad = int(np.flatnonzero(~np.isfinite(values) | (values != np.round(values)))[0])
-        raise DatasetError(f"{path}: label {bad} (line {bad + 1}) is {values[bad]!r}, not an integer")
+    if values.dtype.kind not in "biuf":
+        raise DatasetError(f"{path}: labels must be numbers, got an array of {values.dtype}")
+    values = values.astype(np.float64)  # exact for every label a data set can have (|label| < 2**53)
+    # Beyond 2**53 a float is no longer an exact integer and int64 conversion would wrap: not a label.
+    bad_mask = ~np.isfinite(values) | (values != np.round(values)) | (np.abs(values) >= 2.0**53)
+    if bad_mask.any():
+        bad = int(np.flatnonzero(bad_mask)[0])
+        raise DatasetError(f"{path}: label {bad} (line {bad + 1}) is {values[bad]!r}, not an integer class label")
     return values.astype(np.int64)
 
 
