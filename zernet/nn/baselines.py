@@ -158,8 +158,9 @@ class FeaStNet(nn.Module):
         edge_index = getattr(geometry, "edge_index", None)
         if edge_index is None:
             raise ValueError(
-                "feastnet convolves over mesh edges but geometry.edge_index is None: build the Geometry "
-                "from a triangle mesh (point clouds have no edges; use a zernet model for them)"
+                "feastnet convolves over a graph but geometry.edge_index is None: give the Geometry the mesh "
+                "edges in both directions (zernet.data.preprocess.mesh_edge_index builds them, or a k-NN "
+                "graph for a point cloud)"
             )
         edge_index = edge_index.to(device=x.device)
         if self.input is not None:
@@ -245,6 +246,11 @@ class _PatchTensors:
         self.width = int(width)
 
 
+# Most recently used patch tensors, shared by every PaperZernikeConv: (weakref to operator, key, tensors).
+_PATCH_CACHE: list = []
+_PATCH_CACHE_SIZE = 2
+
+
 class PaperZernikeConv(RotatedKernelConv):
     r"""Zernike convolution as the ZerNet paper discretises it: the patch fit is re-solved at every call.
 
@@ -303,21 +309,24 @@ class PaperZernikeConv(RotatedKernelConv):
         if ridge is not None and float(ridge) < 0:
             raise ValueError(f"ridge must be >= 0, got {ridge}")
         self.ridge = None if ridge is None else float(ridge)
-        self._patches: tuple | None = None
 
-    def _patch_tensors(self, operator, dtype: torch.dtype, device: torch.device) -> _PatchTensors:
-        # Constant patch data moves to the device once per (operator, dtype, device); the least-squares
+    @staticmethod
+    def _patch_tensors(operator, dtype: torch.dtype, device: torch.device) -> _PatchTensors:
+        # Constant patch data is moved to the device once per (operator, dtype, device) and shared by all
+        # layers (a few recent operators are kept: training visits one surface per step); the least-squares
         # problem itself is solved again in every forward pass.
-        if self._patches is not None:
-            ref, key, tensors = self._patches
-            if ref() is operator and key == (dtype, device):
+        key = (id(operator), dtype, device)
+        for i, (ref, entry_key, tensors) in enumerate(_PATCH_CACHE):
+            if entry_key == key and ref() is operator:
+                _PATCH_CACHE.append(_PATCH_CACHE.pop(i))
                 return tensors
         tensors = _PatchTensors(operator, dtype, device)
         try:
             ref = weakref.ref(operator)
         except TypeError:
             ref = lambda op=operator: op  # noqa: E731
-        self._patches = (ref, (dtype, device), tensors)
+        _PATCH_CACHE.append((ref, key, tensors))
+        del _PATCH_CACHE[:-_PATCH_CACHE_SIZE]
         return tensors
 
     def fit(self, x: Tensor, operator) -> Tensor:
