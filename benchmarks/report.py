@@ -82,16 +82,18 @@ def timing_models(quick: bool) -> list[dict]:
     return models
 
 
-def training_models() -> list[dict]:
-    """The models of the training runs: zernet with its defaults, the paper's formulation, FeaStNet.
+def training_models(angular_resolution: int) -> list[dict]:
+    """The models of the training runs: zernet, the paper's formulation, FeaStNet.
 
-    Widths come from the task (``widths`` unset), identical for the three. The paper's formulation uses
-    zernet's s, so with the same seed it learns the same function (to rounding): its row shows what the
+    Widths come from the task (``widths`` unset), identical for the three. zernet and the paper's
+    formulation use the same ``s`` (``--train-s``, default 4: the paper formulation's cost grows with s),
+    so with the same seed they learn the same function (to rounding): the paper row shows what the
     per-layer fit and the s rotated copies cost in training time.
     """
+    s = int(angular_resolution)
     return [
-        {"label": "zernet", "name": "zernet", "options": {"angular_resolution": 16}},
-        {"label": "paper-zernet", "name": "paper-zernet", "options": {"angular_resolution": 16}},
+        {"label": "zernet", "name": "zernet", "options": {"angular_resolution": s}},
+        {"label": "paper-zernet", "name": "paper-zernet", "options": {"angular_resolution": s}},
         {"label": "feastnet", "name": "feastnet", "options": {}},
     ]
 
@@ -513,8 +515,9 @@ def write_report(out: Path, results: dict, args) -> Path:
             "## Fixed-budget training runs",
             "",
             f"`zernet.train.train` (the training command's loop, data, splits and metrics); every model with the same "
-            f"epochs, seed 0, no early stopping, widths from the task; the test metric of the epoch chosen on "
-            f"validation. Synthetic: {args.epochs} epochs; aneurysm: {args.aneurysm_epochs} epochs.",
+            f"epochs, seed 0, no early stopping, widths from the task, s = {args.train_s} for zernet and paper-zernet; "
+            f"the test metric of the epoch chosen on validation. Synthetic: {args.epochs} epochs; aneurysm: "
+            f"{args.aneurysm_epochs} epochs.",
             "",
         ]
         for task in results["tasks"]:
@@ -611,6 +614,8 @@ def main(argv=None) -> int:
                         help="comma-separated held-out cases (default TP_Ia105I,TP_Ia166I; quick TP_Ia105I; "
                              "empty string: none)")
     parser.add_argument("--aneurysm-epochs", type=int, default=None, help="aneurysm epochs (default 10, quick 1)")
+    parser.add_argument("--train-s", type=int, default=4,
+                        help="angular resolution s of zernet and paper-zernet in the training runs (default 4)")
     parser.add_argument("--skip", default="", help="comma-separated parts to skip: timing,memory,training")
     parser.add_argument("--cache-dir", default=str(ROOT / ".zernet-cache"), help="patch-operator cache of the data sets")
     parser.add_argument("--probe-memory", default=None, help=argparse.SUPPRESS)
@@ -651,7 +656,7 @@ def main(argv=None) -> int:
     results["tasks"] = [{k: v for k, v in task.items() if k != "config"} for task in tasks]
     if "training" not in skip:
         print("fixed-budget training runs", flush=True)
-        results["training"] = run_training(tasks, training_models(), out, args.threads, args.cache_dir)
+        results["training"] = run_training(tasks, training_models(args.train_s), out, args.threads, args.cache_dir)
         for task in tasks:
             plot_training(task, results["training"].get(task["slug"], {}), out / f"training-{task['slug']}.png")
     results["targets"] = check_targets(results)
