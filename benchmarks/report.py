@@ -47,6 +47,7 @@ import torch
 import matplotlib
 
 matplotlib.use("Agg")
+import matplotlib.ticker  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -393,6 +394,9 @@ def plot_times(times: dict, path: Path) -> None:
     ax.set_yticks(y, labels)
     ax.invert_yaxis()
     ax.set_xscale("log")
+    ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel("seconds (median, log scale)")
     ax.set_title(f"{N_VERTICES}-vertex surface, {N_VERTICES}-way output, widths {'-'.join(map(str, WIDTHS))}")
     ax.legend(loc="lower right")
