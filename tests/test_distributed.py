@@ -1,9 +1,10 @@
 """Distributed data-parallel training: shape sharding, and 2 gloo ranks under torchrun against one process.
 
 The equivalence test launches the real command (``torchrun --standalone --nproc_per_node 2 -m zernet.cli
-train``) on four tiny synthetic creatures and replays the same optimiser steps in this process: at every
-step the loss is the mean of the per-rank losses of the shapes the two ranks saw at that step (DDP averages
-the ranks' gradients). Dropout is off, so the two runs share every random number.
+train``) on three tiny synthetic training creatures (so the shards need padding), for one epoch and then
+``--resume`` for a second, and replays the same optimiser steps in this process: at every step the loss is
+the mean of the per-rank losses of the shapes the two ranks saw at that step (DDP averages the ranks'
+gradients). Dropout is off, so the two runs share every random number.
 """
 
 from __future__ import annotations
@@ -128,19 +129,22 @@ def test_two_gloo_ranks_match_one_process_with_averaged_losses(tmp_path):
     # Fill the cache here, so the ranks only read it (and the reference sees identical operators).
     reference = _reference_weights(config, world_size=2)
 
-    config_path = tmp_path / "ddp.yaml"
-    config_path.write_text(yaml.safe_dump(config))
+    # The distributed run is cut after epoch 1 and resumed (every rank loads last.pt) for epoch 2.
     run_dir = tmp_path / "run"
-    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-               "-m", "zernet.cli", "train", str(config_path), "--run-dir", str(run_dir), "--no-progress",
-               "--workers", "0"]
-    result = subprocess.run(command, cwd=tmp_path, env=_free_env(), capture_output=True, text=True, timeout=240)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    for epochs, extra in ((1, []), (2, ["--resume"])):
+        config_path = tmp_path / f"ddp{epochs}.yaml"
+        config_path.write_text(yaml.safe_dump({**config, "train": {**config["train"], "epochs": epochs}}))
+        command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                   "-m", "zernet.cli", "train", str(config_path), "--run-dir", str(run_dir), "--no-progress",
+                   "--workers", "0", *extra]
+        result = subprocess.run(command, cwd=tmp_path, env=_free_env(), capture_output=True, text=True,
+                                timeout=240)
+        assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
 
     # Rank 0 alone wrote the run folder and printed the report.
     assert result.stdout.count("test metrics (") == 1, result.stdout
     log = (run_dir / "train.log").read_text()
-    assert "2 ranks, gloo" in log and log.count("epoch 2/2") == 1
+    assert log.count("2 ranks, gloo") == 2 and "resumed after epoch 1" in log and log.count("epoch 2/2") == 1
 
     checkpoint = load_checkpoint(run_dir / "last.pt")
     assert checkpoint["state"]["epoch"] == 2
