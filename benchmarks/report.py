@@ -455,6 +455,9 @@ def write_report(out: Path, results: dict, args) -> Path:
         f"(commit `{env['commit']}`), torch {env['torch']}, torch_geometric {env['torch_geometric']}, "
         f"{env['threads']} CPU thread(s) on {env['machine']} ({env['cpus']} logical CPUs), float32.",
         "All measurements in one process on the same inputs; memory in one child process per model.",
+        f"Load average (1, 5, 15 min) at the start: {env.get('load_average_start')}, at the end: "
+        f"{env.get('load_average_end')}. Other processes on the machine slow every model, multi-threaded "
+        "ones most: compare ratios within one report, and rerun on an idle machine for absolute times.",
         "",
     ]
     builds = results.get("builds")
@@ -588,7 +591,15 @@ def environment(threads: int) -> dict:
 
     return {"date": datetime.datetime.now().isoformat(timespec="seconds"), "commit": commit,
             "torch": torch.__version__, "torch_geometric": torch_geometric.__version__, "threads": threads,
-            "machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version()}
+            "machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),
+            "load_average_start": _load_average()}
+
+
+def _load_average() -> list[float] | None:
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except (AttributeError, OSError):
+        return None
 
 
 def _plain(value):
@@ -663,6 +674,7 @@ def main(argv=None) -> int:
         results["training"] = run_training(tasks, training_models(args.train_s), out, args.threads, args.cache_dir)
         for task in tasks:
             plot_training(task, results["training"].get(task["slug"], {}), out / f"training-{task['slug']}.png")
+    results["environment"]["load_average_end"] = _load_average()
     results["targets"] = check_targets(results)
     (out / "results.json").write_text(json.dumps(_plain(results), indent=1), encoding="utf-8")
     path = write_report(out, results, args)
