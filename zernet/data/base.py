@@ -17,9 +17,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from zernet.nn.geometry import Geometry
 from zernet.surface import Surface
+from zernet.zernike import harmonic_pairs, index_to_nm, orders
 
 __all__ = [
     "TASKS",
@@ -28,14 +30,20 @@ __all__ = [
     "ShapeDataset",
     "default_features",
     "compute_features",
+    "feature_channels",
+    "shape_descriptors",
     "carve_validation",
     "DatasetError",
 ]
 
 TASKS = ("classification", "regression")
 
-#: Input feature choices of :func:`compute_features`, with their channel counts.
-FEATURE_KINDS = {"xyz": 3, "xyz+normals": 6, "normals": 3, "ones": 1}
+#: Input feature choices of :func:`compute_features`, with their channel counts (None: depends on the
+#: patch settings, see :func:`feature_channels`).
+FEATURE_KINDS = {"xyz": 3, "xyz+normals": 6, "normals": 3, "ones": 1, "shape": None}
+
+#: Distance to the boundary, in units of r0, beyond which the boundary feature saturates.
+BOUNDARY_SATURATION = 3.0
 
 
 class DatasetError(ValueError):
@@ -89,12 +97,65 @@ def default_features(surface: Surface) -> np.ndarray:
     return (surface.vertices - centroid).astype(np.float32)
 
 
-def compute_features(surface: Surface, kind: str = "xyz") -> np.ndarray:
+def feature_channels(kind: str, n_max: int = 5) -> int:
+    """Number of input channels of feature ``kind`` when the first patch scale has degree ``n_max``."""
+    if kind not in FEATURE_KINDS:
+        raise DatasetError(f"unknown feature kind {kind!r}; choose one of {sorted(FEATURE_KINDS)}")
+    if kind == "shape":
+        return int((orders(n_max) >= 0).sum()) + 1
+    return FEATURE_KINDS[kind]
+
+
+def shape_descriptors(surface: Surface, operator) -> np.ndarray:
+    """Rotation-invariant local shape descriptors from a patch operator, (N, P + 1) float32.
+
+    The height of each patch sample above the tangent plane of its centre vertex p,
+    ``h = (x - x_p) · n_p``, is fitted with Zernike polynomials by the patch operator itself (the height
+    is linear in the vertex positions, so ``A @ X`` projected on ``n_p`` gives its coefficients). Rotating
+    p's reference direction turns each pair ``(a_n^m, a_n^-m)`` by ``m φ``, so the ``m = 0`` coefficients
+    and the pair norms ``sqrt(a_n^m² + a_n^-m²)`` do not depend on it: P = number of ``(n, |m|)``
+    pairs (12 for n_max = 5). ``Z_2^0`` is the mean curvature term, ``|Z_2^±2|`` the anisotropy of the
+    curvature, higher orders finer shape. Values are divided by r0 to be scale-free. They are also
+    invariant under rigid motions of the surface, unlike xyz.
+
+    The last channel is the Euclidean distance from each vertex to the nearest boundary vertex divided by
+    r0 and saturated at :data:`BOUNDARY_SATURATION` (closed surfaces: the saturation value everywhere), so
+    a model can learn what the truncated patches near a cut boundary look like.
+    """
+    matrix = operator.matrix
+    n, k = surface.n_vertices, operator.k
+    normals = surface.vertex_normals()
+    positions = surface.vertices
+    coeffs = (matrix @ positions).reshape(n, k, 3)
+    constant = np.asarray(matrix @ np.ones(n)).reshape(n, k)
+    heights = np.einsum("nkc,nc->nk", coeffs, normals) - constant * np.einsum("nc,nc->n", positions, normals)[:, None]
+    r0 = float(operator.config.r0)
+    m = orders(operator.n_max)
+    zero, cos_idx, sin_idx, _ = harmonic_pairs(operator.n_max)
+    invariants = [heights[:, j] for j in zero]
+    invariants += [np.hypot(heights[:, c], heights[:, s_]) for c, s_ in zip(cos_idx, sin_idx)]
+    # Order the columns by (n, |m|) so they read like the basis.
+    keys = [index_to_nm(j) for j in zero] + [index_to_nm(c) for c in cos_idx]
+    order = sorted(range(len(keys)), key=lambda i: keys[i])
+    assert len(order) == int((m >= 0).sum())
+    descriptors = np.stack([invariants[i] for i in order], axis=1) / r0
+
+    boundary = surface.boundary_vertices()
+    if boundary.any():
+        distance, _ = cKDTree(positions[boundary]).query(positions)
+        distance = np.minimum(distance / r0, BOUNDARY_SATURATION)
+    else:
+        distance = np.full(n, BOUNDARY_SATURATION)
+    return np.concatenate([descriptors, distance[:, None]], axis=1).astype(np.float32)
+
+
+def compute_features(surface: Surface, kind: str = "xyz", operators=None) -> np.ndarray:
     """Model input of one of the :data:`FEATURE_KINDS`, (N, C) float32.
 
     ``"xyz"``: :func:`default_features`; ``"normals"``: unit vertex normals; ``"xyz+normals"``: both
     (6 channels); ``"ones"``: a constant 1 per vertex (the model then sees geometry only through the patch
-    operators' frames and sampling, useful as an ablation).
+    operators' frames and sampling, useful as an ablation); ``"shape"``: :func:`shape_descriptors` of the
+    first patch operator (rotation- and translation-invariant; needs ``operators``).
     """
     if kind == "xyz":
         return default_features(surface)
@@ -104,6 +165,10 @@ def compute_features(surface: Surface, kind: str = "xyz") -> np.ndarray:
         return np.concatenate([default_features(surface), surface.vertex_normals().astype(np.float32)], axis=1)
     if kind == "ones":
         return np.ones((surface.n_vertices, 1), dtype=np.float32)
+    if kind == "shape":
+        if not operators:
+            raise DatasetError("feature kind 'shape' needs the surface's patch operators")
+        return shape_descriptors(surface, operators[0])
     raise DatasetError(f"unknown feature kind {kind!r}; choose one of {sorted(FEATURE_KINDS)}")
 
 

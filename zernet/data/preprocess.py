@@ -46,6 +46,7 @@ from zernet.data.base import (
     _as_target,
     carve_validation,
     compute_features,
+    feature_channels,
 )
 from zernet.io_utils import atomic_write_bytes
 from zernet.nn.geometry import Geometry
@@ -426,7 +427,7 @@ def _make_record(surface: Surface, target, scale: float, name: str, configs, cac
     return ShapeRecord(
         name=name,
         surface=surface,
-        features=compute_features(surface, feature_kind),
+        features=compute_features(surface, feature_kind, operators),
         target=_as_target(target, task, surface.n_vertices, surface.name),
         geometry=geometry,
         scale=scale,
@@ -557,7 +558,8 @@ def build_dataset(
         in_memory = _estimate_vertices(loaders) * len(configs) <= IN_MEMORY_VERTEX_LIMIT
     if in_memory:
         loaders = [item if isinstance(item, ShapeRecord) else item() for item in loaders]
-    return ShapeDataset(loaders, names, task, num_classes, splits, configs, FEATURE_KINDS[feature_kind],
+    in_channels = feature_channels(feature_kind, configs[0].n_max if configs else 5)
+    return ShapeDataset(loaders, names, task, num_classes, splits, configs, in_channels,
                         feature_kind, target_area, failures, info, correspondence)
 
 

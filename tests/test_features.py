@@ -1,0 +1,69 @@
+"""Rotation-invariant shape descriptors computed with the patch operator (zernet.data.base)."""
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from zernet.data.base import BOUNDARY_SATURATION, compute_features, feature_channels, shape_descriptors
+from zernet.patches import PatchConfig, build_patch_operator
+from zernet.surface import Surface
+from zernet.zernike import index_to_nm, orders
+
+# patch_size large enough that every patch covers its whole disk, so the fit sees the analytic field.
+CONFIG = PatchConfig(r0=0.5, n_samples=6000, patch_size=200, n_max=4, seed=0)
+
+
+def _sphere(radius=2.0):
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    return Surface(mesh.vertices, mesh.faces, name="sphere")
+
+
+def _columns(n_max):
+    keys = sorted(index_to_nm(j) for j, m in enumerate(orders(n_max)) if m >= 0)
+    return {key: i for i, key in enumerate(keys)}
+
+
+def test_sphere_descriptors_match_curvature():
+    radius = 2.0
+    surface = _sphere(radius)
+    operator = build_patch_operator(surface, CONFIG)
+    features = shape_descriptors(surface, operator)
+    assert features.shape == (surface.n_vertices, feature_channels("shape", CONFIG.n_max))
+    columns = _columns(CONFIG.n_max)
+    # Height above the tangent plane of a sphere: h ≈ -ρ²/(2R), ρ = r0·r. Its Zernike expansion has only
+    # m = 0 terms: h = -(r0²/2R) r² and r² = (Z_0^0 + Z_2^0/√3)·√π/2, so a_2^0 = -(r0²/2R)·√π/(2√3).
+    expected = -(CONFIG.r0**2 / (2 * radius)) * np.sqrt(np.pi) / (2 * np.sqrt(3)) / CONFIG.r0
+    assert np.median(features[:, columns[(2, 0)]]) == pytest.approx(expected, rel=0.1)
+    # No anisotropy on a sphere: |Z_2^±2| small against the defocus term.
+    assert np.median(features[:, columns[(2, 2)]]) < 0.1 * abs(expected)
+    # Closed surface: boundary channel saturated.
+    assert np.all(features[:, -1] == BOUNDARY_SATURATION)
+
+
+def test_descriptors_invariant_under_rigid_motion():
+    surface = _sphere()
+    mesh = trimesh.creation.capsule(height=2.0, radius=0.8, count=[24, 24])
+    surface = Surface(mesh.vertices, mesh.faces, name="capsule")
+    rotation = Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix()
+    moved = Surface(surface.vertices @ rotation.T + np.array([5.0, -2.0, 1.0]), surface.faces, name="moved")
+    a = shape_descriptors(surface, build_patch_operator(surface, CONFIG))
+    b = shape_descriptors(moved, build_patch_operator(moved, CONFIG))
+    # Sampling is seeded in the surface's own barycentric terms, so both fits see the same samples.
+    np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_boundary_distance_channel_on_open_plane():
+    n = 21
+    x, y = np.meshgrid(np.linspace(0, 4, n), np.linspace(0, 4, n))
+    vertices = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    surface = Surface(vertices, faces, name="plane")
+    features = compute_features(surface, "shape", [build_patch_operator(surface, CONFIG)])
+    distance = np.minimum(vertices[:, 0], 4 - vertices[:, 0])
+    distance = np.minimum(distance, np.minimum(vertices[:, 1], 4 - vertices[:, 1]))
+    np.testing.assert_allclose(features[:, -1], np.minimum(distance / CONFIG.r0, BOUNDARY_SATURATION), atol=1e-6)
+    # A plane has zero height everywhere: every descriptor vanishes.
+    assert np.abs(features[:, :-1]).max() < 1e-8
