@@ -22,8 +22,9 @@ In one process, on the same inputs and with the same thread count, it measures
    (segmentation, and curvature regression) and, when the aneurysm data exist
    (``--aneurysm-root``, default ``../shared/data/aneurysm``), on leave-one-out aneurysm cases.
 
-It writes ``<out>/report.md`` (tables, ratios to FeaStNet, the issue's targets), ``<out>/results.json``,
-plots ``<out>/*.png`` and the training run folders ``<out>/runs/<task>/<model>/``.
+It writes ``<out>/report.md`` (tables, ratios to FeaStNet, the issue's targets), ``<out>/report.json``,
+plots ``<out>/report-*.png`` and the training run folders ``<out>/report-runs/<task>/<model>/``
+(default ``<out>``: ``benchmarks/results``).
 """
 
 from __future__ import annotations
@@ -339,7 +340,7 @@ def run_training(tasks: list[dict], models: list[dict], out: Path, threads: int,
             train_section.update({"seed": 0, "threads": threads, "device": "cpu", "patience": None})
             config["eval"] = {"plots": False, "renders": 0}
             config["cache_dir"] = cache_dir
-            run_dir = out / "runs" / task["slug"] / spec["label"]
+            run_dir = out / "report-runs" / task["slug"] / spec["label"]
             print(f"  training {spec['label']} on {task['task']} ({train_section['epochs']} epochs)", flush=True)
             started = time.perf_counter()
             try:
@@ -494,7 +495,7 @@ def write_report(out: Path, results: dict, args) -> Path:
             ratio_i = t["inference_seconds"] / base["inference_seconds"] if base else None
             lines.append(f"| {label} | {t['parameters']:,} | {t['step_seconds']:.3f} | {_fmt(ratio_s, 2)} | "
                          f"{t['inference_seconds']:.3f} | {_fmt(ratio_i, 2)} |")
-        lines += ["", "![step and inference times](times.png)", ""]
+        lines += ["", "![step and inference times](report-times.png)", ""]
     memory = results.get("memory", {})
     if memory:
         lines += [
@@ -515,7 +516,7 @@ def write_report(out: Path, results: dict, args) -> Path:
                 continue
             ratio = m["model_bytes"] / base if base else None
             lines.append(f"| {label} | {_mib(m['peak_bytes'])} | {_mib(m['model_bytes'])} | {_fmt(ratio, 2)} |")
-        lines += ["", "![peak memory](memory.png)", ""]
+        lines += ["", "![peak memory](report-memory.png)", ""]
     training = results.get("training", {})
     if training:
         lines += [
@@ -551,7 +552,7 @@ def write_report(out: Path, results: dict, args) -> Path:
             if baseline:
                 lines.append("")
                 lines.append("Reference: " + ", ".join(f"{k} {_fmt(v, 4)}" for k, v in baseline.items()) + ".")
-            lines += ["", f"![{task['task']}](training-{task['slug']}.png)", ""]
+            lines += ["", f"![{task['task']}](report-training-{task['slug']}.png)", ""]
     lines += ["## Targets of issue 5", ""]
     for line in results.get("targets", []):
         lines.append(f"- {line}")
@@ -662,21 +663,21 @@ def main(argv=None) -> int:
             if "timing" not in skip:
                 print("timing training steps and inference passes", flush=True)
                 results["times"] = measure_times(specs, inputs, args.rounds)
-                plot_times(results["times"], out / "times.png")
+                plot_times(results["times"], out / "report-times.png")
             if "memory" not in skip:
                 print("peak memory, one child process per model", flush=True)
                 results["memory"] = measure_memory(specs, inputs, args.threads)
-                plot_memory(results["memory"], out / "memory.png")
+                plot_memory(results["memory"], out / "report-memory.png")
     tasks = training_tasks(args)
     results["tasks"] = [{k: v for k, v in task.items() if k != "config"} for task in tasks]
     if "training" not in skip:
         print("fixed-budget training runs", flush=True)
         results["training"] = run_training(tasks, training_models(args.train_s), out, args.threads, args.cache_dir)
         for task in tasks:
-            plot_training(task, results["training"].get(task["slug"], {}), out / f"training-{task['slug']}.png")
+            plot_training(task, results["training"].get(task["slug"], {}), out / f"report-training-{task['slug']}.png")
     results["environment"]["load_average_end"] = _load_average()
     results["targets"] = check_targets(results)
-    (out / "results.json").write_text(json.dumps(_plain(results), indent=1), encoding="utf-8")
+    (out / "report.json").write_text(json.dumps(_plain(results), indent=1), encoding="utf-8")
     path = write_report(out, results, args)
     print(f"wrote {path}")
     for line in results["targets"]:
