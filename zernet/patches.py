@@ -228,6 +228,8 @@ class PatchOperator:
         Returns ``self``; the numpy/scipy data stay on the host. Tensors for other devices are dropped.
         """
         device = torch.device(device)
+        if self._tensors and all(have == device for _, have in self._tensors):
+            return self  # already there: training calls this every step
         dtypes = {dtype for dtype, _ in self._tensors} or {torch.float32}
         self._tensors = {}
         for dtype in dtypes:

@@ -97,16 +97,17 @@ def default_features(surface: Surface) -> np.ndarray:
     return (surface.vertices - centroid).astype(np.float32)
 
 
-def feature_channels(kind: str, n_max: int = 5) -> int:
-    """Number of input channels of feature ``kind`` when the first patch scale has degree ``n_max``."""
+def feature_channels(kind: str, n_max=5) -> int:
+    """Number of input channels of feature ``kind``; ``n_max``: the degree of each patch scale (int or list)."""
     if kind not in FEATURE_KINDS:
         raise DatasetError(f"unknown feature kind {kind!r}; choose one of {sorted(FEATURE_KINDS)}")
     if kind == "shape":
-        return int((orders(n_max) >= 0).sum()) + 1
+        degrees = [n_max] if isinstance(n_max, int) else list(n_max)
+        return sum(int((orders(n) >= 0).sum()) for n in degrees) + 1
     return FEATURE_KINDS[kind]
 
 
-def shape_descriptors(surface: Surface, operator) -> np.ndarray:
+def shape_descriptors(surface: Surface, operator, boundary: bool = True) -> np.ndarray:
     """Rotation-invariant local shape descriptors from a patch operator, (N, P + 1) float32.
 
     The height of each patch sample above the tangent plane of its centre vertex p,
@@ -118,7 +119,7 @@ def shape_descriptors(surface: Surface, operator) -> np.ndarray:
     curvature, higher orders finer shape. Values are divided by r0 to be scale-free. They are also
     invariant under rigid motions of the surface, unlike xyz.
 
-    The last channel is the Euclidean distance from each vertex to the nearest boundary vertex divided by
+    With ``boundary`` (default), a last channel is the Euclidean distance from each vertex to the nearest boundary vertex divided by
     r0 and saturated at :data:`BOUNDARY_SATURATION` (closed surfaces: the saturation value everywhere), so
     a model can learn what the truncated patches near a cut boundary look like.
     """
@@ -139,10 +140,12 @@ def shape_descriptors(surface: Surface, operator) -> np.ndarray:
     order = sorted(range(len(keys)), key=lambda i: keys[i])
     assert len(order) == int((m >= 0).sum())
     descriptors = np.stack([invariants[i] for i in order], axis=1) / r0
+    if not boundary:
+        return descriptors.astype(np.float32)
 
-    boundary = surface.boundary_vertices()
-    if boundary.any():
-        distance, _ = cKDTree(positions[boundary]).query(positions)
+    on_boundary = surface.boundary_vertices()
+    if on_boundary.any():
+        distance, _ = cKDTree(positions[on_boundary]).query(positions)
         distance = np.minimum(distance / r0, BOUNDARY_SATURATION)
     else:
         distance = np.full(n, BOUNDARY_SATURATION)
@@ -154,8 +157,9 @@ def compute_features(surface: Surface, kind: str = "xyz", operators=None) -> np.
 
     ``"xyz"``: :func:`default_features`; ``"normals"``: unit vertex normals; ``"xyz+normals"``: both
     (6 channels); ``"ones"``: a constant 1 per vertex (the model then sees geometry only through the patch
-    operators' frames and sampling, useful as an ablation); ``"shape"``: :func:`shape_descriptors` of the
-    first patch operator (rotation- and translation-invariant; needs ``operators``).
+    operators' frames and sampling, useful as an ablation); ``"shape"``: :func:`shape_descriptors` at every
+    patch scale, then the boundary distance in units of the first scale's r0 (rotation- and
+    translation-invariant; needs ``operators``).
     """
     if kind == "xyz":
         return default_features(surface)
@@ -168,7 +172,9 @@ def compute_features(surface: Surface, kind: str = "xyz", operators=None) -> np.
     if kind == "shape":
         if not operators:
             raise DatasetError("feature kind 'shape' needs the surface's patch operators")
-        return shape_descriptors(surface, operators[0])
+        parts = [shape_descriptors(surface, op, boundary=False) for op in operators]
+        parts.append(shape_descriptors(surface, operators[0])[:, -1:])
+        return np.concatenate(parts, axis=1)
     raise DatasetError(f"unknown feature kind {kind!r}; choose one of {sorted(FEATURE_KINDS)}")
 
 

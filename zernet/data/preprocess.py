@@ -558,7 +558,7 @@ def build_dataset(
         in_memory = _estimate_vertices(loaders) * len(configs) <= IN_MEMORY_VERTEX_LIMIT
     if in_memory:
         loaders = [item if isinstance(item, ShapeRecord) else item() for item in loaders]
-    in_channels = feature_channels(feature_kind, configs[0].n_max if configs else 5)
+    in_channels = feature_channels(feature_kind, [c.n_max for c in configs] or 5)
     return ShapeDataset(loaders, names, task, num_classes, splits, configs, in_channels,
                         feature_kind, target_area, failures, info, correspondence)
 
