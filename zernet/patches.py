@@ -114,8 +114,12 @@ class PatchConfig:
 
 
 # ====================================================================== autograd
-class _SparseApply(torch.autograd.Function):
-    """``y = A x`` with ``grad_x = Aᵀ g``, both plain CSR products (the transpose is stored, not re-sorted)."""
+class SparseApply(torch.autograd.Function):
+    """``y = A x`` with ``grad_x = Aᵀ g``, both plain CSR products (the transpose is stored, not re-sorted).
+
+    ``SparseApply.apply(x, A, At)`` with torch CSR tensors from :func:`to_torch_csr`; every sparse product
+    in zernet goes through it (GUIDE §5: ``torch.sparse.mm`` re-sorts its transpose on every backward).
+    """
 
     @staticmethod
     def forward(ctx, x, matrix, transpose):
@@ -200,7 +204,7 @@ class PatchOperator:
         if key not in self._tensors:
             if self._transpose is None:
                 self._transpose = self.matrix.T.tocsr()
-            self._tensors[key] = tuple(_to_torch_csr(m, dtype, device) for m in (self.matrix, self._transpose))
+            self._tensors[key] = tuple(to_torch_csr(m, dtype, device) for m in (self.matrix, self._transpose))
         return self._tensors[key]
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
@@ -217,7 +221,7 @@ class PatchOperator:
         trailing = x.shape[1:]
         flat = x.reshape(self.n_vertices, -1)
         matrix, transpose = self._torch_matrices(x.dtype, x.device)
-        out = _SparseApply.apply(flat.contiguous(), matrix, transpose)
+        out = SparseApply.apply(flat.contiguous(), matrix, transpose)
         return out.reshape((self.n_vertices, self.k) + tuple(trailing))
 
     __call__ = apply
@@ -361,8 +365,12 @@ class PatchOperator:
         return cls.from_bytes(path.read_bytes(), key=key, name=str(path))
 
 
-def _to_torch_csr(matrix: scipy.sparse.csr_matrix, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+def to_torch_csr(matrix: scipy.sparse.csr_matrix, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """scipy CSR -> torch CSR; int32 indices when they fit (about 10 % faster products on CPU)."""
+    matrix = scipy.sparse.csr_matrix(matrix)
+    if not matrix.has_sorted_indices:
+        matrix = matrix.copy()  # sort a copy: the caller's arrays may be shared with other structures
+        matrix.sort_indices()
     index_dtype = np.int32 if matrix.nnz < 2**31 - 1 and max(matrix.shape) < 2**31 - 1 else np.int64
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"

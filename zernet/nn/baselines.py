@@ -49,33 +49,12 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.nn import FeaStConv
 
-from .models import TASK_WIDTHS, ZerNet, register_model
+from zernet.patches import SparseApply, to_torch_csr
+
+from .models import TASK_WIDTHS, ZerNet, _activation, _resolve_widths, register_model
 from .reference import RotatedKernelConv
 
 __all__ = ["FeaStNet", "PaperZernikeConv", "PaperZerNet", "ridge_normal_matrix"]
-
-
-def _resolve_widths(widths: Sequence[int] | None, task: str | None) -> tuple[int, ...]:
-    if widths is None:
-        task = task or "correspondence"
-        if task not in TASK_WIDTHS:
-            raise ValueError(f"unknown task {task!r} for default widths; one of {sorted(TASK_WIDTHS)}")
-        widths = TASK_WIDTHS[task]
-    widths = tuple(int(w) for w in widths)
-    if len(widths) < 2 or min(widths) < 1:
-        raise ValueError(
-            f"widths must list at least one convolution width and the hidden linear width, all >= 1, "
-            f"e.g. (64, 128, 256, 512); got {widths}"
-        )
-    return widths
-
-
-def _activation(name: str) -> nn.Module:
-    if name == "relu":
-        return nn.ReLU()
-    if name == "elu":
-        return nn.ELU()
-    raise ValueError(f"activation must be 'relu' or 'elu', got {name!r}")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -191,30 +170,6 @@ def ridge_normal_matrix(basis: Tensor, ridge: float) -> Tensor:
     return gram + ridge * eye
 
 
-class _SampleGather(torch.autograd.Function):
-    """``y = S x`` for a CSR ``S`` with its transpose stored for the backward (deterministic, no re-sorting)."""
-
-    @staticmethod
-    def forward(ctx, x: Tensor, S: Tensor, St: Tensor) -> Tensor:
-        ctx.St = St
-        return S @ x
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):
-        return ctx.St @ grad.contiguous(), None, None
-
-
-def _csr_tensor(matrix: scipy.sparse.csr_matrix, dtype: torch.dtype, device: torch.device) -> Tensor:
-    matrix = matrix.tocsr()
-    matrix.sort_indices()
-    return torch.sparse_csr_tensor(
-        torch.as_tensor(matrix.indptr, dtype=torch.int64),
-        torch.as_tensor(matrix.indices, dtype=torch.int64),
-        torch.as_tensor(matrix.data, dtype=dtype),
-        size=matrix.shape,
-    ).to(device)
-
-
 class _PatchTensors:
     """An operator's constant patch data on one device: the sample gather and the Zernike values.
 
@@ -238,8 +193,8 @@ class _PatchTensors:
             gather = gather - centre
         gather = gather.tocsr()
         gather.eliminate_zeros()
-        self.gather = _csr_tensor(gather, dtype, device)
-        self.gather_t = _csr_tensor(gather.T.tocsr(), dtype, device)
+        self.gather = to_torch_csr(gather, dtype, device)
+        self.gather_t = to_torch_csr(gather.T.tocsr(), dtype, device)
         basis = np.asarray(operator.patch_basis) * (index >= 0)[..., None]
         self.basis = torch.as_tensor(basis, dtype=dtype, device=device)  # (N, n, k), 0 where no sample
         self.n_vertices = int(n_vertices)
@@ -339,7 +294,7 @@ class PaperZernikeConv(RotatedKernelConv):
         if patches.n_vertices != x.shape[0]:
             raise ValueError(f"operator covers {patches.n_vertices} vertices but x has {x.shape[0]} rows")
         # Vertex features -> values at each patch's samples (barycentric interpolation), (N, n, C).
-        values = _SampleGather.apply(x.contiguous(), patches.gather, patches.gather_t)
+        values = SparseApply.apply(x.contiguous(), patches.gather, patches.gather_t)
         values = values.view(patches.n_vertices, patches.width, x.shape[1])
         ridge = operator.lam if self.ridge is None else self.ridge
         normal = ridge_normal_matrix(patches.basis, float(ridge))  # (N, k, k)

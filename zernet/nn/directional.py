@@ -68,6 +68,7 @@ import scipy.sparse as sp
 import torch
 from torch import Tensor, nn
 
+from zernet.patches import SparseApply, to_torch_csr
 from zernet.polar import transport_angles
 from zernet.zernike import n_max_for, num_bases, rotation_matrix
 
@@ -231,30 +232,6 @@ def rotate_fourier(coeffs: Tensor, delta, dim: int = -2) -> Tensor:
 # --------------------------------------------------------------------------------------------------
 
 
-class _SparseApply(torch.autograd.Function):
-    """``y = M x`` with a CSR ``M`` and a stored CSR transpose for the backward pass."""
-
-    @staticmethod
-    def forward(ctx, x: Tensor, matrix: Tensor, transpose: Tensor) -> Tensor:
-        ctx.transpose = transpose
-        return torch.sparse.mm(matrix, x)
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):
-        return torch.sparse.mm(ctx.transpose, grad.contiguous()), None, None
-
-
-def _torch_csr(matrix: sp.csr_matrix, dtype: torch.dtype, device) -> Tensor:
-    matrix = matrix.tocsr()
-    return torch.sparse_csr_tensor(
-        torch.as_tensor(matrix.indptr, dtype=torch.int64),
-        torch.as_tensor(matrix.indices, dtype=torch.int64),
-        torch.as_tensor(matrix.data, dtype=dtype),
-        size=matrix.shape,
-        check_invariants=False,
-    ).to(device)
-
-
 class DirectionalOperator:
     r"""Transported Zernike fit of directional channels of Fourier order ``<= L``, for one surface.
 
@@ -332,7 +309,7 @@ class DirectionalOperator:
         key = (ell, dtype, torch.device(device))
         if key not in self._torch:
             m = self.phases[ell - 1]
-            self._torch[key] = (_torch_csr(m, dtype, device), _torch_csr(m.T.tocsr(), dtype, device))
+            self._torch[key] = (to_torch_csr(m, dtype, device), to_torch_csr(m.T.tocsr(), dtype, device))
         return self._torch[key]
 
     def apply(self, x: Tensor) -> Tensor:
@@ -346,7 +323,7 @@ class DirectionalOperator:
         for ell in range(1, self.order + 1):
             matrix, transpose = self._tensors(ell, x.dtype, x.device)
             ab = x[:, 2 * ell - 1 : 2 * ell + 1].reshape(n, 2 * c)  # [a_ℓ | b_ℓ]
-            y = _SparseApply.apply(ab, matrix, transpose).view(n, k, 2, 2, c)  # [C, S] x [a, b]
+            y = SparseApply.apply(ab, matrix, transpose).view(n, k, 2, 2, c)  # [C, S] x [a, b]
             parts.append((y[:, :, 0, 0] - y[:, :, 1, 1]).unsqueeze(2))  # α_a
             parts.append((y[:, :, 1, 0] + y[:, :, 0, 1]).unsqueeze(2))  # α_b
         return torch.cat(parts, dim=2) if len(parts) > 1 else parts[0]

@@ -21,6 +21,7 @@ import scipy.sparse as sp
 import torch
 from torch import Tensor
 
+from zernet.patches import SparseApply, to_torch_csr
 from zernet.zernike import n_max_for, rotate_coefficients
 
 from .conv import ZernikeConv
@@ -72,19 +73,6 @@ class RotatedKernelConv(ZernikeConv):
         return angular_pool(rotated_kernel_responses(F, self.weight, self.angular_resolution), self.pooling)
 
 
-class _SparseApply(torch.autograd.Function):
-    """``y = A x`` with a stored transpose for the backward (no per-step re-sorting)."""
-
-    @staticmethod
-    def forward(ctx, x: Tensor, A: Tensor, At: Tensor) -> Tensor:
-        ctx.At = At
-        return A @ x
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):
-        return ctx.At @ grad.contiguous(), None, None
-
-
 class MatrixOperator:
     """A patch operator given by its matrix: ``apply(x)[p, j] = Σ_q matrix[p k + j, q] x[q]``.
 
@@ -109,18 +97,7 @@ class MatrixOperator:
     def _tensors(self, dtype, device):
         key = (dtype, str(device))
         if key not in self._cache:
-            def to_torch(m):
-                m = m.tocsr()
-                m.sort_indices()
-                return torch.sparse_csr_tensor(
-                    torch.as_tensor(m.indptr, dtype=torch.int64),
-                    torch.as_tensor(m.indices, dtype=torch.int64),
-                    torch.as_tensor(m.data),
-                    size=m.shape,
-                    check_invariants=False,  # built from a canonical scipy CSR matrix
-                ).to(dtype=dtype, device=device)
-
-            self._cache[key] = (to_torch(self.matrix), to_torch(self.matrix.T))
+            self._cache[key] = (to_torch_csr(self.matrix, dtype, device), to_torch_csr(self.matrix.T, dtype, device))
         return self._cache[key]
 
     def apply(self, x: Tensor) -> Tensor:
@@ -128,7 +105,7 @@ class MatrixOperator:
         if x.dim() != 2 or x.shape[0] != self.n_vertices:
             raise ValueError(f"MatrixOperator.apply: x must be ({self.n_vertices}, d), got {tuple(x.shape)}")
         A, At = self._tensors(x.dtype, x.device)
-        return _SparseApply.apply(x.contiguous(), A, At).view(self.n_vertices, self.k, x.shape[1])
+        return SparseApply.apply(x.contiguous(), A, At).view(self.n_vertices, self.k, x.shape[1])
 
     __call__ = apply
 
