@@ -49,7 +49,7 @@ import torch
 from zernet.io_utils import atomic_write_bytes
 from zernet.polar import BACKENDS, compute_polar
 from zernet.surface import Surface, sample_surface
-from zernet.zernike import num_bases, orders, radial_coefficients, zernike_basis
+from zernet.zernike import num_bases, zernike_basis
 
 __all__ = ["PatchConfig", "PatchOperator", "build_patch_operator", "CacheWarning", "FORMAT_VERSION"]
 
@@ -487,28 +487,6 @@ def fit_matrices(basis: np.ndarray, mask: np.ndarray, ridge: float) -> tuple[np.
     return fit, lam
 
 
-def _zernike_values(r: np.ndarray, theta: np.ndarray, n_max: int) -> np.ndarray:
-    """Same values as :func:`zernet.zernike.zernike_basis` (float64 numpy), about 5x faster on large
-    arrays: cos(mθ) and sin(mθ) by the angle-addition recurrence from one cos and one sin, and the
-    radial polynomials by Horner's rule on the shared monomial table."""
-    m = orders(n_max)
-    coefficients = radial_coefficients(n_max)  # (k, n_max + 1)
-    cos1, sin1 = np.cos(theta), np.sin(theta)
-    cos_m, sin_m = [np.ones_like(theta)], [np.zeros_like(theta)]
-    for _ in range(n_max):
-        c, s_ = cos_m[-1], sin_m[-1]
-        cos_m.append(c * cos1 - s_ * sin1)
-        sin_m.append(s_ * cos1 + c * sin1)
-    out = np.empty((len(m),) + r.shape)  # basis-first, so every write is contiguous
-    for j, order in enumerate(m):
-        radial = np.full_like(r, coefficients[j, n_max])
-        for power in range(n_max - 1, -1, -1):  # Horner
-            radial *= r
-            radial += coefficients[j, power]
-        np.multiply(radial, cos_m[order] if order >= 0 else sin_m[-order], out=out[j])
-    return np.moveaxis(out, 0, -1)
-
-
 def assemble_operator(center, sample, radius, angle, frames, interpolation, config: PatchConfig) -> PatchOperator:
     """Patch selection, fit and the sparse operator ``A = blockrows(P_p · Interp[patch p])``.
 
@@ -525,7 +503,7 @@ def assemble_operator(center, sample, radius, angle, frames, interpolation, conf
     k = config.k
     index, r, theta = select_patches(center, sample, radius, angle, n, config)
     mask = index >= 0
-    basis = _zernike_values(r, theta, config.n_max)
+    basis = zernike_basis(r, theta, config.n_max)
     fit, lam = fit_matrices(basis, mask, config.ridge)  # (N, k, n)
 
     # Rows p*k + i, columns = patch sample ids; then one sparse product carries samples to vertices.

@@ -51,7 +51,7 @@ from torch_geometric.nn import FeaStConv
 
 from zernet.patches import SparseApply, to_torch_csr
 
-from .models import TASK_WIDTHS, ZerNet, _activation, _resolve_widths, register_model
+from .models import ZerNet, _activation, _resolve_widths, register_model
 from .reference import RotatedKernelConv
 
 __all__ = ["FeaStNet", "PaperZernikeConv", "PaperZerNet", "ridge_normal_matrix"]
