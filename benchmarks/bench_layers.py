@@ -11,8 +11,8 @@ For s = 1, 4, 8, 16 on a 6,890-vertex surface (k = 21), in one run:
 
 Peak memory: every configuration runs in its own subprocess and reports the growth of its peak resident set
 (``ru_maxrss``) over the resident set after setup (inputs, operator, parameters), so the number is what the
-computation itself adds. The operator is the real ``PatchOperator`` of a sphere-like mesh if
-``zernet.patches`` is available and ``--real`` is given, otherwise a random sparse stand-in with 57 non-zeros
+computation itself adds. With ``--real`` the operator is the real ``PatchOperator`` of the 6,880-vertex
+mannequin of ``bench_operator.py``, otherwise a random sparse stand-in with 57 non-zeros
 per row (the measured density of the real one, ../shared/GUIDE.md section 5).
 
 Usage::
@@ -66,12 +66,11 @@ def _operator(real: bool):
 
     if real:
         from zernet.patches import PatchConfig, build_patch_operator
-        from zernet.surface import Surface
-        import trimesh
 
-        mesh = trimesh.creation.icosphere(subdivisions=5)  # 10242 vertices; cropped below is not needed
-        surface = Surface(mesh.vertices * 34.5, mesh.faces)  # area ~ 15000
-        return build_patch_operator(surface, PatchConfig(r0=5.5, n_samples=12000, patch_size=50, n_max=5))
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from bench_operator import mannequin  # the 6,880-vertex body stand-in at area 15000
+
+        return build_patch_operator(mannequin(), PatchConfig(r0=5.5, n_samples=12000, patch_size=50, n_max=5))
     from zernet.nn.reference import MatrixOperator
 
     return MatrixOperator.random(N_VERTICES, K, nnz_per_row=57, seed=0)
@@ -96,6 +95,11 @@ def run_config(kind: str, s: int, impl: str, repeats: int, real: bool) -> dict:
 
     warnings.filterwarnings("ignore")
     from zernet.nn import Geometry, RotatedKernelConv, ZernikeConv, build_model
+    from zernet.nn.conv import harmonic_contraction, harmonic_plan
+    from zernet.nn.reference import rotated_kernel_responses
+    from zernet.train import keep_freed_memory
+
+    keep_freed_memory()  # as the zernet command does
 
     torch.manual_seed(0)
     op = _operator(real)
@@ -115,13 +119,28 @@ def run_config(kind: str, s: int, impl: str, repeats: int, real: bool) -> dict:
             out = layers[i](xs[i], op)
             out.backward(grads[i])
 
-        def contraction_step(i):
+        def pooled_step(i):  # dense contraction + angular max pooling
             out = layers[i]._pooled_response(Fs[i])
             out.backward(grads[i])
 
+        plan = harmonic_plan(5, s)
+        slabs = [torch.randn(2 * plan.degree + 1, n, b) for _, b in LAYERS]
+        responses = [torch.randn(s, n, b) for _, b in LAYERS]
+
+        def contraction_step(i):  # the dense products alone, no pooling
+            if impl == "reference":
+                rotated_kernel_responses(Fs[i], layers[i].weight, s).backward(responses[i])
+            elif s == 1:
+                (Fs[i].reshape(n, -1) @ layers[i].weight.reshape(-1, LAYERS[i][1])).backward(grads[i])
+            else:
+                harmonic_contraction(Fs[i], layers[i].weight, plan).backward(slabs[i])
+
         per_layer = [_timeit(lambda i=i: layer_step(i), repeats) for i in range(3)]
         per_contraction = [_timeit(lambda i=i: contraction_step(i), repeats) for i in range(3)]
+        per_pooled = [_timeit(lambda i=i: pooled_step(i), repeats) for i in range(3)]
         result["layer_s"] = per_layer
+        result["pooled_s"] = per_pooled
+        result["pooled_total_s"] = sum(per_pooled)
         result["layers_total_s"] = sum(per_layer)
         result["contraction_s"] = per_contraction
         result["contraction_total_s"] = sum(per_contraction)
@@ -185,7 +204,7 @@ def _subprocess(kind, s, impl, repeats, real) -> dict:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="3 repetitions instead of 7, s in (1, 16) for the reference model")
-    parser.add_argument("--real", action="store_true", help="use zernet.patches on a sphere mesh instead of the random operator")
+    parser.add_argument("--real", action="store_true", help="use the real PatchOperator of the mannequin body instead of the random operator")
     parser.add_argument("--threads", type=int, default=None, help="torch threads per configuration (default: torch's)")
     parser.add_argument("--output", type=Path, default=RESULTS)
     parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
@@ -216,24 +235,30 @@ def main(argv=None) -> int:
 
     print(f"\nZernike convolution, N = {rows[0]['n_vertices']}, k = {K}, forward+backward, median of {repeats}")
     print(f"load average at start of report: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores\n")
-    print("three conv layers (3->64, 64->128, 128->256), incl. sparse decomposition; contraction alone; peak = extra RSS")
-    print(f"{'s':>3} | {'harmonic layers':>15} {'contraction':>11} {'peak MB':>8} | {'rotated layers':>14} {'contraction':>11} {'peak MB':>8} | {'speed-up':>8}")
+    print("three conv layers (3->64, 64->128, 128->256): whole layers incl. sparse decomposition; the dense")
+    print("contraction alone; contraction + angular max pooling; peak = extra RSS")
+    print(f"{'s':>3} | {'harmonic layers':>15} {'contraction':>11} {'+pooling':>9} {'peak MB':>8} |"
+          f" {'rotated layers':>14} {'contraction':>11} {'+pooling':>9} {'peak MB':>8} | {'speed-up':>8}")
     h1 = find("layers", 1, "harmonic")
     for s in ANGLES:
         h, r = find("layers", s, "harmonic"), find("layers", s, "reference")
         print(
-            f"{s:3d} | {h['layers_total_s'] * 1e3:13.0f}ms {h['contraction_total_s'] * 1e3:9.0f}ms {h['peak_extra_mb']:8.0f} |"
-            f" {r['layers_total_s'] * 1e3:12.0f}ms {r['contraction_total_s'] * 1e3:9.0f}ms {r['peak_extra_mb']:8.0f} |"
+            f"{s:3d} | {h['layers_total_s'] * 1e3:13.0f}ms {h['contraction_total_s'] * 1e3:9.0f}ms"
+            f" {h['pooled_total_s'] * 1e3:7.0f}ms {h['peak_extra_mb']:8.0f} |"
+            f" {r['layers_total_s'] * 1e3:12.0f}ms {r['contraction_total_s'] * 1e3:9.0f}ms"
+            f" {r['pooled_total_s'] * 1e3:7.0f}ms {r['peak_extra_mb']:8.0f} |"
             f" {r['layers_total_s'] / h['layers_total_s']:7.1f}x"
         )
     h16 = find("layers", 16, "harmonic")
     r1, r16 = find("layers", 1, "reference"), find("layers", 16, "reference")
     print(
         f"\nratio s=16 / s=1: harmonic layers {h16['layers_total_s'] / h1['layers_total_s']:.2f}x (target <= 2.0),"
-        f" contraction {h16['contraction_total_s'] / h1['contraction_total_s']:.2f}x;"
+        f" contraction {h16['contraction_total_s'] / h1['contraction_total_s']:.2f}x,"
+        f" contraction + pooling {h16['pooled_total_s'] / h1['pooled_total_s']:.2f}x;"
         f" rotated kernels {r16['layers_total_s'] / r1['layers_total_s']:.1f}x"
     )
-    print("\ncontraction FLOP rate vs torch.mm for the same sizes (GFLOP/s, per layer)")
+    print("\ndense contraction FLOP rate (forward + backward, no pooling) vs torch.mm for the same sizes"
+          " (GFLOP/s, per layer; target >= 60 %)")
     for s in ANGLES:
         h = find("layers", s, "harmonic")
         pct = [100 * a / b for a, b in zip(h["contraction_gflops"], h["torch_mm_gflops"])]
@@ -253,7 +278,7 @@ def main(argv=None) -> int:
         "n_vertices": rows[0]["n_vertices"],
         "k": K,
         "repeats": repeats,
-        "operator": "PatchOperator (sphere)" if args.real else "random sparse, 57 nnz/row",
+        "operator": "PatchOperator (mannequin, 6880 vertices)" if args.real else "random sparse, 57 nnz/row",
         "torch_threads": int(__import__("torch").get_num_threads()),
         "load_average_1min": os.getloadavg()[0],
         "machine": platform.processor() or platform.machine(),

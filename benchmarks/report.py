@@ -650,6 +650,9 @@ def main(argv=None) -> int:
         args.aneurysm_cases = "TP_Ia105I" if args.quick else "TP_Ia105I,TP_Ia166I"
     skip = {part.strip() for part in args.skip.split(",") if part.strip()}
     torch.set_num_threads(args.threads)
+    from zernet.train import keep_freed_memory
+
+    keep_freed_memory()  # as the zernet command does, for every model alike
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 

@@ -161,6 +161,9 @@ def test_overrides_are_parsed_as_yaml():
     assert out["train"]["epochs"] == 5 and out["model"] == {"name": "feastnet", "widths": [8, 16]}
     assert out["patch"]["scales"][0]["r0"] == 4.5
     assert config["train"]["epochs"] == 200  # the input is not modified
+    # Plain YAML 1.1 would read 1e-3 as a string; a config means the number.
+    numbers = apply_overrides({}, ["train.weight_decay=1e-3", "train.lr=2E+2", "data.root=1e3x"])
+    assert numbers["train"] == {"weight_decay": 1e-3, "lr": 200.0} and numbers["data"]["root"] == "1e3x"
     with pytest.raises(ConfigError):
         apply_overrides(config, ["train.epochs"])
     with pytest.raises(ConfigError, match="index"):
@@ -172,3 +175,55 @@ def test_epoch_order_depends_only_on_seed_and_epoch():
     assert sorted(epoch_order(0, 3, 10)) == list(range(10))
     assert epoch_order(0, 3, 10) != epoch_order(0, 4, 10)
     assert step_groups([4, 2, 0, 1, 3], 2) == [[4, 2], [0, 1], [3]]
+
+
+class _Targets:
+    """The two things target standardisation reads from a data set: targets by index and shape names."""
+
+    def __init__(self, targets):
+        self.targets = targets
+        self.names = [f"shape{i}" for i in range(len(targets))]
+
+    def target(self, i):
+        return self.targets[i]
+
+
+def test_log_target_transform_round_trips_and_is_standardised():
+    from zernet.train import _standardise, _target_stats, _unstandardise
+
+    rng = np.random.default_rng(0)
+    data = _Targets([rng.uniform(0.004, 0.3, size=n) for n in (50, 80)])
+    stats = _target_stats(data, [0, 1], transform="log")
+    assert stats["transform"] == "log"
+    logs = np.log(np.concatenate(data.targets))
+    assert stats["mean"] == pytest.approx(logs.mean()) and stats["std"] == pytest.approx(logs.std())
+    target = torch.from_numpy(data.targets[1])
+    trained = _standardise(target, stats)
+    torch.testing.assert_close(trained.double(), torch.from_numpy((np.log(data.targets[1]) - logs.mean()) / logs.std()),
+                               rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(_unstandardise(trained, stats).double(), target, rtol=1e-5, atol=0)
+    # Without standardisation the network is trained on log y itself.
+    plain = _target_stats(data, [0, 1], transform="log", standardize=False)
+    torch.testing.assert_close(_standardise(target, plain).double(), torch.log(target), rtol=1e-6, atol=1e-6)
+
+
+def test_log_target_transform_trains_and_predicts_positive_values(tmp_path, cache_dir):
+    from zernet.data.synthetic import make_creature
+
+    config = tiny_config(cache_dir, target_transform="log", loss="l1", epochs=2)
+    config["data"]["task"] = "regression"  # mean curvature, positive on these blobby creatures
+    metrics = train(config, tmp_path / "run", progress=False, workers=0)
+    assert np.isfinite(metrics["summary"]["MAPE"])
+    assert load_checkpoint(tmp_path / "run" / "best.pt")["target_stats"]["transform"] == "log"
+    surface, _, curvature = make_creature(123, n_vertices=200)
+    prediction = predict(tmp_path / "run", surface)
+    assert prediction.shape == (200,) and np.all(prediction > 0)
+
+
+def test_log_target_transform_rejects_non_positive_targets(cache_dir):
+    from zernet.train import _target_stats
+
+    with pytest.raises(ConfigError, match=r"shape1 has -0\.5 at vertex 2"):
+        _target_stats(_Targets([np.ones(3), np.array([1.0, 2.0, -0.5])]), [0, 1], transform="log")
+    with pytest.raises(ConfigError, match="train.target_transform"):
+        resolve_config(tiny_config(cache_dir, target_transform="sqrt"))

@@ -39,6 +39,7 @@ import json
 import logging
 import math
 import random
+import re
 import time
 import zipfile
 from collections.abc import Sequence
@@ -91,6 +92,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "weight_decay": 0.0,
         "loss": "auto",               # auto (cross_entropy / mse by task) | cross_entropy | mse | l1
         "standardize_targets": True,  # regression: train on (y - mean) / std of the training targets
+        "target_transform": "none",   # regression: none | log (train on log y: the loss sees relative errors)
         "patience": 20,               # stop after this many epochs without a better validation metric
         "seed": 0,
         "shapes_per_step": 1,         # surfaces concatenated into one optimiser step
@@ -107,6 +109,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
 
 _PASS_THROUGH_SECTIONS = ("data", "model")
 _LOSSES = ("auto", "cross_entropy", "mse", "l1")
+_TARGET_TRANSFORMS = ("none", "log")
 
 
 class ConfigError(ValueError):
@@ -118,13 +121,28 @@ class ConfigError(ValueError):
 # --------------------------------------------------------------------------------------------------------
 
 
+class _ConfigLoader(yaml.SafeLoader):
+    """YAML 1.1 reads ``1e-3`` as a string (it wants ``1.0e-3``); configs mean a number, so read it as one."""
+
+
+_ConfigLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
+def _parse_yaml(text: str):
+    return yaml.load(text, Loader=_ConfigLoader)
+
+
 def load_config(path: str | Path) -> dict:
     """Read a YAML configuration file into a plain dictionary (defaults are filled in by :func:`resolve_config`)."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")
     try:
-        config = yaml.safe_load(path.read_text(encoding="utf-8"))
+        config = _parse_yaml(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as error:
         raise ConfigError(f"{path}: not valid YAML ({error})") from None
     if config is None:
@@ -146,7 +164,7 @@ def apply_overrides(config: dict, overrides: Sequence[str]) -> dict:
         if not sep or not key.strip():
             raise ConfigError(f"override {override!r} is not of the form section.key=value")
         try:
-            value = yaml.safe_load(raw)
+            value = _parse_yaml(raw)
         except yaml.YAMLError:
             value = raw
         parts = key.strip().split(".")
@@ -226,6 +244,9 @@ def resolve_config(config: dict) -> dict:
     _check_number(train_cfg, "train.grad_clip", positive=True, allow_none=True)
     if train_cfg["loss"] not in _LOSSES:
         raise ConfigError(f"train.loss must be one of {', '.join(_LOSSES)}, got {train_cfg['loss']!r}")
+    if train_cfg["target_transform"] not in _TARGET_TRANSFORMS:
+        raise ConfigError(f"train.target_transform must be one of {', '.join(_TARGET_TRANSFORMS)}, "
+                          f"got {train_cfg['target_transform']!r}")
     if not isinstance(train_cfg["device"], str):
         raise ConfigError(f"train.device must be a string such as auto, cpu or cuda, got {train_cfg['device']!r}")
 
@@ -313,6 +334,31 @@ def resolve_device(name: str) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError(f"train.device is {name!r} but CUDA is not available on this machine")
     return device
+
+
+def keep_freed_memory() -> bool:
+    """Make glibc keep freed CPU memory for reuse instead of handing it back to the kernel.
+
+    A training step on a FAUST-sized mesh allocates and frees tensors of hundreds of MB (the 6,890 x 6,890
+    logits and their gradient). glibc serves such blocks with ``mmap`` and returns them with ``munmap``, so
+    every step page-faults the same memory in again: about a quarter of a correspondence step on this
+    2-core machine (benchmarks/bench_layers.py). Disabling ``mmap`` for large blocks and the heap trim keeps
+    the peak footprint unchanged and the pages resident. Called by the ``zernet`` command and the
+    benchmarks; a library user may call it too. Returns False where it does not apply (not glibc) and
+    leaves the allocator alone when the user set ``MALLOC_MMAP_MAX_`` or ``MALLOC_TRIM_THRESHOLD_``.
+    """
+    import ctypes
+    import os
+
+    if any(name in os.environ for name in ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_")):
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_mmap_max = -1, -4  # from glibc's malloc.h
+    return bool(mallopt(m_mmap_max, 0)) and bool(mallopt(m_trim_threshold, 2**30))
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -411,8 +457,8 @@ class _Batch:
         if records[0].target is not None:
             target = np.concatenate([np.asarray(r.target) for r in records])
             self.target = torch.from_numpy(target).to(device)
-            if target_stats is not None:  # regression on standardised targets
-                self.target = (self.target.float() - target_stats["mean"]) / target_stats["std"]
+            if target_stats is not None:  # regression on (log-)standardised targets
+                self.target = _standardise(self.target, target_stats)
 
 
 def _loss_name(config: dict, task: str) -> str:
@@ -433,17 +479,27 @@ def _loss(name: str, output: torch.Tensor, target: torch.Tensor) -> torch.Tensor
     return F.mse_loss(output, target) if name == "mse" else F.l1_loss(output, target)
 
 
-def _target_stats(dataset, indices: Sequence[int]) -> dict:
-    """Mean and standard deviation of every training vertex's target (regression standardisation)."""
+def _target_stats(dataset, indices: Sequence[int], transform: str = "none", standardize: bool = True) -> dict:
+    """How regression targets are shown to the network: ``transform`` (none or log), then standardisation
+    with the mean and standard deviation of every training vertex's (transformed) target."""
+    if not standardize:
+        return {"transform": transform, "mean": 0.0, "std": 1.0}
     total, total_sq, count = 0.0, 0.0, 0
     for i in indices:
         target = np.asarray(dataset.target(i), dtype=np.float64)  # no operator build for cached shapes
+        if transform == "log":
+            if not np.all(target > 0):
+                bad = int(np.flatnonzero(~(target > 0))[0])
+                raise ConfigError(f"train.target_transform log needs positive targets, but shape "
+                                  f"{dataset.names[i]} has "
+                                  f"{float(target[bad])!r} at vertex {bad}")
+            target = np.log(target)
         total += target.sum()
         total_sq += (target**2).sum()
         count += target.size
     mean = total / count
     std = math.sqrt(max(total_sq / count - mean**2, 0.0))
-    return {"mean": float(mean), "std": float(std if std > 1e-12 else 1.0)}
+    return {"transform": transform, "mean": float(mean), "std": float(std if std > 1e-12 else 1.0)}
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -762,10 +818,10 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
 
     if checkpoint is not None:
         target_stats = checkpoint["target_stats"]
-    elif task == "regression" and tcfg["standardize_targets"]:
-        target_stats = _target_stats(dataset, train_idx)
-        logger.info(f"targets standardised with training mean {target_stats['mean']:.6g}, "
-                    f"std {target_stats['std']:.6g}")
+    elif task == "regression" and (tcfg["standardize_targets"] or tcfg["target_transform"] != "none"):
+        target_stats = _target_stats(dataset, train_idx, tcfg["target_transform"], tcfg["standardize_targets"])
+        logger.info(f"targets: transform {target_stats['transform']}, standardised with training mean "
+                    f"{target_stats['mean']:.6g}, std {target_stats['std']:.6g}")
     else:
         target_stats = None
 
@@ -957,10 +1013,20 @@ def _validate(model, dataset, indices, device, loss_name, target_stats, task) ->
     return {"val_loss": float(np.mean(losses)), key: float(np.mean(scores))}
 
 
+def _standardise(target: torch.Tensor, target_stats: dict) -> torch.Tensor:
+    """Target in the units the network is trained in (see :func:`_target_stats`)."""
+    target = target.float()
+    if target_stats.get("transform", "none") == "log":
+        target = torch.log(target)
+    return (target - target_stats["mean"]) / target_stats["std"]
+
+
 def _unstandardise(values: torch.Tensor, target_stats: dict | None) -> torch.Tensor:
+    """Inverse of :func:`_standardise`: network output back to the target's units."""
     if target_stats is None:
         return values
-    return values * target_stats["std"] + target_stats["mean"]
+    values = values * target_stats["std"] + target_stats["mean"]
+    return torch.exp(values) if target_stats.get("transform", "none") == "log" else values
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -1053,9 +1119,10 @@ def _evaluate_model(model, checkpoint: dict, dataset, indices: Sequence[int], de
         result["summary_std"] = aggregated["std"]
         stats = checkpoint.get("target_stats")
         if stats is not None:
-            # The honest reference: predicting the training mean everywhere.
-            constant = [zmetrics.regression_scores(np.full(len(dataset.target(i)), stats["mean"]),
-                                                   dataset.target(i)) for i in indices]
+            # The honest reference: predicting the training mean (of the trained units) everywhere.
+            mean = float(_unstandardise(torch.zeros(1), stats))
+            constant = [zmetrics.regression_scores(np.full(len(dataset.target(i)), mean), dataset.target(i))
+                        for i in indices]
             result["baseline"] = {"training_mean_MAPE": float(np.mean([c["MAPE"] for c in constant])),
                                   "training_mean_RRMSE": float(np.mean([c["RRMSE"] for c in constant]))}
     result["per_shape"] = per_shape

@@ -129,8 +129,11 @@ class _DiscreteMax(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: Tensor):
         index, T = ctx.saved_tensors
-        weights = T.t().index_select(1, index.long())  # (t, M): trig basis at each element's winning angle
-        return weights * grad, None
+        # (t, M): the trig basis at each element's winning angle, times the incoming gradient; gathered
+        # straight into the output and scaled in place (one pass fewer than gather-then-multiply).
+        out = torch.empty(T.shape[1], index.shape[0], dtype=grad.dtype, device=grad.device)
+        torch.index_select(T.t().contiguous(), 1, index.long(), out=out)
+        return out.mul_(grad), None
 
 
 class _ValueAtAngle(torch.autograd.Function):
