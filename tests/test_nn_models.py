@@ -127,3 +127,22 @@ def test_training_step_reduces_loss():
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < 0.7 * losses[0]
+
+
+@pytest.mark.parametrize("name", ["zernet", "zernet-multiscale"])
+def test_input_skip_feeds_the_inputs_to_the_head(name):
+    g = geometry(30, 0, scales=3)
+    x = torch.randn(30, 3)
+    torch.manual_seed(0)
+    model = build_model(name, 3, 2, widths=(9, 12), angular_resolution=4, input_skip=True, dropout=0.0).eval()
+    assert model.hidden.in_features == 9 + 3
+    # The head sees [conv features, x]: zeroing the conv part of the hidden weight leaves a function of x
+    # alone, vertex by vertex (no neighbour enters), so shuffling the other vertices' inputs changes nothing.
+    with torch.no_grad():
+        model.hidden.weight[:, :9] = 0.0
+        out = model(x, g)
+        shuffled = x.clone()
+        shuffled[1:] = x[1:][torch.randperm(29)]
+        assert torch.allclose(model(shuffled, g)[0], out[0], atol=1e-6)
+        model.hidden.weight[:, 9:] = 0.0  # and without the skip part the output is constant
+        assert torch.allclose(model(x, g), model(x, g)[:1].expand(30, 2), atol=1e-6)

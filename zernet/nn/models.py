@@ -196,8 +196,11 @@ class _ZerNetBase(nn.Module):
         """``x`` ``(N, C_in)``, ``geometry.operators`` -> ``(N, C_out)``."""
         if x.dim() != 2 or x.shape[1] != self.in_channels:
             raise ValueError(f"{self.__class__.__name__} expects x of shape (N, {self.in_channels}), got {tuple(x.shape)}")
+        inputs = x
         for block in self.blocks:
             x = block(x, geometry.operators)
+        if self.input_skip:
+            x = torch.cat([x, inputs], dim=1)
         x = self.hidden_act(self.hidden(x))
         return self.output(self.dropout(x))
 
@@ -219,6 +222,9 @@ class ZerNet(_ZerNetBase):
         activation: ``"relu"`` (default) or ``"elu"``, after every convolution and the hidden linear.
         dropout: probability before the output layer (0.25, the authors' release).
         norm: ``None`` (paper), ``"batch"`` or ``"layer"`` after every convolution.
+        input_skip: also feed the input features to the hidden linear layer (concatenated to the last
+            block's output), so descriptive per-vertex inputs such as ``features: shape`` reach the head
+            unchanged and the convolutions only add context.
         scale: which of ``geometry.operators`` the convolutions use (0).
 
     Shapes: ``x`` ``(N, C_in)``, ``geometry.operators[scale]`` -> ``(N, C_out)`` unnormalised scores.
@@ -236,6 +242,7 @@ class ZerNet(_ZerNetBase):
         activation: str = "relu",
         dropout: float = 0.25,
         norm: str | None = None,
+        input_skip: bool = False,
         scale: int = 0,
     ):
         super().__init__()
@@ -247,7 +254,9 @@ class ZerNet(_ZerNetBase):
         for w in self.widths[:-1]:
             self.blocks.append(ZernikeBlock(channels, w, scales=(scale,), activation=activation, norm=norm, **conv))
             channels = w
-        self._build_head(channels, self.widths[-1], self.out_channels, activation, dropout)
+        self.input_skip = bool(input_skip)
+        self._build_head(channels + (self.in_channels if self.input_skip else 0), self.widths[-1],
+                         self.out_channels, activation, dropout)
 
 
 @register_model("zernet-multiscale")
@@ -264,7 +273,7 @@ class MultiScaleZerNet(_ZerNetBase):
 
     Args:
         in_channels, out_channels, widths, task, n_max, angular_resolution, pooling, activation, dropout,
-        norm: as :class:`ZerNet`.
+        norm, input_skip: as :class:`ZerNet`.
         n_scales: number of operators used (3).
         wiring: ``"parallel"`` or ``"sequential"``.
 
@@ -283,6 +292,7 @@ class MultiScaleZerNet(_ZerNetBase):
         activation: str = "relu",
         dropout: float = 0.25,
         norm: str | None = None,
+        input_skip: bool = False,
         n_scales: int = 3,
         wiring: str = "parallel",
     ):
@@ -299,4 +309,6 @@ class MultiScaleZerNet(_ZerNetBase):
             scales = tuple(range(self.n_scales)) if wiring == "parallel" else (min(i, self.n_scales - 1),)
             self.blocks.append(ZernikeBlock(channels, w, scales=scales, activation=activation, norm=norm, **conv))
             channels = w
-        self._build_head(channels, self.widths[-1], self.out_channels, activation, dropout)
+        self.input_skip = bool(input_skip)
+        self._build_head(channels + (self.in_channels if self.input_skip else 0), self.widths[-1],
+                         self.out_channels, activation, dropout)
