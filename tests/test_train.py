@@ -227,3 +227,30 @@ def test_log_target_transform_rejects_non_positive_targets(cache_dir):
         _target_stats(_Targets([np.ones(3), np.array([1.0, 2.0, -0.5])]), [0, 1], transform="log")
     with pytest.raises(ConfigError, match="train.target_transform"):
         resolve_config(tiny_config(cache_dir, target_transform="sqrt"))
+
+
+def test_cosine_schedule_and_resume_from_mid_schedule(tmp_path, cache_dir):
+    import shutil
+
+    from zernet.train import epoch_learning_rate
+
+    tcfg = {"lr": 0.1, "lr_schedule": "cosine", "epochs": 4}
+    rates = [epoch_learning_rate(tcfg, e) for e in range(1, 5)]
+    assert rates[0] == pytest.approx(0.1) and rates[2] == pytest.approx(0.05)
+    assert all(a > b > 0 for a, b in zip(rates, rates[1:]))
+    assert epoch_learning_rate({"lr": 0.1, "epochs": 4}, 3) == 0.1  # constant by default
+
+    config = tiny_config(cache_dir, epochs=4, patience=None, lr_schedule="cosine")
+    train(config, tmp_path / "full", progress=False, workers=0)
+    saved = load_checkpoint(tmp_path / "full" / "last.pt")["optimizer"]["param_groups"][0]["lr"]
+    assert saved == pytest.approx(epoch_learning_rate(config["train"], 4))  # the last epoch's lr
+    # The checkpoint of epoch 3 (previous.pt), resumed with the same config, must land on the same weights.
+    shutil.copytree(tmp_path / "full", tmp_path / "cut")
+    (tmp_path / "cut" / "metrics.json").unlink()
+    shutil.copy(tmp_path / "cut" / "previous.pt", tmp_path / "cut" / "last.pt")
+    assert load_checkpoint(tmp_path / "cut" / "last.pt")["state"]["epoch"] == 3
+    train(config, tmp_path / "cut", resume=True, progress=False, workers=0)
+    a = load_checkpoint(tmp_path / "full" / "last.pt")["model"]
+    b = load_checkpoint(tmp_path / "cut" / "last.pt")["model"]
+    for key in a:
+        torch.testing.assert_close(b[key], a[key], rtol=1e-6, atol=1e-7)

@@ -89,6 +89,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "train": {
         "epochs": 200,
         "lr": 1.0e-3,
+        "lr_schedule": "constant",    # constant | cosine (from lr down to 0 over train.epochs, per epoch)
         "weight_decay": 0.0,
         "loss": "auto",               # auto (cross_entropy / mse by task) | cross_entropy | mse | l1
         "standardize_targets": True,  # regression: train on (y - mean) / std of the training targets
@@ -110,6 +111,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
 _PASS_THROUGH_SECTIONS = ("data", "model")
 _LOSSES = ("auto", "cross_entropy", "mse", "l1")
 _TARGET_TRANSFORMS = ("none", "log")
+_LR_SCHEDULES = ("constant", "cosine")
 
 
 class ConfigError(ValueError):
@@ -244,6 +246,9 @@ def resolve_config(config: dict) -> dict:
     _check_number(train_cfg, "train.grad_clip", positive=True, allow_none=True)
     if train_cfg["loss"] not in _LOSSES:
         raise ConfigError(f"train.loss must be one of {', '.join(_LOSSES)}, got {train_cfg['loss']!r}")
+    if train_cfg["lr_schedule"] not in _LR_SCHEDULES:
+        raise ConfigError(f"train.lr_schedule must be one of {', '.join(_LR_SCHEDULES)}, "
+                          f"got {train_cfg['lr_schedule']!r}")
     if train_cfg["target_transform"] not in _TARGET_TRANSFORMS:
         raise ConfigError(f"train.target_transform must be one of {', '.join(_TARGET_TRANSFORMS)}, "
                           f"got {train_cfg['target_transform']!r}")
@@ -505,6 +510,15 @@ def _target_stats(dataset, indices: Sequence[int], transform: str = "none", stan
 # --------------------------------------------------------------------------------------------------------
 # Shape order, RNG states, checkpoints
 # --------------------------------------------------------------------------------------------------------
+
+
+def epoch_learning_rate(train_config: dict, epoch: int) -> float:
+    """Learning rate of (1-based) ``epoch``: ``train.lr``, or with ``lr_schedule: cosine`` the half cosine
+    from ``lr`` at epoch 1 towards 0 after the last of ``train.epochs``."""
+    lr = float(train_config["lr"])
+    if train_config.get("lr_schedule", "constant") == "constant":
+        return lr
+    return 0.5 * lr * (1.0 + math.cos(math.pi * (epoch - 1) / max(int(train_config["epochs"]), 1)))
 
 
 def epoch_order(seed: int, epoch: int, n: int) -> list[int]:
@@ -842,7 +856,8 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
     # itself. Only the training forward goes through it; validation, checkpoints and evaluation use `model`.
     net = ctx.wrap(model)
     n_params = sum(p.numel() for p in model.parameters())
-    logger.info(f"model {spec['name']} ({n_params:,} parameters), loss {loss_name}, lr {tcfg['lr']}, "
+    logger.info(f"model {spec['name']} ({n_params:,} parameters), loss {loss_name}, lr {tcfg['lr']} "
+                f"({tcfg['lr_schedule']}), "
                 f"{tcfg['shapes_per_step']} shape(s) per step")
 
     higher_is_better = task == "classification"
@@ -855,6 +870,8 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
         epoch_started = time.perf_counter()
         net.train()
         ctx.seed_epoch(tcfg["seed"], epoch)  # distributed only: per-rank dropout, exact resume
+        for group in optimizer.param_groups:  # a function of the epoch alone: resuming needs no state
+            group["lr"] = epoch_learning_rate(tcfg, epoch)
         # One process: the whole permutation. Rank r of W: its equal share order[r::W] (padded, see
         # zernet.distributed.shard_indices), so every rank runs the same number of steps.
         order = ctx.shard([train_idx[i] for i in epoch_order(tcfg["seed"], epoch, len(train_idx))])
