@@ -19,7 +19,7 @@ In one process, on the same inputs and with the same thread count, it measures
    the part of it added by the model (peak minus the resident size before the model was built).
 4. **Short fixed-budget training runs** through :func:`zernet.train.train` (the training command's own loop,
    data, splits and metrics): same epochs, same seed for every model, on the built-in synthetic data
-   (segmentation, and curvature regression) and, when the aneurysm data exist
+   (segmentation, and curvature regression, both with the recipe of ``configs/demo.yaml``) and, when the aneurysm data exist
    (``--aneurysm-root``, default ``../shared/data/aneurysm``), on leave-one-out aneurysm cases.
 
 It writes ``<out>/report.md`` (tables, ratios to FeaStNet, the issue's targets), ``<out>/report.json``,
@@ -294,23 +294,24 @@ def measure_memory(specs: list[dict], inputs: dict, threads: int) -> dict:
 
 def training_tasks(args) -> list[dict]:
     """The data sets of the training runs, as (partial) training configurations."""
+    import yaml
+
     epochs = args.epochs
-    tasks = [
-        {"task": "synthetic segmentation", "slug": "synthetic-segmentation", "metric": "accuracy",
-         "higher": True, "config": {"data": {"kind": "synthetic", "task": "segmentation", "seed": 0,
-                                             "val_fraction": 0.2},
-                                    "model": {"task": "segmentation"}, "train": {"epochs": epochs}}},
-        {"task": "synthetic curvature regression", "slug": "synthetic-curvature", "metric": "MAPE",
-         "higher": False, "config": {"data": {"kind": "synthetic", "task": "regression", "seed": 0,
-                                              "val_fraction": 0.2},
-                                     "model": {"task": "regression"}, "train": {"epochs": epochs}}},
-    ]
+    # The built-in tasks use the demo's recipe (configs/demo.yaml: 30 creatures, xyz + normals, its patch,
+    # widths and learning rate) for every model, so each model meets a task it can learn in a few epochs.
+    demo = yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())
+    tasks = []
+    for name, slug, metric, higher in (("segmentation", "synthetic-segmentation", "accuracy", True),
+                                       ("regression", "synthetic-curvature", "MAPE", False)):
+        config = {"data": {**demo["data"], "task": name}, "patch": demo["patch"],
+                  "model": {"widths": demo["model"]["widths"], "dropout": demo["model"]["dropout"]},
+                  "train": {"epochs": epochs, "lr": demo["train"]["lr"]}}
+        label = "synthetic segmentation" if name == "segmentation" else "synthetic curvature regression"
+        tasks.append({"task": label, "slug": slug, "metric": metric, "higher": higher, "config": config})
     root = Path(args.aneurysm_root)
     if not root.is_absolute():
         root = (ROOT / root).resolve()
     if root.is_dir() and args.aneurysm_cases:
-        import yaml
-
         base = yaml.safe_load((ROOT / "configs" / "aneurysm_regression.yaml").read_text())
         for case in args.aneurysm_cases.split(","):
             config = json.loads(json.dumps(base))
