@@ -254,3 +254,31 @@ def test_cosine_schedule_and_resume_from_mid_schedule(tmp_path, cache_dir):
     b = load_checkpoint(tmp_path / "cut" / "last.pt")["model"]
     for key in a:
         torch.testing.assert_close(b[key], a[key], rtol=1e-6, atol=1e-7)
+
+
+def test_feature_standardisation_is_stored_and_used_by_predict(tmp_path, cache_dir):
+    from types import SimpleNamespace
+
+    from zernet.data.synthetic import make_creature
+    from zernet.train import _Batch, _feature_stats
+
+    # Statistics over every training vertex, per channel; a constant channel keeps std 1.
+    records = [SimpleNamespace(features=np.c_[np.arange(4.0), np.full(4, 3.0)]),
+               SimpleNamespace(features=np.c_[np.arange(4.0, 8.0), np.full(4, 3.0)])]
+    stats = _feature_stats(records, [0, 1])
+    np.testing.assert_allclose(stats["mean"], [3.5, 3.0])
+    np.testing.assert_allclose(stats["std"], [np.arange(8.0).std(), 1.0])
+
+    config = tiny_config(cache_dir, standardize_features=True)
+    train(config, tmp_path / "run", progress=False, workers=0)
+    checkpoint = load_checkpoint(tmp_path / "run" / "best.pt")
+    assert len(checkpoint["feature_stats"]["mean"]) == 3  # xyz
+    surface, _, _ = make_creature(123, n_vertices=200)
+    _, probabilities = predict(tmp_path / "run", surface, probabilities=True)
+    assert probabilities.shape == (200, 4) and np.isfinite(probabilities).all()
+    # What every batch (training, validation, predict) feeds the model: (x - mean) / std per channel.
+    raw = np.asarray(surface.vertices, np.float32)
+    record = SimpleNamespace(features=raw, name="x", target=None, geometry=SimpleNamespace(to=lambda device: None))
+    batch = _Batch([record], torch.device("cpu"), None, checkpoint["feature_stats"])
+    expected = (raw - np.array(checkpoint["feature_stats"]["mean"])) / np.array(checkpoint["feature_stats"]["std"])
+    np.testing.assert_allclose(batch.features.numpy(), expected, rtol=1e-5, atol=1e-5)
