@@ -125,7 +125,7 @@ def run_config(kind: str, s: int, impl: str, repeats: int, real: bool) -> dict:
 
         plan = harmonic_plan(5, s)
         slabs = [torch.randn(2 * plan.degree + 1, n, b) for _, b in LAYERS]
-        responses = [torch.randn(s, n, b) for _, b in LAYERS]
+        responses = [torch.randn(n, s, b) for _, b in LAYERS]  # rotated_kernel_responses: (N, s, C_out)
 
         def contraction_step(i):  # the dense products alone, no pooling
             if impl == "reference":
