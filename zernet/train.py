@@ -496,17 +496,24 @@ def _feature_stats(dataset, indices: Sequence[int]) -> dict:
     Inputs such as ``features: shape`` mix channels whose spread differs by two orders of magnitude (high
     Zernike orders ~0.005, boundary distance ~1); without this the network sees mostly the largest ones.
     """
-    total = total_sq = None
-    count = 0
-    for i in indices:
-        x = np.asarray(dataset[i].features, dtype=np.float64)
-        total = x.sum(axis=0) if total is None else total + x.sum(axis=0)
-        total_sq = (x**2).sum(axis=0) if total_sq is None else total_sq + (x**2).sum(axis=0)
-        count += len(x)
-    mean = total / count
-    std = np.sqrt(np.maximum(total_sq / count - mean**2, 0.0))
-    std[std < 1e-8] = 1.0  # a constant channel (e.g. "ones") is left as it is, only centred
+    # A constant channel (e.g. "ones") is only centred.
+    mean, std = _mean_std((dataset[i].features for i in indices), flat_std=1e-8)
     return {"mean": mean.tolist(), "std": std.tolist()}
+
+
+def _mean_std(arrays, flat_std: float):
+    """Mean and standard deviation over the rows of all ``arrays`` together (per column for 2-D arrays,
+    one pair for 1-D ones), in one pass; a deviation below ``flat_std`` is replaced by 1."""
+    total = total_sq = 0.0
+    count = 0
+    for x in arrays:
+        x = np.asarray(x, dtype=np.float64)
+        total = total + x.sum(axis=0)
+        total_sq = total_sq + (x**2).sum(axis=0)
+        count += len(x)
+    mean = np.asarray(total / count)
+    std = np.sqrt(np.maximum(total_sq / count - mean**2, 0.0))
+    return mean, np.where(std < flat_std, 1.0, std)
 
 
 def _target_stats(dataset, indices: Sequence[int], transform: str = "none", standardize: bool = True) -> dict:
@@ -514,22 +521,19 @@ def _target_stats(dataset, indices: Sequence[int], transform: str = "none", stan
     with the mean and standard deviation of every training vertex's (transformed) target."""
     if not standardize:
         return {"transform": transform, "mean": 0.0, "std": 1.0}
-    total, total_sq, count = 0.0, 0.0, 0
-    for i in indices:
-        target = np.asarray(dataset.target(i), dtype=np.float64)  # no operator build for cached shapes
-        if transform == "log":
-            if not np.all(target > 0):
-                bad = int(np.flatnonzero(~(target > 0))[0])
-                raise ConfigError(f"train.target_transform log needs positive targets, but shape "
-                                  f"{dataset.names[i]} has "
-                                  f"{float(target[bad])!r} at vertex {bad}")
-            target = np.log(target)
-        total += target.sum()
-        total_sq += (target**2).sum()
-        count += target.size
-    mean = total / count
-    std = math.sqrt(max(total_sq / count - mean**2, 0.0))
-    return {"transform": transform, "mean": float(mean), "std": float(std if std > 1e-12 else 1.0)}
+
+    def trained_units(i):
+        target = np.asarray(dataset.target(i), dtype=np.float64).ravel()  # no operator build for cached shapes
+        if transform != "log":
+            return target
+        if not np.all(target > 0):
+            bad = int(np.flatnonzero(~(target > 0))[0])
+            raise ConfigError(f"train.target_transform log needs positive targets, but shape "
+                              f"{dataset.names[i]} has {float(target[bad])!r} at vertex {bad}")
+        return np.log(target)
+
+    mean, std = _mean_std((trained_units(i) for i in indices), flat_std=1e-12)
+    return {"transform": transform, "mean": float(mean), "std": float(std)}
 
 
 # --------------------------------------------------------------------------------------------------------
