@@ -47,6 +47,9 @@ POOLING_MODES = ("max", "continuous", "mean", "none")
 
 # Columns of H processed at once when sampling it at many angles: bounds the transient (s, chunk) buffer.
 _CHUNK_ELEMENTS = 1 << 21
+# Samples per chunk in the discrete max (a 4 MB block in float32): large enough to amortise the per-chunk
+# calls, small enough to stay in cache between the product and the two reductions.
+_POOL_CHUNK_ELEMENTS = 1 << 20
 
 
 def harmonic_degree(harmonics: Tensor) -> int:
@@ -115,24 +118,29 @@ class _DiscreteMax(torch.autograd.Function):
     @staticmethod
     def forward(ctx, H2: Tensor, T: Tensor) -> Tensor:  # H2 (t, M), T (s, t)
         s, M = T.shape[0], H2.shape[1]
+        small = torch.uint8 if s <= 256 else torch.int16 if s <= 32768 else torch.int64
         values = torch.empty(M, dtype=H2.dtype, device=H2.device)
-        index = torch.empty(M, dtype=torch.int64, device=H2.device)
-        chunk = max(1, _CHUNK_ELEMENTS // max(s, 1))
+        index = torch.empty(M, dtype=small, device=H2.device)
+        angle = torch.arange(s, dtype=small, device=H2.device)[:, None]
+        # Cache-sized column chunks; the winning angle as the largest angle index equal to the maximum
+        # (two vectorised reductions: torch.max with indices over the angle axis is several times slower).
+        chunk = max(1, _POOL_CHUNK_ELEMENTS // s)
+        samples = torch.empty(s, min(chunk, M), dtype=H2.dtype, device=H2.device)
         for start in range(0, M, chunk):
             stop = min(M, start + chunk)
-            samples = T @ H2[:, start:stop]
-            torch.max(samples, dim=0, out=(values[start:stop], index[start:stop]))
-        small = torch.uint8 if s <= 256 else torch.int16 if s <= 32768 else torch.int64
-        ctx.save_for_backward(index.to(small), T)
+            block = torch.mm(T, H2[:, start:stop], out=samples[:, : stop - start])
+            best = torch.amax(block, dim=0, out=values[start:stop])
+            torch.amax(torch.eq(block, best) * angle, dim=0, out=index[start:stop])
+        ctx.save_for_backward(index, T)
         return values
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         index, T = ctx.saved_tensors
-        # (t, M): the trig basis at each element's winning angle, times the incoming gradient; gathered
-        # straight into the output and scaled in place (one pass fewer than gather-then-multiply).
-        out = torch.empty(T.shape[1], index.shape[0], dtype=grad.dtype, device=grad.device)
-        torch.index_select(T.t().contiguous(), 1, index.long(), out=out)
+        # (t, M): the trig basis at each element's winning angle (one gather with a broadcast index),
+        # scaled in place by the incoming gradient.
+        t, M = T.shape[1], index.shape[0]
+        out = torch.gather(T.t().contiguous(), 1, index.long().expand(t, M))
         return out.mul_(grad), None
 
 
