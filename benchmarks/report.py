@@ -462,7 +462,7 @@ def write_report(out: Path, results: dict, args) -> Path:
     lines = ["# zernet vs the paper's formulation vs FeaStNet", ""]
     env = results["environment"]
     lines += [
-        f"Generated {env['date']} by `python benchmarks/report.py{' --quick' if args.quick else ''}` "
+        f"Generated {env['date']} by `{results['command']}` "
         f"(commit `{env['commit']}`), torch {env['torch']}, torch_geometric {env['torch_geometric']}, "
         f"{env['threads']} CPU thread(s) on {env['machine']} ({env['cpus']} logical CPUs), float32.",
         "All measurements in one process on the same inputs; memory in one child process per model.",
@@ -669,7 +669,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    results: dict = {"environment": environment(args.threads), "quick": args.quick}
+    command = " ".join(["python benchmarks/report.py", *(argv if argv is not None else sys.argv[1:])])
+    results: dict = {"environment": environment(args.threads), "quick": args.quick, "command": command}
     specs = timing_models(args.quick)
     with tempfile.TemporaryDirectory(prefix="zernet-report-") as workdir:
         if not {"timing", "memory"} <= skip:
