@@ -210,14 +210,15 @@ class _HarmonicContraction(torch.autograd.Function):
                 cols = slice(a * C_in, b * C_in)
                 slab_a = 0 if f == 0 else 2 * f - 1
                 torch.mm(X[:, cols].t(), dH[slab_a], out=dWA[cols])
-                if f > 0 and plan.has_sin[f]:
+                if f > 0 and plan.has_sin[f]:  # other rows of dWB are never read (their sign is 0)
                     torch.mm(X[:, cols].t(), dH[2 * f], out=dWB[cols])
-                else:
-                    dWB[cols].zero_()
-            sign = torch.as_tensor(plan.sign, dtype=X.dtype, device=dev).view(k, 1, 1)
+            # Row by row: index_add_ over the basis axis is tens of times slower than these k small adds.
             dG = torch.zeros_like(G)
-            dG.index_add_(0, perm, dWA.view(k, C_in, C_out))
-            dG.index_add_(0, torch.as_tensor(plan.partner, device=dev), dWB.view(k, C_in, C_out) * sign)
+            dWA, dWB = dWA.view(k, C_in, C_out), dWB.view(k, C_in, C_out)
+            for i, (row, partner, sign) in enumerate(zip(plan.perm, plan.partner, plan.sign)):
+                dG[row].add_(dWA[i])
+                if sign:
+                    dG[partner].add_(dWB[i], alpha=sign)
         return dF, dG, None
 
 
