@@ -9,11 +9,14 @@ For s = 1, 4, 8, 16 on a 6,890-vertex surface (k = 21), in one run:
 * one training step (forward, cross-entropy over 6,890 classes, backward, Adam) of the whole single-scale
   correspondence model ``Conv64 -> Conv128 -> Conv256 -> Lin512 -> Lin6890``.
 
-Peak memory: every configuration runs in its own subprocess and reports the growth of its peak resident set
-(``ru_maxrss``) over the resident set after setup (inputs, operator, parameters), so the number is what the
-computation itself adds. With ``--real`` the operator is the real ``PatchOperator`` of the 6,880-vertex
-mannequin of ``bench_operator.py``, otherwise a random sparse stand-in with 57 non-zeros
-per row (the measured density of the real one, ../shared/GUIDE.md section 5).
+Timing: all configurations of one kind (layers, or whole-model steps) are built in one child process and
+timed round by round, interleaved, so that load from other processes on the machine spreads over all of them
+and the ratios between them hold; the tables give medians over rounds. Peak memory: one child process per
+configuration runs its workload twice and reports the growth of its peak resident set (``ru_maxrss``) over
+the resident set after setup (inputs, operator, parameters), so the number is what the computation itself
+adds. With ``--real`` the operator is the real ``PatchOperator`` of the 6,880-vertex mannequin of
+``bench_operator.py``, otherwise a random sparse stand-in with 57 non-zeros per row (the measured density of
+the real one, ../shared/GUIDE.md section 5).
 
 Usage::
 
@@ -50,15 +53,9 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _timeit(fn, repeats: int) -> float:
-    fn()  # warm-up (allocator, caches, lazy operator tensors)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    times.sort()
-    return times[len(times) // 2]
+def _median(values: list[float]) -> float:
+    values = sorted(values)
+    return values[len(values) // 2]
 
 
 def _operator(real: bool):
@@ -88,113 +85,171 @@ def _plan_flops(s: int | None, c_in: int, c_out: int, n: int) -> float:
     return 3 * 2.0 * n * units * c_in * c_out
 
 
-def run_config(kind: str, s: int, impl: str, repeats: int, real: bool) -> dict:
-    """One configuration, in this process. kind: 'layers' | 'model'."""
+def layer_workload(op, s: int, impl: str) -> dict:
+    """Closures for the three convolution layers at ``s``: whole layers, contraction alone, contraction +
+    pooling (one closure per layer each), and the contraction's useful FLOPs per layer."""
     import torch
-    import warnings
 
-    warnings.filterwarnings("ignore")
-    from zernet.nn import Geometry, RotatedKernelConv, ZernikeConv, build_model
+    from zernet.nn import RotatedKernelConv, ZernikeConv
     from zernet.nn.conv import harmonic_contraction, harmonic_plan
     from zernet.nn.reference import rotated_kernel_responses
+
+    n = op.n_vertices
+    cls = ZernikeConv if impl == "harmonic" else RotatedKernelConv
+    layers = [cls(a, b, angular_resolution=s, pooling="max") for a, b in LAYERS]
+    xs = [torch.randn(n, a, requires_grad=True) for a, _ in LAYERS]
+    Fs = [op.apply(x.detach()).detach().requires_grad_() for x in xs]
+    grads = [torch.randn(n, b) for _, b in LAYERS]
+    plan = harmonic_plan(5, s)
+    slabs = [torch.randn(2 * plan.degree + 1, n, b) for _, b in LAYERS]
+    responses = [torch.randn(n, s, b) for _, b in LAYERS]  # rotated_kernel_responses: (N, s, C_out)
+
+    def layer_step(i):
+        layers[i](xs[i], op).backward(grads[i])
+
+    def pooled_step(i):  # dense contraction + angular max pooling
+        layers[i]._pooled_response(Fs[i]).backward(grads[i])
+
+    def contraction_step(i):  # the dense products alone, no pooling
+        if impl == "reference":
+            rotated_kernel_responses(Fs[i], layers[i].weight, s).backward(responses[i])
+        elif s == 1:
+            (Fs[i].reshape(n, -1) @ layers[i].weight.reshape(-1, LAYERS[i][1])).backward(grads[i])
+        else:
+            harmonic_contraction(Fs[i], layers[i].weight, plan).backward(slabs[i])
+
+    if impl == "harmonic":
+        flops = [_plan_flops(s, a, b, n) for a, b in LAYERS]
+    else:
+        flops = [3 * 2.0 * n * K * a * b * s for a, b in LAYERS]
+    return {
+        "layer": [lambda i=i: layer_step(i) for i in range(3)],
+        "contraction": [lambda i=i: contraction_step(i) for i in range(3)],
+        "pooled": [lambda i=i: pooled_step(i) for i in range(3)],
+        "flops": flops,
+    }
+
+
+def torch_mm_workload(n: int) -> list:
+    """torch's own matmul for the same sizes as each layer: forward X W, backward dY W^T and X^T dY."""
+    import torch
+
+    closures = []
+    for a, b in LAYERS:
+        X, W, dY = torch.randn(n, K * a), torch.randn(K * a, b), torch.randn(n, b)
+
+        def mm3(X=X, W=W, dY=dY):
+            X @ W
+            dY @ W.t()
+            X.t() @ dY
+
+        closures.append(mm3)
+    return closures
+
+
+def model_workload(op, s: int, impl: str):
+    """One training step (forward, cross-entropy over N classes, backward, Adam) of the single-scale model."""
+    import torch
+
+    from zernet.nn import Geometry, RotatedKernelConv, build_model
+
+    n = op.n_vertices
+    model = build_model("zernet", 3, n, widths=(64, 128, 256, 512), angular_resolution=s)
+    if impl == "reference":
+        for block in model.blocks:
+            conv = block.convs[0]
+            ref = RotatedKernelConv(conv.in_channels, conv.out_channels, angular_resolution=s)
+            ref.load_state_dict(conv.state_dict())
+            block.convs[0] = ref
+    geometry = Geometry([op])
+    x = torch.randn(n, 3)
+    y = torch.randperm(n)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+
+    def step():
+        opt.zero_grad(set_to_none=True)
+        torch.nn.functional.cross_entropy(model(x, geometry), y).backward()
+        opt.step()
+
+    return step
+
+
+def _setup(real: bool):
+    import warnings
+
+    import torch
+
     from zernet.train import keep_freed_memory
 
+    warnings.filterwarnings("ignore")
     keep_freed_memory()  # as the zernet command does
-
     torch.manual_seed(0)
     op = _operator(real)
+    op.apply(torch.zeros(op.n_vertices, 3))  # build the lazy operator tensors before measuring anything
+    return op
+
+
+def time_all(kind: str, configs: list[tuple[int, str]], repeats: int, real: bool) -> list[dict]:
+    """Time every configuration in this process, round by round (configurations interleaved, so that load
+    from other processes spreads over all of them and the ratios stay comparable); medians over rounds."""
+    op = _setup(real)
     n = op.n_vertices
-    result = {"kind": kind, "s": s, "impl": impl, "n_vertices": n}
     if kind == "layers":
-        cls = ZernikeConv if impl == "harmonic" else RotatedKernelConv
-        layers = [cls(a, b, angular_resolution=s, pooling="max") for a, b in LAYERS]
-        xs = [torch.randn(n, a, requires_grad=True) for a, _ in LAYERS]
-        Fs = [op.apply(x.detach()).detach().requires_grad_() for x in xs]
-        grads = [torch.randn(n, b) for _, b in LAYERS]
-        op.apply(xs[0])  # build lazy operator tensors before measuring memory
-        base = _rss_mb()
-        peak0 = _peak_mb()
-
-        def layer_step(i):
-            out = layers[i](xs[i], op)
-            out.backward(grads[i])
-
-        def pooled_step(i):  # dense contraction + angular max pooling
-            out = layers[i]._pooled_response(Fs[i])
-            out.backward(grads[i])
-
-        plan = harmonic_plan(5, s)
-        slabs = [torch.randn(2 * plan.degree + 1, n, b) for _, b in LAYERS]
-        responses = [torch.randn(n, s, b) for _, b in LAYERS]  # rotated_kernel_responses: (N, s, C_out)
-
-        def contraction_step(i):  # the dense products alone, no pooling
-            if impl == "reference":
-                rotated_kernel_responses(Fs[i], layers[i].weight, s).backward(responses[i])
-            elif s == 1:
-                (Fs[i].reshape(n, -1) @ layers[i].weight.reshape(-1, LAYERS[i][1])).backward(grads[i])
-            else:
-                harmonic_contraction(Fs[i], layers[i].weight, plan).backward(slabs[i])
-
-        per_layer = [_timeit(lambda i=i: layer_step(i), repeats) for i in range(3)]
-        per_contraction = [_timeit(lambda i=i: contraction_step(i), repeats) for i in range(3)]
-        per_pooled = [_timeit(lambda i=i: pooled_step(i), repeats) for i in range(3)]
-        result["layer_s"] = per_layer
-        result["pooled_s"] = per_pooled
-        result["pooled_total_s"] = sum(per_pooled)
-        result["layers_total_s"] = sum(per_layer)
-        result["contraction_s"] = per_contraction
-        result["contraction_total_s"] = sum(per_contraction)
-        if impl == "harmonic":
-            flops = [_plan_flops(s, a, b, n) for a, b in LAYERS]
-        else:
-            flops = [3 * 2.0 * n * K * a * b * s for a, b in LAYERS]
-        result["contraction_gflops"] = [f / t / 1e9 for f, t in zip(flops, per_contraction)]
-        # torch's own matmul rate for the same sizes: forward X W, backward dY W^T and X^T dY
-        mm_rates = []
-        for (a, b) in LAYERS:
-            X = torch.randn(n, K * a)
-            W = torch.randn(K * a, b)
-            dY = torch.randn(n, b)
-
-            def mm3():
-                X @ W
-                dY @ W.t()
-                X.t() @ dY
-
-            mm_rates.append(3 * 2.0 * n * K * a * b / _timeit(mm3, repeats) / 1e9)
-        result["torch_mm_gflops"] = mm_rates
-        result["peak_extra_mb"] = max(_peak_mb(), peak0) - base
+        work = {c: layer_workload(op, *c) for c in configs}
+        closures = {(c, part, i): fn for c, w in work.items() for part in ("layer", "contraction", "pooled")
+                    for i, fn in enumerate(w[part])}
+        closures.update({("mm", "mm", i): fn for i, fn in enumerate(torch_mm_workload(n))})
     else:
-        model = build_model("zernet", 3, n, widths=(64, 128, 256, 512), angular_resolution=s)
-        if impl == "reference":
-            for block in model.blocks:
-                conv = block.convs[0]
-                ref = RotatedKernelConv(conv.in_channels, conv.out_channels, angular_resolution=s)
-                ref.load_state_dict(conv.state_dict())
-                block.convs[0] = ref
-        geometry = Geometry([op])
-        x = torch.randn(n, 3)
-        y = torch.randperm(n)
-        opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-        op.apply(x)
-        base = _rss_mb()
+        closures = {(c, "step", 0): model_workload(op, *c) for c in configs}
+    for fn in closures.values():  # warm-up: allocator, caches, Adam state
+        fn()
+    times = {key: [] for key in closures}
+    for _ in range(repeats):
+        for key, fn in closures.items():
+            t0 = time.perf_counter()
+            fn()
+            times[key].append(time.perf_counter() - t0)
+    med = {key: _median(v) for key, v in times.items()}
+    rows = []
+    for c in configs:
+        s, impl = c
+        row = {"kind": kind, "s": s, "impl": impl, "n_vertices": n}
+        if kind == "layers":
+            flops = work[c]["flops"]
+            mm_flops = [3 * 2.0 * n * K * a * b for a, b in LAYERS]
+            row["layer_s"] = [med[(c, "layer", i)] for i in range(3)]
+            row["contraction_s"] = [med[(c, "contraction", i)] for i in range(3)]
+            row["pooled_s"] = [med[(c, "pooled", i)] for i in range(3)]
+            row["layers_total_s"] = sum(row["layer_s"])
+            row["contraction_total_s"] = sum(row["contraction_s"])
+            row["pooled_total_s"] = sum(row["pooled_s"])
+            row["contraction_gflops"] = [f / t / 1e9 for f, t in zip(flops, row["contraction_s"])]
+            row["torch_mm_gflops"] = [f / med[("mm", "mm", i)] / 1e9 for i, f in enumerate(mm_flops)]
+        else:
+            row["step_s"] = med[(c, "step", 0)]
+            row["output_layer_gflop"] = 3 * 2.0 * n * 512 * n / 1e9
+        rows.append(row)
+    return rows
 
-        def step():
-            opt.zero_grad(set_to_none=True)
-            loss = torch.nn.functional.cross_entropy(model(x, geometry), y)
-            loss.backward()
-            opt.step()
 
-        step()  # Adam state allocated: part of the model's steady-state footprint
-        result["step_s"] = _timeit(step, repeats)
-        result["peak_extra_mb"] = _peak_mb() - base
-        out_layer = 3 * 2.0 * n * 512 * n
-        result["output_layer_gflop"] = out_layer / 1e9
-    return result
+def peak_memory(kind: str, s: int, impl: str, real: bool) -> float:
+    """Growth of the peak resident set over the resident set after setup, for two rounds of the workload."""
+    op = _setup(real)
+    if kind == "layers":
+        w = layer_workload(op, s, impl)
+        fns = w["layer"]
+    else:
+        fns = [model_workload(op, s, impl)]
+    base = _rss_mb()
+    peak0 = _peak_mb()
+    for _ in range(2):
+        for fn in fns:
+            fn()
+    return max(_peak_mb(), peak0) - base
 
 
-def _subprocess(kind, s, impl, repeats, real) -> dict:
-    cmd = [sys.executable, __file__, "--child", kind, str(s), impl, str(repeats)] + (["--real"] if real else [])
+def _child(args: list[str], real: bool) -> object:
+    cmd = [sys.executable, __file__, "--child", *args] + (["--real"] if real else [])
     if THREADS[0]:
         cmd += ["--threads", str(THREADS[0])]
     out = subprocess.run(cmd, capture_output=True, text=True, check=True)
@@ -212,28 +267,33 @@ def main(argv=None) -> int:
     THREADS[0] = args.threads
     if args.threads:
         __import__("torch").set_num_threads(args.threads)
-    if args.child:
-        kind, s, impl, repeats = args.child
-        print(json.dumps(run_config(kind, int(s), impl, int(repeats), args.real)))
+    if args.child:  # ("time", kind, repeats, "s:impl,...") or ("memory", kind, s, impl)
+        mode, kind, a, b = args.child
+        if mode == "time":
+            configs = [(int(c.split(":")[0]), c.split(":")[1]) for c in b.split(",")]
+            print(json.dumps(time_all(kind, configs, int(a), args.real)))
+        else:
+            print(json.dumps(peak_memory(kind, int(a), b, args.real)))
         return 0
     repeats = 3 if args.quick else 7
-    rows = []
-    for s in ANGLES:
-        for impl in ("harmonic", "reference"):
-            rows.append(_subprocess("layers", s, impl, repeats, args.real))
-            print(f"layers s={s:2d} {impl:9s} done", file=sys.stderr)
+    layer_configs = [(s, impl) for s in ANGLES for impl in ("harmonic", "reference")]
     model_angles = (1, 4, 16) if args.quick else ANGLES
-    for s in model_angles:
-        for impl in ("harmonic", "reference"):
-            if impl == "reference" and args.quick and s != 4:
-                continue
-            rows.append(_subprocess("model", s, impl, max(2, repeats // 2), args.real))
-            print(f"model  s={s:2d} {impl:9s} done", file=sys.stderr)
+    model_configs = [(s, impl) for s in model_angles for impl in ("harmonic", "reference")
+                     if not (impl == "reference" and args.quick and s != 4)]
+    encode = lambda configs: ",".join(f"{s}:{impl}" for s, impl in configs)  # noqa: E731
+    rows = _child(["time", "layers", str(repeats), encode(layer_configs)], args.real)
+    print("layers timed", file=sys.stderr)
+    rows += _child(["time", "model", str(max(3, repeats // 2)), encode(model_configs)], args.real)
+    print("model steps timed", file=sys.stderr)
+    for row in rows:
+        row["peak_extra_mb"] = _child(["memory", row["kind"], str(row["s"]), row["impl"]], args.real)
+        print(f"memory {row['kind']:6s} s={row['s']:2d} {row['impl']:9s} done", file=sys.stderr)
 
     def find(kind, s, impl):
         return next((r for r in rows if r["kind"] == kind and r["s"] == s and r["impl"] == impl), None)
 
-    print(f"\nZernike convolution, N = {rows[0]['n_vertices']}, k = {K}, forward+backward, median of {repeats}")
+    print(f"\nZernike convolution, N = {rows[0]['n_vertices']}, k = {K}, forward+backward, median of {repeats} "
+          "rounds (configurations interleaved within each round)")
     print(f"load average at start of report: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores\n")
     print("three conv layers (3->64, 64->128, 128->256): whole layers incl. sparse decomposition; the dense")
     print("contraction alone; contraction + angular max pooling; peak = extra RSS")

@@ -51,6 +51,33 @@ def test_discrete_max_value_and_gradient_match_autograd_max():
     assert torch.autograd.gradcheck(lambda h: discrete_max(h, 5), (H[:, :3, :2].detach().clone().requires_grad_(),))
 
 
+def test_discrete_max_in_chunks_and_with_ties(monkeypatch):
+    import zernet.nn.pooling as pooling
+
+    torch.manual_seed(3)
+    s = 8
+    H = torch.randn(9, 50, 7, dtype=torch.float64, requires_grad=True)
+    whole = discrete_max(H, s)
+    monkeypatch.setattr(pooling, "_POOL_CHUNK_ELEMENTS", 3 * s)  # 3 columns per chunk, a ragged last one
+    torch.testing.assert_close(discrete_max(H, s), whole)
+    g = torch.randn(50, 7, dtype=torch.float64)
+    (chunked,) = torch.autograd.grad((discrete_max(H, s) * g).sum(), H)
+    (ref,) = torch.autograd.grad((evaluate_harmonics(H, equispaced_angles(s, torch.float64)).amax(0) * g).sum(), H)
+    torch.testing.assert_close(chunked, ref)
+
+    # Only A_0: all s angles tie. The value is A_0 and the gradient is that of one angle (a subgradient):
+    # g on A_0, and g times cos/sin of a single sample angle on the other harmonics.
+    flat = torch.zeros(9, 4, 1, dtype=torch.float64)
+    flat[0] = torch.arange(4.0).view(4, 1)
+    flat.requires_grad_()
+    out = discrete_max(flat, s)
+    torch.testing.assert_close(out, flat[0].detach())
+    (grad,) = torch.autograd.grad(out.sum(), flat)
+    T = trig_basis(equispaced_angles(s, torch.float64), 4)
+    for column in grad[:, :, 0].t():
+        assert any(torch.allclose(column, row) for row in T)
+
+
 def test_continuous_max_is_the_maximum_over_the_circle():
     torch.manual_seed(2)
     for D in (1, 2, 5, 7):
