@@ -226,3 +226,32 @@ def test_real_patch_operator_on_small_mesh():
     conv.pooling = "none"
     ref = rotated_kernel_responses(op.apply(x), conv.weight, 8) + conv.bias
     torch.testing.assert_close(conv(x, op), ref, atol=1e-5 * ref.abs().max().item(), rtol=0)
+
+
+class PlainOperator:
+    """Only ``apply(x)``, ``k`` and ``n_max``: an operator that cannot return coefficients in another order."""
+
+    def __init__(self, op):
+        self.op, self.k, self.n_max, self.n_vertices = op, op.k, op.n_max, op.n_vertices
+
+    def apply(self, x):
+        return self.op.apply(x)
+
+
+@pytest.mark.parametrize("s,pooling", [(4, "max"), (8, "max"), (16, "max"), (5, "none"), (4, "continuous")])
+def test_coefficients_in_plan_order_equal_the_gathered_ones(s, pooling):
+    # ZernikeConv asks an operator that can for F grouped by frequency; the result and the gradients must
+    # be those of gathering F itself.
+    op, x = setup(dtype=torch.float64)
+    conv = ZernikeConv(4, 3, angular_resolution=s, pooling=pooling).double()
+    assert op.accepts_basis_order and not conv._plan().identity
+    x.requires_grad_()
+    outs, grads = [], []
+    for operator in (op, PlainOperator(op)):
+        out = conv(x, operator)
+        outs.append(out)
+        grads.append(torch.autograd.grad(out.sum(), (x, conv.weight)))
+    torch.testing.assert_close(outs[0], outs[1])
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b)
+

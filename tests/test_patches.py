@@ -167,6 +167,23 @@ def test_gradcheck_and_backward_is_transpose():
     assert np.allclose(grad.numpy(), op.matrix.T @ g.reshape(-1, 2).numpy())
 
 
+def test_apply_in_another_basis_order_is_the_gathered_apply():
+    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3))
+    order = tuple(np.random.default_rng(1).permutation(op.k).tolist())
+    x = torch.randn(op.n_vertices, 3, dtype=torch.float64, requires_grad=True)
+    g = torch.randn(op.n_vertices, op.k, 3, dtype=torch.float64)
+    reordered = op.apply(x, basis_order=order)
+    torch.testing.assert_close(reordered, op.apply(x)[:, list(order)])
+    (grad,) = torch.autograd.grad(reordered, x, g)
+    (expected,) = torch.autograd.grad(op.apply(x)[:, list(order)], x, g)
+    torch.testing.assert_close(grad, expected)
+    torch.testing.assert_close(op.apply(x, basis_order=range(op.k)), op.apply(x))  # identity: the plain matrix
+    assert op.to("cpu") is op and op.apply(x, basis_order=order).shape == (op.n_vertices, op.k, 3)
+    for bad in ((0,) * op.k, tuple(range(op.k + 1))):
+        with pytest.raises(ValueError, match="permutation"):
+            op.apply(x, basis_order=bad)
+
+
 # ---------------------------------------------------------------------- truncated patches, components
 def test_boundary_sparse_and_isolated_vertices_are_finite():
     vertices, faces = grid_mesh(11, 0.5)

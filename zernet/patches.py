@@ -175,7 +175,7 @@ class PatchOperator:
         if self.matrix.shape != (self.n_vertices * self.k, self.n_vertices):
             raise ValueError(f"operator matrix has shape {self.matrix.shape}, expected {(self.n_vertices * self.k, self.n_vertices)}")
         self._transpose: scipy.sparse.csr_matrix | None = None  # built with the first torch tensors
-        self._tensors: dict[tuple[torch.dtype, torch.device], tuple[torch.Tensor, torch.Tensor]] = {}
+        self._tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # (dtype, device, basis order)
         self._basis: np.ndarray | None = None
 
     # ------------------------------------------------------------------ data
@@ -198,20 +198,35 @@ class PatchOperator:
         return f"PatchOperator(N={self.n_vertices}, k={self.k}, nnz={self.nnz}, r0={self.config.r0})"
 
     # ------------------------------------------------------------------ apply
-    def _torch_matrices(self, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-        """CSR tensors of A and Aᵀ for this dtype and device, built on first use and kept."""
-        key = (dtype, device)
+    # Operators accept ``apply(x, basis_order=...)`` (see :meth:`apply`); layers that consume the coefficients
+    # in another order (the harmonic contraction, grouped by frequency) ask for it instead of gathering.
+    accepts_basis_order = True
+
+    def _torch_matrices(
+        self, dtype: torch.dtype, device: torch.device, basis_order: tuple | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """CSR tensors of A and Aᵀ (rows in ``basis_order`` within each vertex) for this dtype and device,
+        built on first use and kept."""
+        key = (dtype, device, basis_order)
         if key not in self._tensors:
-            if self._transpose is None:
-                self._transpose = self.matrix.T.tocsr()
-            self._tensors[key] = tuple(to_torch_csr(m, dtype, device) for m in (self.matrix, self._transpose))
+            matrix = self.matrix if basis_order is None else reorder_basis_rows(self.matrix, self.k, basis_order)
+            if basis_order is None:
+                if self._transpose is None:
+                    self._transpose = self.matrix.T.tocsr()
+                transpose = self._transpose
+            else:
+                transpose = matrix.T.tocsr()
+            self._tensors[key] = tuple(to_torch_csr(m, dtype, device) for m in (matrix, transpose))
         return self._tensors[key]
 
-    def apply(self, x: torch.Tensor) -> torch.Tensor:
+    def apply(self, x: torch.Tensor, basis_order: tuple | None = None) -> torch.Tensor:
         """Zernike coefficients of the features' local patches.
 
         Args:
             x: (N,) or (N, *C) tensor; any floating dtype and device.
+            basis_order: optional permutation of ``range(k)``: coefficient ``i`` of the output is basis
+                ``basis_order[i]`` (the same as ``apply(x)[:, basis_order]``, without the gather; the
+                reordered matrix is built once and kept).
 
         Returns:
             (N, k) or (N, k, *C), same dtype and device; differentiable in ``x``.
@@ -220,7 +235,7 @@ class PatchOperator:
             raise ValueError(f"features have {x.shape[0]} rows but the operator has {self.n_vertices} vertices")
         trailing = x.shape[1:]
         flat = x.reshape(self.n_vertices, -1)
-        matrix, transpose = self._torch_matrices(x.dtype, x.device)
+        matrix, transpose = self._torch_matrices(x.dtype, x.device, checked_basis_order(basis_order, self.k))
         out = SparseApply.apply(flat.contiguous(), matrix, transpose)
         return out.reshape((self.n_vertices, self.k) + tuple(trailing))
 
@@ -232,12 +247,12 @@ class PatchOperator:
         Returns ``self``; the numpy/scipy data stay on the host. Tensors for other devices are dropped.
         """
         device = torch.device(device)
-        if self._tensors and all(have == device for _, have in self._tensors):
+        if self._tensors and all(have == device for _, have, _ in self._tensors):
             return self  # already there: training calls this every step
-        dtypes = {dtype for dtype, _ in self._tensors} or {torch.float32}
+        kinds = {(dtype, order) for dtype, _, order in self._tensors} or {(torch.float32, None)}
         self._tensors = {}
-        for dtype in dtypes:
-            self._torch_matrices(dtype, device)
+        for dtype, order in kinds:
+            self._torch_matrices(dtype, device, order)
         return self
 
     def __getstate__(self):
@@ -363,6 +378,24 @@ class PatchOperator:
         """Read a file written by :meth:`save`; ``ValueError`` naming the file if it cannot be trusted."""
         path = Path(path)
         return cls.from_bytes(path.read_bytes(), key=key, name=str(path))
+
+
+def checked_basis_order(basis_order, k: int) -> tuple | None:
+    """``basis_order`` as a tuple of ints (``None`` for the identity); an error unless a permutation of k."""
+    if basis_order is None:
+        return None
+    order = tuple(int(i) for i in basis_order)
+    if sorted(order) != list(range(k)):
+        raise ValueError(f"basis_order must be a permutation of range({k}), got {order}")
+    return None if order == tuple(range(k)) else order
+
+
+def reorder_basis_rows(matrix: scipy.sparse.csr_matrix, k: int, basis_order: tuple) -> scipy.sparse.csr_matrix:
+    """Rows of an ``(N k, ·)`` operator matrix reordered within each vertex: new row ``p k + i`` is old row
+    ``p k + basis_order[i]``."""
+    n = matrix.shape[0] // k
+    rows = (np.arange(n)[:, None] * k + np.asarray(basis_order)[None, :]).ravel()
+    return matrix[rows].tocsr()
 
 
 def to_torch_csr(matrix: scipy.sparse.csr_matrix, dtype: torch.dtype, device: torch.device) -> torch.Tensor:

@@ -141,13 +141,13 @@ class _HarmonicContraction(torch.autograd.Function):
     """``F (N, k, C_in)``, ``G (k, C_in, C_out)`` -> ``H (2 D + 1, N, C_out)``; per-frequency matmuls on views."""
 
     @staticmethod
-    def forward(ctx, F: Tensor, G: Tensor, plan: HarmonicPlan) -> Tensor:
+    def forward(ctx, F: Tensor, G: Tensor, plan: HarmonicPlan, ordered: bool) -> Tensor:
         N, k_in, C_in = F.shape
         k = len(plan.perm)
         C_out = G.shape[2]
         dev = F.device
         perm = torch.as_tensor(plan.perm, device=dev)
-        if plan.identity:
+        if plan.identity or ordered:  # F's basis rows are already in plan.perm order
             X = F.reshape(N, k * C_in)
         else:
             X = F.index_select(1, perm).view(N, k * C_in)
@@ -167,6 +167,7 @@ class _HarmonicContraction(torch.autograd.Function):
                     H[2 * f].zero_()
         ctx.plan = plan
         ctx.k_in = k_in
+        ctx.ordered = ordered
         ctx.save_for_backward(X, G, WA, WB)
         return H
 
@@ -192,7 +193,7 @@ class _HarmonicContraction(torch.autograd.Function):
                 torch.mm(dH[slab_a], WA[cols].t(), out=view)
                 if f > 0 and plan.has_sin[f]:
                     view.addmm_(dH[2 * f], WB[cols].t())
-            if plan.identity:
+            if plan.identity or ctx.ordered:
                 dF = dX.view(N, k, C_in)
             elif k == ctx.k_in:  # a permutation: gather back instead of zero-fill and scatter
                 inverse = torch.empty_like(perm)
@@ -219,7 +220,7 @@ class _HarmonicContraction(torch.autograd.Function):
                 dG[row].add_(dWA[i])
                 if sign:
                     dG[partner].add_(dWB[i], alpha=sign)
-        return dF, dG, None
+        return dF, dG, None, None
 
 
 def _plan_weights(G: Tensor, plan: HarmonicPlan, perm: Tensor) -> tuple[Tensor, Tensor]:
@@ -233,13 +234,16 @@ def _plan_weights(G: Tensor, plan: HarmonicPlan, perm: Tensor) -> tuple[Tensor, 
     return WA, WB
 
 
-def harmonic_contraction(F: Tensor, weight: Tensor, plan: HarmonicPlan) -> Tensor:
+def harmonic_contraction(F: Tensor, weight: Tensor, plan: HarmonicPlan, ordered: bool = False) -> Tensor:
     """All harmonics of the rotated-kernel response in one pass.
 
     Args:
         F: ``(N, k, C_in)`` Zernike coefficients of the input channels (``operator.apply(x)``).
-        weight: ``(k, C_in, C_out)`` kernel ``G``.
+        weight: ``(k, C_in, C_out)`` kernel ``G`` (basis rows in the natural order).
         plan: from :func:`harmonic_plan` (``plan.n_max`` must match ``k``).
+        ordered: ``F``'s basis rows are already in ``plan.perm`` order
+            (``operator.apply(x, basis_order=plan.perm)``), so no gather is needed; only for plans that
+            keep every row.
 
     Returns:
         ``H`` of shape ``(2 D + 1, N, C_out)`` in the harmonic layout of :mod:`zernet.nn.pooling`
@@ -253,7 +257,9 @@ def harmonic_contraction(F: Tensor, weight: Tensor, plan: HarmonicPlan) -> Tenso
         )
     if F.shape[1] != num_bases(plan.n_max):
         raise ValueError(f"plan is for n_max={plan.n_max} but F has k={F.shape[1]} bases")
-    return _HarmonicContraction.apply(F, weight, plan)
+    if ordered and len(plan.perm) != F.shape[1]:
+        raise ValueError("ordered coefficients need a plan that keeps every basis row (not mean_only)")
+    return _HarmonicContraction.apply(F, weight, plan, ordered)
 
 
 class ZernikeConv(nn.Module):
@@ -324,13 +330,13 @@ class ZernikeConv(nn.Module):
         if self.bias is not None:
             nn.init.zeros_(self.bias)
 
-    def coefficients(self, x: Tensor, operator) -> Tensor:
-        """``F = operator.apply(x)``, checked: ``(N, k, C_in)``."""
+    def coefficients(self, x: Tensor, operator, basis_order: tuple | None = None) -> Tensor:
+        """``F = operator.apply(x)``, checked: ``(N, k, C_in)``; basis rows in ``basis_order`` if given."""
         if x.dim() != 2 or x.shape[1] != self.in_channels:
             raise ValueError(f"{self.__class__.__name__}: x must be (N, {self.in_channels}), got {tuple(x.shape)}")
         if getattr(operator, "k", self.k) != self.k:
             raise ValueError(f"{self.__class__.__name__} has k={self.k} bases but the operator has k={operator.k}")
-        F = operator.apply(x)
+        F = operator.apply(x) if basis_order is None else operator.apply(x, basis_order=basis_order)
         if F.shape != (x.shape[0], self.k, self.in_channels):
             raise ValueError(f"operator.apply returned {tuple(F.shape)}, expected {(x.shape[0], self.k, self.in_channels)}")
         return F
@@ -346,24 +352,40 @@ class ZernikeConv(nn.Module):
 
     def forward(self, x: Tensor, operator) -> Tensor:
         """``x`` ``(N, C_in)`` -> ``(N, C_out)`` (``(N, s, C_out)`` for ``pooling="none"``)."""
-        F = self.coefficients(x, operator)
-        out = self._pooled_response(F)
+        plan = self._plan()
+        # Ask the operator for the coefficients grouped by frequency when it can (saves a gather of F
+        # forward and backward); any operator with a plain apply(x) works too.
+        ordered = (
+            plan is not None and not plan.identity and len(plan.perm) == self.k
+            and getattr(operator, "accepts_basis_order", False)
+        )
+        F = self.coefficients(x, operator, basis_order=plan.perm) if ordered else self.coefficients(x, operator)
+        out = self._pooled_response(F, ordered)
         if self.bias is not None:
             out = out + self.bias
         return out
 
-    def _pooled_response(self, F: Tensor) -> Tensor:
+    def _plan(self) -> HarmonicPlan | None:
+        """The harmonic plan this layer's pooling needs (``None``: ``s = 1``, one plain contraction)."""
+        if self.pooling == "continuous":
+            return harmonic_plan(self.n_max, None)
+        if self.angular_resolution == 1:
+            return None
+        return harmonic_plan(self.n_max, self.angular_resolution, mean_only=self.pooling == "mean")
+
+    def _pooled_response(self, F: Tensor, ordered: bool = False) -> Tensor:
+        """Pooled response without bias from ``F`` (basis rows in the plan's order if ``ordered``)."""
         N = F.shape[0]
         s = self.angular_resolution
-        if self.pooling == "continuous":
-            H = harmonic_contraction(F, self.weight, harmonic_plan(self.n_max, None))
-            return continuous_max(H)
-        if s == 1:  # one unrotated contraction
+        plan = self._plan()
+        if plan is None:  # s = 1: one unrotated contraction
             out = F.reshape(N, -1) @ self.weight.reshape(-1, self.out_channels)
             return out.unsqueeze(1) if self.pooling == "none" else out
+        H = harmonic_contraction(F, self.weight, plan, ordered)
+        if self.pooling == "continuous":
+            return continuous_max(H)
         if self.pooling == "mean":
-            return harmonic_contraction(F, self.weight, harmonic_plan(self.n_max, s, mean_only=True))[0]
-        H = harmonic_contraction(F, self.weight, harmonic_plan(self.n_max, s))
+            return H[0]
         if self.pooling == "max":
             return discrete_max(H, s)
         return evaluate_harmonics(H, equispaced_angles(s, H.dtype, H.device)).permute(1, 0, 2).contiguous()

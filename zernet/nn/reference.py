@@ -21,7 +21,7 @@ import scipy.sparse as sp
 import torch
 from torch import Tensor
 
-from zernet.patches import SparseApply, to_torch_csr
+from zernet.patches import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
 from zernet.zernike import n_max_for, rotate_coefficients
 
 from .conv import ZernikeConv
@@ -69,7 +69,10 @@ class RotatedKernelConv(ZernikeConv):
         if self.pooling == "continuous":
             raise ValueError("RotatedKernelConv samples s angles; continuous pooling needs ZernikeConv")
 
-    def _pooled_response(self, F: Tensor) -> Tensor:
+    def _plan(self):
+        return None  # rotated kernels read the coefficients in the natural basis order
+
+    def _pooled_response(self, F: Tensor, ordered: bool = False) -> Tensor:
         return angular_pool(rotated_kernel_responses(F, self.weight, self.angular_resolution), self.pooling)
 
 
@@ -94,17 +97,21 @@ class MatrixOperator:
         self.frames = frames
         self._cache: dict = {}
 
-    def _tensors(self, dtype, device):
-        key = (dtype, str(device))
+    accepts_basis_order = True  # as PatchOperator.apply
+
+    def _tensors(self, dtype, device, basis_order=None):
+        key = (dtype, str(device), basis_order)
         if key not in self._cache:
-            self._cache[key] = (to_torch_csr(self.matrix, dtype, device), to_torch_csr(self.matrix.T, dtype, device))
+            matrix = self.matrix if basis_order is None else reorder_basis_rows(self.matrix, self.k, basis_order)
+            self._cache[key] = (to_torch_csr(matrix, dtype, device), to_torch_csr(matrix.T, dtype, device))
         return self._cache[key]
 
-    def apply(self, x: Tensor) -> Tensor:
-        """``x`` ``(N, d)`` -> ``(N, k, d)``, in ``x``'s dtype and device."""
+    def apply(self, x: Tensor, basis_order: tuple | None = None) -> Tensor:
+        """``x`` ``(N, d)`` -> ``(N, k, d)``, in ``x``'s dtype and device; ``basis_order`` as
+        :meth:`zernet.patches.PatchOperator.apply`."""
         if x.dim() != 2 or x.shape[0] != self.n_vertices:
             raise ValueError(f"MatrixOperator.apply: x must be ({self.n_vertices}, d), got {tuple(x.shape)}")
-        A, At = self._tensors(x.dtype, x.device)
+        A, At = self._tensors(x.dtype, x.device, checked_basis_order(basis_order, self.k))
         return SparseApply.apply(x.contiguous(), A, At).view(self.n_vertices, self.k, x.shape[1])
 
     __call__ = apply
