@@ -283,7 +283,7 @@ def main(argv=None) -> int:
     encode = lambda configs: ",".join(f"{s}:{impl}" for s, impl in configs)  # noqa: E731
     rows = _child(["time", "layers", str(repeats), encode(layer_configs)], args.real)
     print("layers timed", file=sys.stderr)
-    rows += _child(["time", "model", str(max(3, repeats // 2)), encode(model_configs)], args.real)
+    rows += _child(["time", "model", str(repeats), encode(model_configs)], args.real)
     print("model steps timed", file=sys.stderr)
     for row in rows:
         row["peak_extra_mb"] = _child(["memory", row["kind"], str(row["s"]), row["impl"]], args.real)
