@@ -209,12 +209,12 @@ class PatchOperator:
         built on first use and kept."""
         key = (dtype, device, basis_order)
         if key not in self._tensors:
-            matrix = self.matrix if basis_order is None else reorder_basis_rows(self.matrix, self.k, basis_order)
             if basis_order is None:
                 if self._transpose is None:
                     self._transpose = self.matrix.T.tocsr()
-                transpose = self._transpose
+                matrix, transpose = self.matrix, self._transpose
             else:
+                matrix = reorder_basis_rows(self.matrix, self.k, basis_order)
                 transpose = matrix.T.tocsr()
             self._tensors[key] = tuple(to_torch_csr(m, dtype, device) for m in (matrix, transpose))
         return self._tensors[key]
