@@ -146,3 +146,21 @@ def test_input_skip_feeds_the_inputs_to_the_head(name):
         assert torch.allclose(model(shuffled, g)[0], out[0], atol=1e-6)
         model.hidden.weight[:, 9:] = 0.0  # and without the skip part the output is constant
         assert torch.allclose(model(x, g), model(x, g)[:1].expand(30, 2), atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["zernet", "zernet-multiscale"])
+def test_input_layer_is_a_per_vertex_map_before_the_first_convolution(name):
+    g = geometry(30, 1, scales=3)
+    x = torch.randn(30, 5)
+    torch.manual_seed(0)
+    model = build_model(name, 5, 2, widths=(9, 12), angular_resolution=4, input_width=4, dropout=0.0).eval()
+    assert model.input.in_features == 5 and model.input.out_features == 4
+    assert all(conv.in_channels == 4 for conv in model.blocks[0].convs)
+    # The model is the plain one fed relu(input(x)): copy its later layers into a model without an input layer.
+    plain = build_model(name, 4, 2, widths=(9, 12), angular_resolution=4, dropout=0.0).eval()
+    plain.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith("input.")})
+    with torch.no_grad():
+        assert torch.allclose(model(x, g), plain(torch.relu(model.input(x)), g), atol=1e-6)
+    assert build_model(name, 5, 2, widths=(9, 12), input_width=0).input is None
+    with pytest.raises(ValueError, match="input_width"):
+        build_model(name, 5, 2, widths=(9, 12), input_width=-1)

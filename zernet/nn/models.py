@@ -181,6 +181,15 @@ class ZernikeBlock(nn.Module):
 
 
 class _ZerNetBase(nn.Module):
+    def _build_input(self, input_width, activation) -> int:
+        """The optional per-vertex linear layer before the first convolution; returns its width."""
+        input_width = int(input_width or 0)
+        if input_width < 0:
+            raise ValueError(f"input_width must be >= 0 (0 or None: no input layer), got {input_width}")
+        self.input = nn.Linear(self.in_channels, input_width) if input_width else None
+        self.input_act = _activation(activation) if input_width else None
+        return input_width or self.in_channels
+
     def _build_head(self, channels, hidden, out_channels, activation, dropout):
         self.hidden = nn.Linear(channels, hidden)
         self.hidden_act = _activation(activation)
@@ -197,6 +206,8 @@ class _ZerNetBase(nn.Module):
         if x.dim() != 2 or x.shape[1] != self.in_channels:
             raise ValueError(f"{self.__class__.__name__} expects x of shape (N, {self.in_channels}), got {tuple(x.shape)}")
         inputs = x
+        if self.input is not None:
+            x = self.input_act(self.input(x))
         for block in self.blocks:
             x = block(x, geometry.operators)
         if self.input_skip:
@@ -222,6 +233,9 @@ class ZerNet(_ZerNetBase):
         activation: ``"relu"`` (default) or ``"elu"``, after every convolution and the hidden linear.
         dropout: probability before the output layer (0.25, the authors' release).
         norm: ``None`` (paper), ``"batch"`` or ``"layer"`` after every convolution.
+        input_width: width of a per-vertex linear layer (and activation) before the first convolution, which
+            mixes many descriptive input channels (``features: shape``) into a few before they are convolved,
+            as FeaStNet does (``0`` or ``None``: the first convolution takes the raw inputs, the paper's model).
         input_skip: also feed the input features to the hidden linear layer (concatenated to the last
             block's output), so descriptive per-vertex inputs such as ``features: shape`` reach the head
             unchanged and the convolutions only add context.
@@ -242,6 +256,7 @@ class ZerNet(_ZerNetBase):
         activation: str = "relu",
         dropout: float = 0.25,
         norm: str | None = None,
+        input_width: int | None = None,
         input_skip: bool = False,
         scale: int = 0,
     ):
@@ -250,7 +265,7 @@ class ZerNet(_ZerNetBase):
         self.widths = _resolve_widths(widths, task)
         conv = dict(n_max=n_max, angular_resolution=angular_resolution, pooling=pooling)
         self.blocks = nn.ModuleList()
-        channels = self.in_channels
+        channels = self._build_input(input_width, activation)
         for w in self.widths[:-1]:
             self.blocks.append(ZernikeBlock(channels, w, scales=(scale,), activation=activation, norm=norm, **conv))
             channels = w
@@ -273,7 +288,7 @@ class MultiScaleZerNet(_ZerNetBase):
 
     Args:
         in_channels, out_channels, widths, task, n_max, angular_resolution, pooling, activation, dropout,
-        norm, input_skip: as :class:`ZerNet`.
+        norm, input_width, input_skip: as :class:`ZerNet`.
         n_scales: number of operators used (3).
         wiring: ``"parallel"`` or ``"sequential"``.
 
@@ -292,6 +307,7 @@ class MultiScaleZerNet(_ZerNetBase):
         activation: str = "relu",
         dropout: float = 0.25,
         norm: str | None = None,
+        input_width: int | None = None,
         input_skip: bool = False,
         n_scales: int = 3,
         wiring: str = "parallel",
@@ -304,7 +320,7 @@ class MultiScaleZerNet(_ZerNetBase):
         self.n_scales, self.wiring = int(n_scales), wiring
         conv = dict(n_max=n_max, angular_resolution=angular_resolution, pooling=pooling)
         self.blocks = nn.ModuleList()
-        channels = self.in_channels
+        channels = self._build_input(input_width, activation)
         for i, w in enumerate(self.widths[:-1]):
             scales = tuple(range(self.n_scales)) if wiring == "parallel" else (min(i, self.n_scales - 1),)
             self.blocks.append(ZernikeBlock(channels, w, scales=scales, activation=activation, norm=norm, **conv))
