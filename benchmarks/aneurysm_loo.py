@@ -10,7 +10,9 @@ used, and writes ``benchmarks/results/aneurysm_loo.json``.
 
 Needs the data folder (default ``../shared/data/aneurysm``); every fold's run folder is kept under
 ``--runs`` (default ``runs/aneurysm_loo``), so a fold that already has ``metrics.json`` is not retrained
-(``--retrain`` forces it) and an interrupted fold resumes from its last checkpoint.
+(``--retrain`` forces it) and an interrupted fold resumes from its last checkpoint. A fold folder trained
+with another recipe (its ``config.yaml`` differs from this call's configuration in anything but the data
+path, threads, device, evaluation or cache settings) is refused, so the table never mixes recipes.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from zernet.train import apply_overrides, load_config, train  # noqa: E402
+from zernet.train import apply_overrides, load_config, resolve_config, train  # noqa: E402
 
 # The paper's Table 3, ZerNet columns (MAPE, RRMSE, HR in %; PCC as a fraction).
 PAPER = {
@@ -49,6 +51,22 @@ def _better(ours: dict, paper: dict) -> bool:
     return lower and higher
 
 
+# Settings that do not change what a fold learns: a run folder trained with other values is reused.
+_RUN_ONLY = (("data", "root"), ("train", "threads"), ("train", "device"))
+
+
+def recipe_differences(stored: dict, intended: dict) -> list[str]:
+    """Dotted keys whose values differ between two resolved configurations, ignoring :data:`_RUN_ONLY`,
+    ``eval`` and ``cache_dir``."""
+    differences = []
+    for section in ("data", "patch", "model", "train"):
+        a, b = stored.get(section) or {}, intended.get(section) or {}
+        for key in sorted(set(a) | set(b)):
+            if (section, key) not in _RUN_ONLY and a.get(key) != b.get(key):
+                differences.append(f"{section}.{key}: {a.get(key)!r} in the run folder, {b.get(key)!r} here")
+    return differences
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default=str(ROOT / "configs" / "aneurysm_regression.yaml"))
@@ -70,10 +88,16 @@ def main(argv: list[str] | None = None) -> int:
         run_dir = Path(args.runs) / case
         metrics_path = run_dir / "metrics.json"
         start = time.perf_counter()
+        config = apply_overrides(base, [f"data.test={case}"])
+        if (run_dir / "config.yaml").exists() and not args.retrain:
+            differences = recipe_differences(load_config(run_dir / "config.yaml"), resolve_config(config))
+            if differences:
+                print(f"{run_dir} was trained with another recipe; use --retrain or another --runs folder:\n  "
+                      + "\n  ".join(differences))
+                return 2
         if metrics_path.exists() and not args.retrain:
             metrics = json.loads(metrics_path.read_text())
         else:
-            config = apply_overrides(base, [f"data.test={case}"])
             resume = (run_dir / "last.pt").exists() and not args.retrain
             metrics = train(config if not resume else None, run_dir, resume=resume, progress=False)
         scores = _as_paper_units(metrics["per_shape"][case])
