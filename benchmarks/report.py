@@ -336,6 +336,15 @@ def training_tasks(args) -> list[dict]:
     return tasks
 
 
+def _aneurysm_recipe_summary() -> str:
+    """One line naming the shipped aneurysm recipe's model, for the report's text."""
+    import yaml
+
+    model = yaml.safe_load((ROOT / "configs" / "aneurysm_regression.yaml").read_text())["model"]
+    options = ", ".join(f"{key} {value}" for key, value in model.items() if key != "name")
+    return f"{model['name']}, {options}"
+
+
 def run_training(tasks: list[dict], models: list[dict], out: Path, threads: int, cache_dir: str) -> dict:
     from zernet.train import load_checkpoint, train
 
@@ -542,7 +551,8 @@ def write_report(out: Path, results: dict, args) -> Path:
             f"epochs, seed 0, no early stopping; the test metric of the epoch chosen on validation. Synthetic "
             f"tasks ({args.epochs} epochs): the recipe of configs/demo.yaml for every model, s = {args.train_s} for "
             f"zernet and paper-zernet. Aneurysm ({args.aneurysm_epochs} epochs): zernet runs the shipped recipe "
-            f"(configs/aneurysm_regression.yaml, zernet-multiscale), FeaStNet the same widths, input features and "
+            f"(configs/aneurysm_regression.yaml: {_aneurysm_recipe_summary()}), FeaStNet (its own Lin16 input "
+            f"layer) the same widths, input features and "
             f"training settings except weight decay (none: with the recipe's coupled L2 of 1e-3 beside the L1 loss "
             f"its weights decay to zero and it predicts a constant); the paper's formulation is left out there (it learns zernet's function at "
             f"several times the cost).",
