@@ -7,6 +7,7 @@ used, and writes ``benchmarks/results/aneurysm_loo.json``.
 
     .venv/bin/python benchmarks/aneurysm_loo.py                       # configs/aneurysm_regression.yaml
     .venv/bin/python benchmarks/aneurysm_loo.py --set train.epochs=30 --cases TP_Ia105I TP_Ia33I
+    .venv/bin/python benchmarks/aneurysm_loo.py --seeds 3    # each fold an ensemble of three seeds
 
 Needs the data folder (default ``../shared/data/aneurysm``); every fold's run folder is kept under
 ``--runs`` (default ``runs/aneurysm_loo``), so a fold that already has ``metrics.json`` is not retrained
@@ -26,7 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from zernet.train import apply_overrides, load_config, resolve_config, train  # noqa: E402
+from zernet.train import apply_overrides, evaluate, load_config, resolve_config, train  # noqa: E402
 
 # The paper's Table 3, ZerNet columns (MAPE, RRMSE, HR in %; PCC as a fraction).
 PAPER = {
@@ -67,6 +68,22 @@ def recipe_differences(stored: dict, intended: dict) -> list[str]:
     return differences
 
 
+def train_fold(config: dict, run_dir: Path, retrain: bool) -> dict | None:
+    """Train one fold into ``run_dir`` (or reuse / resume what is there); its metrics, or None on a recipe
+    mismatch (printed)."""
+    if (run_dir / "config.yaml").exists() and not retrain:
+        differences = recipe_differences(load_config(run_dir / "config.yaml"), resolve_config(config))
+        if differences:
+            print(f"{run_dir} was trained with another recipe; use --retrain or another --runs folder:\n  "
+                  + "\n  ".join(differences))
+            return None
+    metrics_path = run_dir / "metrics.json"
+    if metrics_path.exists() and not retrain:
+        return json.loads(metrics_path.read_text())
+    resume = (run_dir / "last.pt").exists() and not retrain
+    return train(config if not resume else None, run_dir, resume=resume, progress=False)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default=str(ROOT / "configs" / "aneurysm_regression.yaml"))
@@ -74,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cases", nargs="+", default=list(PAPER))
     parser.add_argument("--runs", default=str(ROOT / "runs" / "aneurysm_loo"))
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides")
+    parser.add_argument("--seeds", type=int, default=1,
+                        help="train each fold with train.seed = 0 .. SEEDS-1 (run folders CASE, CASE-seed1, ...) "
+                             "and score the ensemble of the seeds (default 1: one model)")
     parser.add_argument("--retrain", action="store_true", help="train folds that already have metrics")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "aneurysm_loo.json"))
     args = parser.parse_args(argv)
@@ -81,34 +101,37 @@ def main(argv: list[str] | None = None) -> int:
     if not Path(args.data).is_dir():
         print(f"aneurysm data folder not found: {args.data} (give --data)")
         return 2
+    if args.seeds < 1:
+        parser.error("--seeds must be >= 1")
     base = apply_overrides(load_config(args.config), [f"data.root={args.data}", *args.set])
 
     results = {}
     for case in args.cases:
-        run_dir = Path(args.runs) / case
-        metrics_path = run_dir / "metrics.json"
         start = time.perf_counter()
-        config = apply_overrides(base, [f"data.test={case}"])
-        if (run_dir / "config.yaml").exists() and not args.retrain:
-            differences = recipe_differences(load_config(run_dir / "config.yaml"), resolve_config(config))
-            if differences:
-                print(f"{run_dir} was trained with another recipe; use --retrain or another --runs folder:\n  "
-                      + "\n  ".join(differences))
+        members = []  # (run folder, metrics) per seed
+        for seed in range(args.seeds):
+            run_dir = Path(args.runs) / (case if seed == 0 else f"{case}-seed{seed}")
+            config = apply_overrides(base, [f"data.test={case}"] + ([f"train.seed={seed}"] if seed else []))
+            metrics = train_fold(config, run_dir, args.retrain)
+            if metrics is None:
                 return 2
-        if metrics_path.exists() and not args.retrain:
-            metrics = json.loads(metrics_path.read_text())
+            members.append((run_dir, metrics))
+        if len(members) == 1:
+            scores = _as_paper_units(members[0][1]["per_shape"][case])
         else:
-            resume = (run_dir / "last.pt").exists() and not args.retrain
-            metrics = train(config if not resume else None, run_dir, resume=resume, progress=False)
-        scores = _as_paper_units(metrics["per_shape"][case])
+            ensemble = evaluate([run_dir for run_dir, _ in members], progress=False)
+            scores = _as_paper_units(ensemble["per_shape"][case])
+        first = members[0][1]
         results[case] = {
             "ours": scores,
             "paper": PAPER[case],
             "better_than_paper": _better(scores, PAPER[case]),
-            "epochs_trained": metrics.get("epochs_trained"),
-            "best_epoch": metrics.get("best_epoch"),
-            "train_seconds": metrics.get("train_seconds"),
-            "baseline": metrics.get("baseline"),
+            "seeds": args.seeds,
+            "members_MAPE": [100.0 * m["per_shape"][case]["MAPE"] for _, m in members],
+            "epochs_trained": first.get("epochs_trained"),
+            "best_epoch": [m.get("best_epoch") for _, m in members] if args.seeds > 1 else first.get("best_epoch"),
+            "train_seconds": sum(m.get("train_seconds") or 0.0 for _, m in members),
+            "baseline": first.get("baseline"),
             "wall_seconds_this_call": time.perf_counter() - start,
         }
 
@@ -121,13 +144,14 @@ def main(argv: list[str] | None = None) -> int:
     mean = {c: sum(r["ours"][c] for r in results.values()) / len(results) for c in COLUMNS}
     paper_mean = {c: sum(PAPER[k][c] for k in results) / len(results) for c in COLUMNS}
     print(f"{'mean':<11}" + "".join(f"{mean[c]:>8.2f} ({paper_mean[c]:>5.2f})" for c in COLUMNS))
-    print("ours (paper's ZerNet); MAPE, RRMSE, HR in %")
+    what = f"ensembles of {args.seeds} seeds" if args.seeds > 1 else "one model per fold"
+    print(f"ours ({what}; train s summed over the seeds) and the paper's ZerNet in brackets; MAPE, RRMSE, HR in %")
     print(f"better than the paper on every column: "
           f"{sum(r['better_than_paper'] for r in results.values())} of {len(results)} cases")
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"config": base, "cases": results, "mean": mean, "paper_mean": paper_mean},
+    out.write_text(json.dumps({"config": base, "seeds": args.seeds, "cases": results, "mean": mean, "paper_mean": paper_mean},
                               indent=2, default=str))
     print(f"wrote {out}")
     return 0

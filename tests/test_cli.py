@@ -103,6 +103,10 @@ def test_train_evaluate_predict(tmp_path, capsys):
 
     assert main(["evaluate", str(run_dir), "--split", "val", "--no-progress"]) == 0
     assert json.loads((run_dir / "metrics-val.json").read_text())["split"] == "val"
+    # Several run folders: one ensemble, written only where --out says.
+    assert main(["evaluate", str(run_dir), str(run_dir), "--no-progress", "--out", str(tmp_path / "ens.json")]) == 0
+    assert "ensemble of 2" in capsys.readouterr().out
+    assert json.loads((tmp_path / "ens.json").read_text())["checkpoint"] == [str(run_dir / "best.pt")] * 2
 
     from zernet.data.synthetic import make_creature
 

@@ -15,7 +15,9 @@ import torch
 
 from zernet.train import (
     ConfigError,
+    _predict_record,
     apply_overrides,
+    build_dataset,
     epoch_order,
     evaluate,
     load_checkpoint,
@@ -92,6 +94,55 @@ def test_evaluate_and_predict_agree_with_training(finished_run, cache_dir):
     assert prediction.shape == (200,) and prediction.dtype == np.int64
     assert probabilities.shape == (200, 4)
     np.testing.assert_allclose(probabilities.sum(axis=1), 1.0, rtol=1e-5)
+
+
+def test_ensemble_averages_the_members_probabilities(finished_run, cache_dir, tmp_path):
+    run_a, _ = finished_run
+    run_b = tmp_path / "b"
+    train(tiny_config(cache_dir, epochs=2, seed=1), run_b, progress=False, workers=0)
+    dataset = build_dataset(load_checkpoint(run_a / "best.pt")["config"], progress=False)
+    # The same run twice is that run.
+    single = evaluate(run_a, dataset=dataset, progress=False)
+    assert evaluate([run_a, run_a], dataset=dataset, progress=False)["per_shape"] == single["per_shape"]
+    # Two runs: the argmax of their mean probabilities, shape by shape.
+    ensemble = evaluate([run_a, run_b], dataset=dataset, progress=False)
+    assert ensemble["checkpoint"] == [str(run_a / "best.pt"), str(run_b / "best.pt")]
+    for i in dataset.splits["test"]:
+        record = dataset[i]
+        mean = (predict(run_a, record.surface, probabilities=True)[1]
+                + predict(run_b, record.surface, probabilities=True)[1]) / 2
+        expected = float(np.mean(mean.argmax(axis=1) == record.target))
+        assert ensemble["per_shape"][record.name]["accuracy"] == pytest.approx(expected)
+
+
+def test_regression_ensemble_of_log_targets_is_a_geometric_mean(finished_run):
+    run_dir, _ = finished_run
+    record = build_dataset(load_checkpoint(run_dir / "best.pt")["config"], progress=False)[0]
+
+    class Constant(torch.nn.Module):
+        def __init__(self, value):
+            super().__init__()
+            self.value = value
+
+        def forward(self, x, geometry):
+            return torch.full((x.shape[0], 1), self.value)
+
+    stats = {"mean": 1.0, "std": 2.0, "transform": "log"}
+    members = [(Constant(v), {"task": "regression", "target_stats": stats}) for v in (0.0, 1.0)]
+    values, _ = _predict_record(members, record, torch.device("cpu"))
+    # Members predict exp(1) and exp(3): the ensemble exp(2) (their geometric mean, not their mean).
+    np.testing.assert_allclose(values, np.exp(2.0), rtol=1e-6)
+    single, _ = _predict_record(members[1:], record, torch.device("cpu"))
+    np.testing.assert_allclose(single, np.exp(3.0), rtol=1e-6)
+
+
+def test_ensemble_members_must_match(finished_run, cache_dir, tmp_path):
+    run_a, _ = finished_run
+    other = tiny_config(cache_dir, epochs=1)
+    other["data"]["seed"] = 5  # another train/val/test split
+    train(other, tmp_path / "other", progress=False, workers=0)
+    with pytest.raises(ConfigError, match="data section differs"):
+        evaluate([run_a, tmp_path / "other"], progress=False)
 
 
 def test_loss_decreases_on_an_overfittable_task(tmp_path, cache_dir):

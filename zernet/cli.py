@@ -100,11 +100,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bars (log lines only)")
     p.set_defaults(func=_cmd_train)
 
-    p = sub.add_parser("evaluate", parents=[common], help="evaluate a trained run on a split",
+    p = sub.add_parser("evaluate", parents=[common], help="evaluate a trained run (or an ensemble) on a split",
                        description="Evaluate the validation-selected model (best.pt) of RUN_DIR on a split of its "
                                    "data set, print the metrics and write them to RUN_DIR/metrics-SPLIT.json "
-                                   "(metrics.json for the test split).")
-    p.add_argument("run_dir", type=Path, help="a run folder written by 'zernet train' (or a .pt checkpoint)")
+                                   "(metrics.json for the test split). Several RUN_DIRs (the same recipe trained "
+                                   "with different train.seed) are evaluated as one ensemble: the mean of their "
+                                   "probabilities, or of their regression outputs in the transformed target units; "
+                                   "give --out to write its metrics.")
+    p.add_argument("run_dir", type=Path, nargs="+",
+                   help="a run folder written by 'zernet train' (or a .pt checkpoint); several: an ensemble")
+    p.add_argument("--out", type=Path, default=None,
+                   help="metrics file to write (default for one run: inside RUN_DIR; an ensemble writes only here)")
     p.add_argument("--split", default="test", help="split to evaluate: test (default), val or train")
     p.add_argument("--device", default=None, help="override the run's device (cpu, cuda, ...)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -191,15 +197,20 @@ def _cmd_train(args) -> int:
 def _cmd_evaluate(args) -> int:
     from zernet.train import _summary_line, _write_json, evaluate
 
-    metrics = evaluate(args.run_dir, split=args.split, progress=not args.no_progress, device=args.device)
-    print(f"{args.split} ({metrics['n_shapes']} shapes): {_summary_line(metrics)}")
-    if args.run_dir.is_dir():
-        out = args.run_dir / ("metrics.json" if args.split == "test" else f"metrics-{args.split}.json")
+    runs = args.run_dir if len(args.run_dir) > 1 else args.run_dir[0]
+    metrics = evaluate(runs, split=args.split, progress=not args.no_progress, device=args.device)
+    what = f"ensemble of {len(args.run_dir)}, " if len(args.run_dir) > 1 else ""
+    print(f"{args.split} ({what}{metrics['n_shapes']} shapes): {_summary_line(metrics)}")
+    out = args.out
+    if out is None and len(args.run_dir) == 1 and args.run_dir[0].is_dir():
+        run_dir = args.run_dir[0]
+        out = run_dir / ("metrics.json" if args.split == "test" else f"metrics-{args.split}.json")
         if out.name == "metrics.json" and out.is_file():
             # Keep what training recorded (timings, plots) and refresh the scores.
             previous = json.loads(out.read_text(encoding="utf-8"))
             previous.update(metrics)
             metrics = previous
+    if out is not None:
         _write_json(out, metrics)
         print(f"wrote {out}")
     return 0

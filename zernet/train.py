@@ -1014,7 +1014,7 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
     else:
         logger.warning("the data set has no test shapes: metrics.json reports the validation split instead")
         split, indices = "val", val_idx
-    metrics, predictions = _evaluate_model(model, best, dataset, indices, device, progress)
+    metrics, predictions = _evaluate_model([(model, best)], dataset, indices, device, progress)
     metrics.update({
         "split": split,
         "checkpoint": "best.pt",
@@ -1078,10 +1078,21 @@ def _standardise(target: torch.Tensor, target_stats: dict) -> torch.Tensor:
 
 def _unstandardise(values: torch.Tensor, target_stats: dict | None) -> torch.Tensor:
     """Inverse of :func:`_standardise`: network output back to the target's units."""
+    return _untransform(_destandardise(values, target_stats), target_stats)
+
+
+def _destandardise(values: torch.Tensor, target_stats: dict | None) -> torch.Tensor:
+    """Network output -> transformed target units (e.g. log stress): undo the standardisation only."""
     if target_stats is None:
         return values
-    values = values * target_stats["std"] + target_stats["mean"]
-    return torch.exp(values) if target_stats.get("transform", "none") == "log" else values
+    return values * target_stats["std"] + target_stats["mean"]
+
+
+def _untransform(values: torch.Tensor, target_stats: dict | None) -> torch.Tensor:
+    """Transformed target units -> the target's units (undo ``target_transform``)."""
+    if target_stats is not None and target_stats.get("transform", "none") == "log":
+        return torch.exp(values)
+    return values
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -1104,25 +1115,39 @@ def _write_json(path: Path, data: dict) -> None:
 
 
 @torch.no_grad()
-def _predict_record(model, record, device, checkpoint: dict) -> tuple[np.ndarray, np.ndarray | None]:
-    """(prediction, probabilities) for one record: class index and softmax per vertex, or the value."""
-    model.eval()
-    batch = _Batch([record], device, None, checkpoint.get("feature_stats"))
-    output = model(batch.features, batch.geometry)
-    if checkpoint["task"] == "classification":
-        probabilities = torch.softmax(output.float(), dim=1)
-        return output.argmax(dim=1).cpu().numpy(), probabilities.cpu().numpy()
-    values = _unstandardise(output.reshape(-1).float(), checkpoint["target_stats"])
-    return values.cpu().numpy(), None
+def _predict_record(members: Sequence[tuple], record, device) -> tuple[np.ndarray, np.ndarray | None]:
+    """(prediction, probabilities) for one record: class index and softmax per vertex, or the value.
+
+    ``members`` is a list of ``(model, checkpoint)``. With several (an ensemble) the prediction is made from
+    the mean of their softmax probabilities (classification), or of their outputs in the transformed target
+    units (regression; with ``target_transform: log`` a geometric mean of the values), which for one member
+    is that member's own prediction.
+    """
+    task = members[0][1]["task"]
+    outputs = []
+    for model, checkpoint in members:
+        model.eval()
+        batch = _Batch([record], device, None, checkpoint.get("feature_stats"))
+        output = model(batch.features, batch.geometry).float()
+        if task == "classification":
+            outputs.append(torch.softmax(output, dim=1))
+        else:
+            outputs.append(_destandardise(output.reshape(-1), checkpoint["target_stats"]))
+    mean = outputs[0] if len(outputs) == 1 else torch.stack(outputs).mean(dim=0)
+    if task == "classification":
+        return mean.argmax(dim=1).cpu().numpy(), mean.cpu().numpy()
+    return _untransform(mean, members[0][1]["target_stats"]).cpu().numpy(), None
 
 
-def _evaluate_model(model, checkpoint: dict, dataset, indices: Sequence[int], device, progress: bool,
+def _evaluate_model(members: Sequence[tuple], dataset, indices: Sequence[int], device, progress: bool,
                     keep: int = 3) -> tuple[dict, list[dict]]:
-    """Metrics of ``model`` on the shapes at ``indices`` and the predictions of the first ``keep`` of them."""
+    """Metrics of the model (or ensemble) ``members`` (a list of ``(model, checkpoint)``, see
+    :func:`_predict_record`) on the shapes at ``indices`` and the predictions of the first ``keep``."""
     from tqdm.auto import tqdm
 
     from zernet import metrics as zmetrics
 
+    checkpoint = members[0][1]
     task = checkpoint["task"]
     correspondence = task == "classification" and checkpoint.get("correspondence", False)
     kind = "correspondence" if correspondence else ("segmentation" if task == "classification" else "regression")
@@ -1135,7 +1160,7 @@ def _evaluate_model(model, checkpoint: dict, dataset, indices: Sequence[int], de
         record = dataset[i]
         if record.target is None:
             raise ValueError(f"shape {record.name} has no ground truth to evaluate against")
-        pred, _ = _predict_record(model, record, device, checkpoint)
+        pred, _ = _predict_record(members, record, device)
         target = np.asarray(record.target)
         errors = None
         if kind == "correspondence":
@@ -1237,23 +1262,33 @@ def _safe_name(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)[:80]
 
 
-def evaluate(run_dir_or_checkpoint: str | Path, dataset=None, split: str = "test", progress: bool = True,
+def evaluate(run_dir_or_checkpoint, dataset=None, split: str = "test", progress: bool = True,
              device: str | None = None) -> dict:
-    """Evaluate a trained model (a run folder's ``best.pt``, or any checkpoint file) on one split.
+    """Evaluate a trained model (a run folder's ``best.pt``, or any checkpoint file) on one split; given
+    several, evaluate their ensemble.
 
     Args:
-        run_dir_or_checkpoint: a run folder or a ``.pt`` checkpoint.
+        run_dir_or_checkpoint: a run folder or a ``.pt`` checkpoint, or a list of them: an ensemble whose
+            prediction averages the members' probabilities or (regression) their outputs in the transformed
+            target units (see :func:`_predict_record`). Members must share the task, the classes, the
+            preprocessing and the data section (apart from ``data.root``), e.g. the same recipe trained
+            with different ``train.seed``.
         dataset: the :class:`~zernet.data.ShapeDataset` to use; by default it is rebuilt (from the cache)
-            from the configuration stored in the checkpoint.
+            from the configuration stored in the (first) checkpoint.
         split: ``"test"``, ``"val"``, ``"train"`` or any split the data set defines.
         device: overrides the configured ``train.device``.
 
     Returns:
-        The same metrics dictionary that training writes to ``metrics.json``.
+        The same metrics dictionary that training writes to ``metrics.json`` (for an ensemble,
+        ``checkpoint`` lists the members and ``best_epoch``/``epochs_trained`` are per member).
     """
-    path = _checkpoint_path(run_dir_or_checkpoint)
-    checkpoint = load_checkpoint(path)
-    config = checkpoint["config"]
+    many = isinstance(run_dir_or_checkpoint, (list, tuple))
+    paths = [_checkpoint_path(p) for p in (run_dir_or_checkpoint if many else [run_dir_or_checkpoint])]
+    if not paths:
+        raise ConfigError("evaluate needs at least one run folder or checkpoint")
+    checkpoints = [load_checkpoint(path) for path in paths]
+    _check_ensemble(paths, checkpoints)
+    config = checkpoints[0]["config"]
     device = resolve_device(device or config["train"]["device"])
     if dataset is None:
         dataset = build_dataset(config, progress=progress)
@@ -1262,12 +1297,32 @@ def evaluate(run_dir_or_checkpoint: str | Path, dataset=None, split: str = "test
     indices = dataset.splits[split]
     if not indices:
         raise ConfigError(f"split {split!r} of the data set is empty")
-    model = _build_model(checkpoint["model_spec"]).to(device)
-    model.load_state_dict(checkpoint["model"])
-    metrics, _ = _evaluate_model(model, checkpoint, dataset, indices, device, progress, keep=0)
-    metrics.update({"split": split, "checkpoint": str(path), "best_epoch": checkpoint["state"]["best_epoch"],
-                    "epochs_trained": checkpoint["state"]["epoch"]})
+    members = []
+    for checkpoint in checkpoints:
+        model = _build_model(checkpoint["model_spec"]).to(device)
+        model.load_state_dict(checkpoint["model"])
+        members.append((model, checkpoint))
+    metrics, _ = _evaluate_model(members, dataset, indices, device, progress, keep=0)
+    best_epochs = [c["state"]["best_epoch"] for c in checkpoints]
+    epochs = [c["state"]["epoch"] for c in checkpoints]
+    metrics.update({"split": split, "checkpoint": [str(p) for p in paths] if many else str(paths[0]),
+                    "best_epoch": best_epochs if many else best_epochs[0],
+                    "epochs_trained": epochs if many else epochs[0]})
     return metrics
+
+
+def _check_ensemble(paths: Sequence[Path], checkpoints: Sequence[dict]) -> None:
+    """Ensemble members must predict the same thing from the same inputs: say which one differs and how."""
+    def data_section(checkpoint):
+        return {k: v for k, v in checkpoint["config"]["data"].items() if k != "root"}
+
+    first = checkpoints[0]
+    for path, checkpoint in zip(paths[1:], checkpoints[1:]):
+        for what, value in (("task", lambda c: c["task"]), ("number of classes", lambda c: c["num_classes"]),
+                            ("preprocessing", lambda c: c["preprocess"]), ("data section", data_section)):
+            if value(checkpoint) != value(first):
+                raise ConfigError(f"cannot ensemble {path} with {paths[0]}: their {what} differs "
+                                  f"({value(checkpoint)!r} vs {value(first)!r})")
 
 
 def predict(checkpoint: str | Path, surface, probabilities: bool = False, device: str | None = None,
@@ -1303,7 +1358,7 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
     device = resolve_device(device or config["train"]["device"])
     model = _build_model(checkpoint["model_spec"]).to(device)
     model.load_state_dict(checkpoint["model"])
-    pred, probs = _predict_record(model, record, device, checkpoint)
+    pred, probs = _predict_record([(model, checkpoint)], record, device)
     pred = pred.astype(np.int64) if checkpoint["task"] == "classification" else pred.astype(np.float32)
     if probabilities:
         if probs is None:
