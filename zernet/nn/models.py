@@ -218,8 +218,8 @@ class _ZerNetBase(nn.Module):
 
 @register_model("zernet")
 class ZerNet(_ZerNetBase):
-    r"""Single-scale ZerNet (paper section 4.1): ``(ZernikeConv(w_i), [norm], σ)_i -> Lin(widths[-1]), σ
-    -> Dropout -> Lin(out_channels)``.
+    r"""Single-scale ZerNet (paper section 4.1): ``[Lin(input_width), σ] -> (ZernikeConv(w_i), [norm], σ)_i
+    -> Lin(widths[-1]), σ -> Dropout -> Lin(out_channels)``.
 
     Args:
         in_channels: ``C_in`` (3 for xyz).
