@@ -258,6 +258,49 @@ def test_log_target_transform_round_trips_and_is_standardised():
     torch.testing.assert_close(_standardise(target, plain).double(), torch.log(target), rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.parametrize("transform", ["log", "none"])
+def test_relative_l1_loss_is_the_mape_of_the_predictions(transform):
+    from zernet.metrics import regression_scores
+    from zernet.train import _loss, _standardise, _target_stats, _unstandardise
+
+    rng = np.random.default_rng(1)
+    data = _Targets([rng.uniform(0.004, 0.3, size=n) for n in (50, 80)])
+    stats = _target_stats(data, [0, 1], transform=transform)
+    target = _standardise(torch.from_numpy(data.targets[1]), stats).double()
+    output = (target + 0.3 * torch.randn(80, dtype=torch.float64)).reshape(80, 1).requires_grad_()
+    loss = _loss("relative_l1", output, target, stats)
+    prediction = _unstandardise(output.detach().reshape(-1), stats).numpy()
+    assert loss.item() == pytest.approx(regression_scores(prediction, data.targets[1])["MAPE"], rel=1e-6)
+    # Its gradient pushes every prediction towards its target.
+    loss.backward()
+    assert torch.all(torch.sign(output.grad.reshape(-1)) == torch.sign(output.detach().reshape(-1) - target))
+
+
+def test_relative_l1_loss_refuses_zero_targets(tmp_path, cache_dir, monkeypatch):
+    import zernet.train as zt
+
+    build = zt.build_dataset
+
+    def with_a_zero(*args, **kwargs):  # the first training shape gets a zero target at vertex 3
+        dataset = build(*args, **kwargs)
+        first, target = dataset.splits["train"][0], dataset.target
+
+        def patched(i):
+            values = np.array(target(i), dtype=np.float64).reshape(-1)
+            if i == first:
+                values[3] = 0.0
+            return values
+
+        dataset.target = patched
+        return dataset
+
+    monkeypatch.setattr(zt, "build_dataset", with_a_zero)
+    config = tiny_config(cache_dir, loss="relative_l1", epochs=1)
+    config["data"]["task"] = "regression"
+    with pytest.raises(ConfigError, match=r"relative_l1 divides by the target, but shape \S+ has 0 at vertex 3"):
+        train(config, tmp_path / "run", progress=False, workers=0)
+
+
 def test_log_target_transform_trains_and_predicts_positive_values(tmp_path, cache_dir):
     from zernet.data.synthetic import make_creature
 

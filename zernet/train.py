@@ -110,7 +110,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
 }
 
 _PASS_THROUGH_SECTIONS = ("data", "model")
-_LOSSES = ("auto", "cross_entropy", "mse", "l1")
+_LOSSES = ("auto", "cross_entropy", "mse", "l1", "relative_l1")
 _TARGET_TRANSFORMS = ("none", "log")
 _LR_SCHEDULES = ("constant", "cosine")
 
@@ -479,15 +479,31 @@ def _loss_name(config: dict, task: str) -> str:
     if task == "classification" and loss != "cross_entropy":
         raise ConfigError(f"train.loss {loss!r} does not fit a classification task (use cross_entropy)")
     if task == "regression" and loss == "cross_entropy":
-        raise ConfigError("train.loss cross_entropy does not fit a regression task (use mse or l1)")
+        raise ConfigError("train.loss cross_entropy does not fit a regression task (use mse, l1 or relative_l1)")
     return loss
 
 
-def _loss(name: str, output: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def _loss(name: str, output: torch.Tensor, target: torch.Tensor, target_stats: dict | None = None) -> torch.Tensor:
+    """Training loss; ``output`` and ``target`` are in the trained units (see :func:`_standardise`).
+
+    ``relative_l1`` is the mean of ``|ŷ - y| / |y|`` in the target's own units, i.e. the MAPE the regression
+    is scored with. Its minimiser is not the median that ``l1`` estimates: where a vertex's value is
+    uncertain (e.g. near a cut boundary) it predicts lower, because over-predicting a small value costs
+    more relative error than under-predicting it by the same factor.
+    """
     if name == "cross_entropy":
         return F.cross_entropy(output, target)
     output = output.reshape(target.shape)
-    return F.mse_loss(output, target) if name == "mse" else F.l1_loss(output, target)
+    if name == "mse":
+        return F.mse_loss(output, target)
+    if name == "l1":
+        return F.l1_loss(output, target)
+    std = 1.0 if target_stats is None else target_stats["std"]
+    if target_stats is not None and target_stats.get("transform", "none") == "log":
+        # ŷ / y = exp(std (o - t)): no exp of the values themselves, so no overflow early in training
+        return torch.expm1((output - target) * std).abs().mean()
+    true = _unstandardise(target, target_stats)
+    return ((output - target).abs() * std / true.abs()).mean()
 
 
 def _feature_stats(dataset, indices: Sequence[int]) -> dict:
@@ -867,6 +883,13 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
                     f"{target_stats['mean']:.6g}, std {target_stats['std']:.6g}")
     else:
         target_stats = None
+    if loss_name == "relative_l1":
+        for i in train_idx + val_idx:
+            target = np.asarray(dataset.target(i)).ravel()
+            if not np.all(target != 0):
+                bad = int(np.flatnonzero(target == 0)[0])
+                raise ConfigError(f"train.loss relative_l1 divides by the target, but shape {dataset.names[i]} "
+                                  f"has 0 at vertex {bad}")
     if checkpoint is not None:
         feature_stats = checkpoint.get("feature_stats")
     elif tcfg["standardize_features"]:
@@ -919,7 +942,7 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
             batch = _Batch([dataset[i] for i in group], device, target_stats, feature_stats)
             optimizer.zero_grad(set_to_none=True)
             output = net(batch.features, batch.geometry)
-            loss = _loss(loss_name, output, batch.target)
+            loss = _loss(loss_name, output, batch.target, target_stats)
             if not torch.isfinite(loss):
                 raise FloatingPointError(
                     f"the training loss became {loss.item()} at epoch {epoch}, step {step} (shapes "
@@ -1057,7 +1080,7 @@ def _validate(model, dataset, indices, device, loss_name, target_stats, task, fe
     for i in indices:
         batch = _Batch([dataset[i]], device, target_stats, feature_stats)
         output = model(batch.features, batch.geometry)
-        losses.append(_loss(loss_name, output, batch.target).item())
+        losses.append(_loss(loss_name, output, batch.target, target_stats).item())
         if task == "classification":
             scores.append(zmetrics.accuracy(output.argmax(dim=1), batch.target))
         else:
