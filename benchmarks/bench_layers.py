@@ -7,7 +7,8 @@ For s = 1, 4, 8, 16 on a 6,890-vertex surface (k = 21), in one run:
   the operator's sparse decomposition, and the dense contraction alone;
 * the contraction's FLOP rate against this machine's own ``torch.mm`` rate for the same sizes;
 * one training step (forward, cross-entropy over 6,890 classes, backward, Adam) of the whole single-scale
-  correspondence model ``Conv64 -> Conv128 -> Conv256 -> Lin512 -> Lin6890``.
+  correspondence model ``Conv64 -> Conv128 -> Conv256 -> Lin512 -> Lin6890``, in float32 and with the
+  linear layers in bfloat16 (``train.precision: bfloat16``).
 
 Timing: all configurations of one kind (layers, or whole-model steps) are built in one child process and
 timed round by round, interleaved, so that load from other processes on the machine spreads over all of them
@@ -148,13 +149,17 @@ def torch_mm_workload(n: int) -> list:
 
 
 def model_workload(op, s: int, impl: str):
-    """One training step (forward, cross-entropy over N classes, backward, Adam) of the single-scale model."""
+    """One training step (forward, cross-entropy over N classes, backward, Adam) of the single-scale model.
+
+    ``impl``: ``harmonic`` (ZernikeConv), ``reference`` (rotated kernels) or ``harmonic-bf16`` (ZernikeConv,
+    linear layers in bfloat16 under ``torch.autocast``, as ``train.precision: bfloat16`` trains)."""
     import torch
 
     from zernet.nn import Geometry, RotatedKernelConv, build_model
 
     n = op.n_vertices
     model = build_model("zernet", 3, n, widths=(64, 128, 256, 512), angular_resolution=s)
+    mixed = impl == "harmonic-bf16"  # train.precision: bfloat16 (linear layers under autocast)
     if impl == "reference":
         for block in model.blocks:
             conv = block.convs[0]
@@ -168,7 +173,9 @@ def model_workload(op, s: int, impl: str):
 
     def step():
         opt.zero_grad(set_to_none=True)
-        torch.nn.functional.cross_entropy(model(x, geometry), y).backward()
+        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=mixed):
+            output = model(x, geometry)
+        torch.nn.functional.cross_entropy(output.float(), y).backward()
         opt.step()
 
     return step
@@ -278,7 +285,7 @@ def main(argv=None) -> int:
     repeats = 3 if args.quick else 7
     layer_configs = [(s, impl) for s in ANGLES for impl in ("harmonic", "reference")]
     model_angles = (1, 4, 16) if args.quick else ANGLES
-    model_configs = [(s, impl) for s in model_angles for impl in ("harmonic", "reference")
+    model_configs = [(s, impl) for s in model_angles for impl in ("harmonic", "reference", "harmonic-bf16")
                      if not (impl == "reference" and args.quick and s != 4)]
     encode = lambda configs: ",".join(f"{s}:{impl}" for s, impl in configs)  # noqa: E731
     rows = _child(["time", "layers", str(repeats), encode(layer_configs)], args.real)
@@ -330,10 +337,12 @@ def main(argv=None) -> int:
     print(f"\nwhole single-scale model Conv64-Conv128-Conv256-Lin512-Lin{N_VERTICES}, one training step (Adam)")
     print(f"(the 512->{rows[0]['n_vertices']} output layer alone: {find('model', model_angles[0], 'harmonic')['output_layer_gflop']:.0f} GFLOP per step)")
     for s in model_angles:
-        for impl in ("harmonic", "reference"):
+        for impl in ("harmonic", "reference", "harmonic-bf16"):
             r = find("model", s, impl)
             if r:
-                print(f"s={s:2d} {impl:9s}: {r['step_s']:.2f} s/step, peak +{r['peak_extra_mb']:.0f} MB")
+                print(f"s={s:2d} {impl:13s}: {r['step_s']:.2f} s/step, peak +{r['peak_extra_mb']:.0f} MB")
+    print("(harmonic-bf16: linear layers in bfloat16 under torch.autocast, convolutions in float32 = "
+          "train.precision: bfloat16; accuracy: benchmarks/bench_precision.py)")
     payload = {
         "n_vertices": rows[0]["n_vertices"],
         "k": K,

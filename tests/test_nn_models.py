@@ -164,3 +164,51 @@ def test_input_layer_is_a_per_vertex_map_before_the_first_convolution(name):
     assert build_model(name, 5, 2, widths=(9, 12), input_width=0).input is None
     with pytest.raises(ValueError, match="input_width"):
         build_model(name, 5, 2, widths=(9, 12), input_width=-1)
+
+
+@pytest.fixture(scope="module")
+def ellipsoid_geometry():
+    import trimesh
+
+    from zernet.data.preprocess import mesh_edge_index
+    from zernet.patches import PatchConfig, build_patch_operator
+    from zernet.surface import Surface
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    surface = Surface(vertices=np.asarray(mesh.vertices) * [1.3, 1.0, 0.8], faces=np.asarray(mesh.faces), name="ellipsoid")
+    operator = build_patch_operator(surface, PatchConfig(r0=0.6, n_samples=1500, patch_size=30, n_max=5, seed=0))
+    return Geometry([operator], mesh_edge_index(surface))
+
+
+@pytest.mark.parametrize("name", ["zernet", "zernet-multiscale", "zernet-directional", "feastnet", "paper-zernet"])
+def test_every_model_trains_under_bfloat16_autocast(name, ellipsoid_geometry):
+    """train.precision bfloat16: convolutions stay float32, linear layers run in bfloat16, and the output
+    stays within bfloat16 rounding of the float32 model's."""
+    geometry = ellipsoid_geometry
+    if name == "zernet-multiscale":
+        geometry = Geometry(geometry.operators * 3, geometry.edge_index)
+    torch.manual_seed(0)
+    model = build_model(name, 3, 5, widths=(8, 16, 16, 32))
+    model.eval()  # no dropout: the two passes must see the same network
+    x = torch.randn(geometry.operators[0].n_vertices, 3)
+    reference = model(x, geometry)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        mixed = model(x, geometry)
+    assert torch.isfinite(mixed).all()
+    error = (mixed.float() - reference).norm() / reference.norm()
+    assert error < 0.05, f"{name}: bfloat16 output {error:.3f} away from float32"
+    mixed.float().square().mean().backward()
+    grads = [p.grad for p in model.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+
+
+def test_convolutions_run_in_float32_under_autocast(ellipsoid_geometry):
+    from zernet.nn import ZernikeConv
+
+    operator = ellipsoid_geometry.operators[0]
+    conv = ZernikeConv(4, 6, angular_resolution=4)
+    x = torch.randn(operator.n_vertices, 4)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        inside = conv(x.bfloat16(), operator)  # e.g. the output of a bfloat16 linear layer
+    assert inside.dtype == torch.float32
+    torch.testing.assert_close(inside, conv(x.bfloat16().float(), operator), rtol=0, atol=0)

@@ -301,6 +301,16 @@ def test_relative_l1_loss_refuses_zero_targets(tmp_path, cache_dir, monkeypatch)
         train(config, tmp_path / "run", progress=False, workers=0)
 
 
+def test_bfloat16_precision_trains_and_is_validated(tmp_path, cache_dir):
+    config = tiny_config(cache_dir, precision="bfloat16", epochs=2)
+    metrics = train(config, tmp_path / "run", progress=False, workers=0)
+    history = load_checkpoint(tmp_path / "run" / "best.pt")["state"]["history"]
+    assert all(np.isfinite(h["train_loss"]) for h in history)
+    assert 0.0 <= metrics["summary"]["accuracy"] <= 1.0
+    with pytest.raises(ConfigError, match="train.precision must be one of float32, bfloat16"):
+        resolve_config(tiny_config(cache_dir, precision="float16"))
+
+
 def test_log_target_transform_trains_and_predicts_positive_values(tmp_path, cache_dir):
     from zernet.data.synthetic import make_creature
 

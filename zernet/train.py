@@ -91,7 +91,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "lr": 1.0e-3,
         "lr_schedule": "constant",    # constant | cosine (from lr down to 0 over train.epochs, per epoch)
         "weight_decay": 0.0,
-        "loss": "auto",               # auto (cross_entropy / mse by task) | cross_entropy | mse | l1
+        "loss": "auto",               # auto (cross_entropy / mse by task) | cross_entropy | mse | l1 | relative_l1
         "standardize_targets": True,  # regression: train on (y - mean) / std of the training targets
         "target_transform": "none",   # regression: none | log (train on log y: the loss sees relative errors)
         "standardize_features": False,  # feed (x - mean) / std per input channel, from the training vertices
@@ -101,6 +101,9 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "device": "auto",             # auto (cuda if available, else cpu) | cpu | cuda | cuda:1 ...
         "threads": None,              # torch CPU threads (None: torch's default)
         "grad_clip": None,            # clip the gradient norm to this value (None: no clipping)
+        "precision": "float32",       # float32 | bfloat16: linear layers under torch.autocast in bfloat16
+                                      # (convolutions stay float32); ~3x faster matmuls on CPUs with
+                                      # AVX-512 BF16 or AMX and on recent GPUs, slower on CPUs without them
     },
     "eval": {
         "renders": 3,                 # test shapes rendered as pictures (prediction, truth, error)
@@ -113,6 +116,7 @@ _PASS_THROUGH_SECTIONS = ("data", "model")
 _LOSSES = ("auto", "cross_entropy", "mse", "l1", "relative_l1")
 _TARGET_TRANSFORMS = ("none", "log")
 _LR_SCHEDULES = ("constant", "cosine")
+_PRECISIONS = ("float32", "bfloat16")
 
 
 class ConfigError(ValueError):
@@ -253,6 +257,8 @@ def resolve_config(config: dict) -> dict:
     if train_cfg["target_transform"] not in _TARGET_TRANSFORMS:
         raise ConfigError(f"train.target_transform must be one of {', '.join(_TARGET_TRANSFORMS)}, "
                           f"got {train_cfg['target_transform']!r}")
+    if train_cfg["precision"] not in _PRECISIONS:
+        raise ConfigError(f"train.precision must be one of {', '.join(_PRECISIONS)}, got {train_cfg['precision']!r}")
     if not isinstance(train_cfg["device"], str):
         raise ConfigError(f"train.device must be a string such as auto, cpu or cuda, got {train_cfg['device']!r}")
 
@@ -941,7 +947,9 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
         for step, group in enumerate(bar, start=1):
             batch = _Batch([dataset[i] for i in group], device, target_stats, feature_stats)
             optimizer.zero_grad(set_to_none=True)
-            output = net(batch.features, batch.geometry)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=tcfg["precision"] == "bfloat16"):
+                output = net(batch.features, batch.geometry)
+            output = output.float()  # the loss in float32
             loss = _loss(loss_name, output, batch.target, target_stats)
             if not torch.isfinite(loss):
                 raise FloatingPointError(

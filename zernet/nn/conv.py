@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import lru_cache, wraps
 
 import numpy as np
 import torch
@@ -41,7 +41,25 @@ from zernet.zernike import harmonic_pairs, n_max_for, num_bases, orders
 
 from .pooling import POOLING_MODES, continuous_max, discrete_max, evaluate_harmonics, equispaced_angles
 
-__all__ = ["HarmonicPlan", "harmonic_plan", "harmonic_contraction", "ZernikeConv"]
+__all__ = ["HarmonicPlan", "harmonic_plan", "harmonic_contraction", "ZernikeConv", "float32_forward"]
+
+
+def float32_forward(forward):
+    """Decorate a surface convolution's ``forward(self, x, operator)`` to run in float32 under ``torch.autocast``.
+
+    Mixed precision (``train.precision: bfloat16``) speeds up the linear layers; the patch operators are
+    sparse float32 matrices without bfloat16 kernels, and the Zernike fits of boundary patches need float32's
+    precision, so convolutions take their input as float32 and return float32 whatever the autocast state.
+    """
+
+    @wraps(forward)
+    def wrapped(self, x: Tensor, *args, **kwargs):
+        if not torch.is_autocast_enabled(x.device.type):
+            return forward(self, x, *args, **kwargs)
+        with torch.autocast(x.device.type, enabled=False):
+            return forward(self, x.float(), *args, **kwargs)
+
+    return wrapped
 
 
 @dataclass(frozen=True)
@@ -350,6 +368,7 @@ class ZernikeConv(nn.Module):
         F = self.coefficients(x, operator)
         return harmonic_contraction(F, self.weight, harmonic_plan(self.n_max, angular_resolution))
 
+    @float32_forward
     def forward(self, x: Tensor, operator) -> Tensor:
         """``x`` ``(N, C_in)`` -> ``(N, C_out)`` (``(N, s, C_out)`` for ``pooling="none"``)."""
         plan = self._plan()

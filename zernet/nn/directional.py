@@ -72,6 +72,7 @@ from zernet.patches import SparseApply, to_torch_csr
 from zernet.polar import transport_angles
 from zernet.zernike import n_max_for, num_bases, rotation_matrix
 
+from .conv import float32_forward
 from .models import register_model
 from .pooling import continuous_max, discrete_max
 
@@ -546,6 +547,7 @@ class DirectionalZernikeConv(nn.Module):
             return operator.apply(x[:, 0]).unsqueeze(2)  # no transport for scalars: the plain operator
         return directional_operator(operator, self.order).apply(x)
 
+    @float32_forward
     def forward(self, x: Tensor, operator) -> Tensor:
         """``x`` ``(N, 2 L_in + 1, C_in)`` -> ``(N, 2 L_out + 1, C_out)`` or ``(N, s, C_out)``."""
         coeffs = self.fit(x, operator)
