@@ -72,7 +72,10 @@ def train_fold(config: dict, run_dir: Path, retrain: bool) -> dict | None:
     """Train one fold into ``run_dir`` (or reuse / resume what is there); its metrics, or None on a recipe
     mismatch (printed)."""
     if (run_dir / "config.yaml").exists() and not retrain:
-        differences = recipe_differences(load_config(run_dir / "config.yaml"), resolve_config(config))
+        # Resolving the stored configuration fills in options added since with their defaults, which
+        # reproduce the behaviour of the code the folder was trained with.
+        stored = resolve_config(load_config(run_dir / "config.yaml"))
+        differences = recipe_differences(stored, resolve_config(config))
         if differences:
             print(f"{run_dir} was trained with another recipe; use --retrain or another --runs folder:\n  "
                   + "\n  ".join(differences))
