@@ -27,6 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from zernet.io_utils import atomic_write_bytes  # noqa: E402
 from zernet.train import apply_overrides, evaluate, load_config, resolve_config, train  # noqa: E402
 
 # The paper's Table 3, ZerNet columns (MAPE, RRMSE, HR in %; PCC as a fraction).
@@ -153,9 +154,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{sum(r['better_than_paper'] for r in results.values())} of {len(results)} cases")
 
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"config": base, "seeds": args.seeds, "cases": results, "mean": mean, "paper_mean": paper_mean},
-                              indent=2, default=str))
+    table = {"config": base, "seeds": args.seeds, "cases": results, "mean": mean, "paper_mean": paper_mean}
+    atomic_write_bytes(out, json.dumps(table, indent=2, default=str).encode())
     print(f"wrote {out}")
     return 0
 

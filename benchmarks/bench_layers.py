@@ -156,10 +156,11 @@ def model_workload(op, s: int, impl: str):
     import torch
 
     from zernet.nn import Geometry, RotatedKernelConv, build_model
+    from zernet.train import precision_autocast
 
     n = op.n_vertices
     model = build_model("zernet", 3, n, widths=(64, 128, 256, 512), angular_resolution=s)
-    mixed = impl == "harmonic-bf16"  # train.precision: bfloat16 (linear layers under autocast)
+    precision = "bfloat16" if impl == "harmonic-bf16" else "float32"
     if impl == "reference":
         for block in model.blocks:
             conv = block.convs[0]
@@ -173,7 +174,7 @@ def model_workload(op, s: int, impl: str):
 
     def step():
         opt.zero_grad(set_to_none=True)
-        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=mixed):
+        with precision_autocast(precision, x.device.type):
             output = model(x, geometry)
         torch.nn.functional.cross_entropy(output.float(), y).backward()
         opt.step()
@@ -354,10 +355,9 @@ def main(argv=None) -> int:
         "rows": rows,
     }
     payload["command"] = " ".join([Path(sys.executable).name, "benchmarks/bench_layers.py"] + list(argv or sys.argv[1:]))
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.output.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(payload, indent=1))
-    os.replace(tmp, args.output)
+    from zernet.io_utils import atomic_write_bytes
+
+    atomic_write_bytes(args.output, json.dumps(payload, indent=1).encode())
     print(f"\nwritten {args.output}")
     return 0
 

@@ -33,9 +33,10 @@ import torch
 
 from zernet.data.base import compute_features
 from zernet.data.synthetic import make_creature
+from zernet.io_utils import atomic_write_bytes
 from zernet.nn import Geometry, build_model
 from zernet.patches import PatchConfig, build_patch_operator
-from zernet.train import keep_freed_memory
+from zernet.train import keep_freed_memory, precision_autocast
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_precision.json"
 PATCH = PatchConfig(r0=2.5, n_samples=4000, patch_size=50, n_max=5)
@@ -56,7 +57,7 @@ def creatures(count: int, n_vertices: int) -> list[dict]:
     return shapes
 
 
-def train_and_test(model, train, test, epochs: int, lr: float, mixed: bool, seed: int) -> dict:
+def train_and_test(model, train, test, epochs: int, lr: float, precision: str, seed: int) -> dict:
     target = torch.arange(train[0]["x"].shape[0])
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
     generator = torch.Generator().manual_seed(seed)
@@ -67,7 +68,7 @@ def train_and_test(model, train, test, epochs: int, lr: float, mixed: bool, seed
         for i in torch.randperm(len(train), generator=generator).tolist():
             started = time.perf_counter()
             optimizer.zero_grad(set_to_none=True)
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=mixed):
+            with precision_autocast(precision, "cpu"):
                 output = model(train[i]["x"], train[i]["geometry"])
             loss = torch.nn.functional.cross_entropy(output.float(), target)
             loss.backward()
@@ -103,8 +104,8 @@ def main(argv=None) -> int:
     for seed in range(args.seeds):
         torch.manual_seed(seed)
         initial = build_model("zernet", 6, args.vertices, widths=(64, 128, 256, 512), angular_resolution=4)
-        for name, mixed in (("float32", False), ("bfloat16", True)):
-            row = train_and_test(copy.deepcopy(initial), train, test, args.epochs, args.lr, mixed, seed)
+        for name in ("float32", "bfloat16"):
+            row = train_and_test(copy.deepcopy(initial), train, test, args.epochs, args.lr, name, seed)
             rows[name].append(row)
             print(f"seed {seed} {name:8s}: test accuracy {row['accuracy']:.3f}, mean error "
                   f"{row['mean_error_r0']:.3f} r0, final train loss {row['final_train_loss']:.3f}, "
@@ -116,10 +117,7 @@ def main(argv=None) -> int:
                "lr": args.lr, "seeds": args.seeds, "patch": dataclasses.asdict(PATCH), "rows": rows,
                "load_average_1min": os.getloadavg()[0],
                "command": " ".join(["python", "benchmarks/bench_precision.py"] + list(argv or sys.argv[1:]))}
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.output.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(payload, indent=1, default=str))
-    os.replace(tmp, args.output)
+    atomic_write_bytes(args.output, json.dumps(payload, indent=1, default=str).encode())
     print(f"written {args.output}")
     return 0
 

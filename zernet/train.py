@@ -66,6 +66,7 @@ __all__ = [
     "predict",
     "load_checkpoint",
     "epoch_order",
+    "precision_autocast",
 ]
 
 CHECKPOINT_FORMAT = "zernet-checkpoint-1"
@@ -346,6 +347,16 @@ def resolve_device(name: str) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError(f"train.device is {name!r} but CUDA is not available on this machine")
     return device
+
+
+def precision_autocast(precision: str, device_type: str):
+    """The ``torch.autocast`` context of ``train.precision`` for a forward pass on ``device_type``.
+
+    ``"bfloat16"``: linear layers run in bfloat16 (convolutions stay float32, see
+    :func:`zernet.nn.conv.float32_forward`); ``"float32"``: a disabled context. Compute the loss on
+    ``output.float()`` outside it.
+    """
+    return torch.autocast(device_type, dtype=torch.bfloat16, enabled=precision == "bfloat16")
 
 
 def keep_freed_memory() -> bool:
@@ -947,7 +958,7 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
         for step, group in enumerate(bar, start=1):
             batch = _Batch([dataset[i] for i in group], device, target_stats, feature_stats)
             optimizer.zero_grad(set_to_none=True)
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=tcfg["precision"] == "bfloat16"):
+            with precision_autocast(tcfg["precision"], device.type):
                 output = net(batch.features, batch.geometry)
             output = output.float()  # the loss in float32
             loss = _loss(loss_name, output, batch.target, target_stats)
