@@ -181,6 +181,37 @@ class Surface:
             return self._cached("cloud_normals", self._cloud_normals)
         return self._cached("mesh_normals", self._mesh_normals)
 
+    def mean_curvature(self, smoothing_steps: int = 0) -> np.ndarray:
+        """Signed mean curvature per vertex, shape (N,) float64: ``1/R`` on a sphere of radius R with outward
+        normals, ``1/(2R)`` on a cylinder, 0 on a plane; negative where the surface bends away from its normal.
+
+        - Mesh: ``H_i = (L x)_i · n_i / (2 A_i)``, L the cotangent Laplacian (positive semi-definite) and A_i
+          the vertex area, both from potpourri3d, n_i from :meth:`vertex_normals`. On a boundary vertex this
+          is a one-sided estimate (the surface does not continue past the cut).
+        - Point cloud: a quadric ``h = a u² + b uv + c v² + d u + e v`` fitted by least squares to the 16
+          nearest neighbours in the tangent frame of :meth:`vertex_normals`; ``H = -(a + c)``.
+
+        ``smoothing_steps`` rounds of averaging each vertex with its neighbours (mesh edges, or the 16
+        nearest points), weighted by vertex area, remove the discretisation noise of irregular sampling.
+        """
+        curvature = self._cached("mean_curvature", self._cloud_mean_curvature if self.is_point_cloud
+                                 else self._mesh_mean_curvature)
+        if smoothing_steps <= 0:
+            return curvature
+        n = self.n_vertices
+        if self.is_point_cloud:
+            _, neighbours = self._cloud_neighbours()
+            rows, cols = np.repeat(np.arange(n), neighbours.shape[1]), neighbours.ravel()
+        else:
+            rows, cols = self.edges().T
+        adjacency = scipy.sparse.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)).tocsr()
+        adjacency = (adjacency + adjacency.T + scipy.sparse.identity(n)).sign()
+        weighted = adjacency @ scipy.sparse.diags(self.vertex_areas())
+        total = weighted @ np.ones(n)
+        for _ in range(smoothing_steps):
+            curvature = (weighted @ curvature) / total
+        return curvature
+
     def edges(self) -> np.ndarray:
         """Unique undirected mesh edges as sorted vertex pairs (i < j), shape (E, 2) int64, lexicographic
         order. A point cloud has no edges: shape (0, 2)."""
@@ -277,6 +308,31 @@ class Surface:
             _, nearest = cKDTree(self.vertices[have]).query(self.vertices[missing])
             normals[missing] = normals[have[nearest]]
         return normals
+
+    def _mesh_mean_curvature(self) -> np.ndarray:
+        import potpourri3d as pp3d  # imported here: only curvature needs it, and it is slow to import
+
+        laplacian = pp3d.cotan_laplacian(self.vertices, self.faces)
+        areas = pp3d.vertex_areas(self.vertices, self.faces)
+        mean_normal = np.asarray(laplacian @ self.vertices) / (2.0 * np.maximum(areas, 1e-300)[:, None])
+        return np.einsum("ij,ij->i", mean_normal, self.vertex_normals())
+
+    def _cloud_mean_curvature(self) -> np.ndarray:
+        points, normals = self.vertices, self.vertex_normals()
+        _, neighbours = self._cloud_neighbours()
+        helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        t1 = _unit_rows(np.cross(normals, helper))
+        t2 = np.cross(normals, t1)
+        offsets = points[neighbours] - points[:, None, :]  # (N, k, 3)
+        u = np.einsum("nki,ni->nk", offsets, t1)
+        v = np.einsum("nki,ni->nk", offsets, t2)
+        h = np.einsum("nki,ni->nk", offsets, normals)
+        design = np.stack([u * u, u * v, v * v, u, v], axis=-1)  # (N, k, 5)
+        # Normal equations per point; a tiny ridge keeps degenerate (collinear) neighbourhoods solvable.
+        gram = np.einsum("nki,nkj->nij", design, design)
+        scale = np.einsum("nii->n", gram)[:, None, None] * 1e-12 + 1e-300
+        coefficients = np.linalg.solve(gram + scale * np.eye(5), np.einsum("nki,nk->ni", design, h)[..., None])
+        return -(coefficients[:, 0, 0] + coefficients[:, 2, 0])
 
     def _cloud_neighbours(self) -> tuple[np.ndarray, np.ndarray]:
         """Distances and indices of the k nearest other points, each (N, k), k = min(16, N - 1)."""

@@ -52,7 +52,6 @@ __all__ = [
     "make_creature",
     "demo_patch_configs",
     "make_synthetic_dataset",
-    "mean_curvature",
     "fibonacci_sphere",
 ]
 
@@ -85,41 +84,6 @@ def fibonacci_sphere(n: int) -> tuple[np.ndarray, np.ndarray]:
     inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), a + b + c) < 0
     faces[inward] = faces[inward][:, ::-1]
     return points, faces
-
-
-def mean_curvature(vertices: np.ndarray, faces: np.ndarray, smoothing_steps: int = 2) -> np.ndarray:
-    """Signed mean curvature per vertex, (N,) float64 (1/R on a sphere of radius R).
-
-    ``H_i = (L x)_i · n_i / (2 A_i)`` with L the cotangent Laplacian (positive semi-definite) and A_i the
-    vertex area, both from potpourri3d, then ``smoothing_steps`` rounds of averaging each vertex with its
-    edge neighbours (weighted by vertex area), which removes the discretisation noise of irregular triangles.
-    """
-    import potpourri3d as pp3d
-    import scipy.sparse as sp
-
-    laplacian = pp3d.cotan_laplacian(vertices, faces)
-    areas = pp3d.vertex_areas(vertices, faces)
-    mean_normal = np.asarray(laplacian @ vertices) / (2.0 * areas[:, None])
-    normals = _vertex_normals(vertices, faces)
-    curvature = np.einsum("ij,ij->i", mean_normal, normals)
-    n = len(vertices)
-    rows = faces[:, [0, 1, 2, 1, 2, 0]].reshape(-1)
-    cols = faces[:, [1, 2, 0, 0, 1, 2]].reshape(-1)
-    adjacency = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
-    adjacency.data[:] = 1.0
-    adjacency = adjacency + sp.identity(n, format="csr")
-    weighted = adjacency @ sp.diags(areas)
-    for _ in range(smoothing_steps):
-        curvature = (weighted @ curvature) / (weighted @ np.ones(n))
-    return curvature
-
-
-def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-    normals = np.zeros_like(vertices)
-    for corner in range(3):
-        np.add.at(normals, faces[:, corner], cross)
-    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
 def _random_directions(rng: np.random.Generator, count: int, min_angle: float) -> np.ndarray:
@@ -193,8 +157,8 @@ def make_creature(
     vertices *= np.sqrt(area / (0.5 * np.linalg.norm(cross, axis=1).sum()))
     if rotate:
         vertices = vertices @ Rotation.random(random_state=rng).as_matrix().T
-    curvature = mean_curvature(vertices, faces)
     surface = Surface(vertices, faces, name=f"creature(seed={seed})")
+    curvature = surface.mean_curvature(smoothing_steps=2)
     return surface, labels, curvature
 
 
