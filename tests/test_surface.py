@@ -476,7 +476,7 @@ def test_no_warning_for_clean_meshes():
 
 
 # ---------------------------------------------------------------------------------------------- curvature
-def _open_cylinder(radius=1.5, height=6.0, around=64, along=25) -> Surface:
+def open_cylinder(radius=1.5, height=6.0, around=64, along=25) -> Surface:
     phi = 2 * np.pi * np.arange(around) / around
     z = np.linspace(-height / 2, height / 2, along)
     P, Z = np.meshgrid(phi, z)
@@ -506,7 +506,7 @@ def test_mean_curvature_sphere_mesh_and_cloud():
 
 
 def test_mean_curvature_cylinder_and_plane():
-    cylinder = _open_cylinder(radius=1.5)
+    cylinder = open_cylinder(radius=1.5)
     inside = np.abs(cylinder.vertices[:, 2]) < 2.5  # away from the cut ends
     np.testing.assert_allclose(cylinder.mean_curvature()[inside], 1.0 / (2 * 1.5), rtol=0.02)
     plane = grid(6)

@@ -29,7 +29,7 @@ from __future__ import annotations
 import inspect
 
 from zernet.data.base import (
-    FEATURE_KINDS,
+    FEATURE_PARTS,
     DatasetError,
     ShapeDataset,
     ShapeRecord,
@@ -47,7 +47,7 @@ __all__ = [
     "ShapeSource",
     "DatasetError",
     "PreprocessError",
-    "FEATURE_KINDS",
+    "FEATURE_PARTS",
     "build_dataset",
     "prepare_record",
     "default_features",

@@ -20,13 +20,17 @@ import numpy as np
 import scipy.sparse
 from scipy.spatial import cKDTree
 
+from zernet.membrane import membrane_stress
 from zernet.nn.geometry import Geometry
 from zernet.surface import Surface
 from zernet.zernike import harmonic_pairs, index_to_nm, orders
 
 __all__ = [
     "TASKS",
-    "FEATURE_KINDS",
+    "FEATURE_PARTS",
+    "MEMBRANE_PRESTRESSES",
+    "feature_parts",
+    "membrane_descriptors",
     "ShapeRecord",
     "ShapeDataset",
     "default_features",
@@ -40,9 +44,13 @@ __all__ = [
 
 TASKS = ("classification", "regression")
 
-#: Input feature choices of :func:`compute_features`, with their channel counts (None: depends on the
-#: patch settings, see :func:`feature_channels`).
-FEATURE_KINDS = {"xyz": 3, "xyz+normals": 6, "normals": 3, "ones": 1, "shape": None, "shape+curvature": None}
+#: Parts a feature kind is made of, with their channel counts (None: depends on the patch settings, see
+#: :func:`feature_channels`). A kind joins parts with "+", e.g. ``"xyz+normals"`` or
+#: ``"shape+curvature+membrane"``; the channels follow in that order.
+FEATURE_PARTS = {"xyz": 3, "normals": 3, "ones": 1, "shape": None, "curvature": None, "membrane": 3}
+
+#: Pre-tensions of the :func:`~zernet.membrane.membrane_stress` channels of the "membrane" feature part.
+MEMBRANE_PRESTRESSES = (0.01, 0.02, 0.04)
 
 #: Distance to the boundary, in units of r0, beyond which the boundary feature saturates.
 BOUNDARY_SATURATION = 3.0
@@ -99,15 +107,28 @@ def default_features(surface: Surface) -> np.ndarray:
     return (surface.vertices - centroid).astype(np.float32)
 
 
+def feature_parts(kind: str) -> list[str]:
+    """The :data:`FEATURE_PARTS` of feature kind ``kind`` ("+"-joined), in order; DatasetError if unknown."""
+    parts = str(kind).split("+")
+    unknown = [part for part in parts if part not in FEATURE_PARTS]
+    if unknown or len(set(parts)) != len(parts):
+        raise DatasetError(f"unknown feature kind {kind!r}: join distinct parts of {sorted(FEATURE_PARTS)} "
+                           "with '+', e.g. 'xyz+normals' or 'shape+curvature+membrane'")
+    return parts
+
+
 def feature_channels(kind: str, n_max=5) -> int:
     """Number of input channels of feature ``kind``; ``n_max``: the degree of each patch scale (int or list)."""
-    if kind not in FEATURE_KINDS:
-        raise DatasetError(f"unknown feature kind {kind!r}; choose one of {sorted(FEATURE_KINDS)}")
-    if kind in ("shape", "shape+curvature"):
-        degrees = [n_max] if isinstance(n_max, int) else list(n_max)
-        channels = sum(int((orders(n) >= 0).sum()) for n in degrees) + 1
-        return channels + (1 + len(degrees) if kind == "shape+curvature" else 0)
-    return FEATURE_KINDS[kind]
+    degrees = [n_max] if isinstance(n_max, int) else list(n_max)
+    channels = 0
+    for part in feature_parts(kind):
+        if part == "shape":
+            channels += sum(int((orders(n) >= 0).sum()) for n in degrees) + 1
+        elif part == "curvature":
+            channels += 1 + len(degrees)
+        else:
+            channels += FEATURE_PARTS[part]
+    return channels
 
 
 def shape_descriptors(surface: Surface, operator, boundary: bool = True) -> np.ndarray:
@@ -183,33 +204,54 @@ def curvature_descriptors(surface: Surface, radii: Sequence[float]) -> np.ndarra
     return np.stack(columns, axis=1).astype(np.float32)
 
 
-def compute_features(surface: Surface, kind: str = "xyz", operators=None) -> np.ndarray:
-    """Model input of one of the :data:`FEATURE_KINDS`, (N, C) float32.
+def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_dir=None) -> np.ndarray:
+    """Model input of feature kind ``kind``, (N, C) float32: its :data:`FEATURE_PARTS` side by side.
 
-    ``"xyz"``: :func:`default_features`; ``"normals"``: unit vertex normals; ``"xyz+normals"``: both
-    (6 channels); ``"ones"``: a constant 1 per vertex (the model then sees geometry only through the patch
-    operators' frames and sampling, useful as an ablation); ``"shape"``: :func:`shape_descriptors` at every
-    patch scale, then the boundary distance in units of the first scale's r0 (rotation- and
-    translation-invariant; needs ``operators``); ``"shape+curvature"``: those, then
-    :func:`curvature_descriptors` at the patch scales' radii.
+    - ``"xyz"``: :func:`default_features` (3);
+    - ``"normals"``: unit vertex normals (3);
+    - ``"ones"``: a constant 1 per vertex (the model then sees geometry only through the patch operators'
+      frames and sampling, useful as an ablation);
+    - ``"shape"``: :func:`shape_descriptors` at every patch scale, then the boundary distance in units of the
+      first scale's r0 (rotation- and translation-invariant);
+    - ``"curvature"``: :func:`curvature_descriptors` at the patch scales' radii;
+    - ``"membrane"``: log of :func:`~zernet.membrane.membrane_stress` at each of
+      :data:`MEMBRANE_PRESTRESSES` (meshes only; cached in ``cache_dir`` when given).
+
+    ``operators``: the surface's patch operators, one per scale (needed by "shape" and "curvature").
     """
-    if kind == "xyz":
-        return default_features(surface)
-    if kind == "normals":
-        return surface.vertex_normals().astype(np.float32)
-    if kind == "xyz+normals":
-        return np.concatenate([default_features(surface), surface.vertex_normals().astype(np.float32)], axis=1)
-    if kind == "ones":
-        return np.ones((surface.n_vertices, 1), dtype=np.float32)
-    if kind in ("shape", "shape+curvature"):
-        if not operators:
-            raise DatasetError(f"feature kind {kind!r} needs the surface's patch operators")
-        parts = [shape_descriptors(surface, op, boundary=False) for op in operators]
-        parts.append(shape_descriptors(surface, operators[0])[:, -1:])
-        if kind == "shape+curvature":
-            parts.append(curvature_descriptors(surface, [float(op.config.r0) for op in operators]))
-        return np.concatenate(parts, axis=1)
-    raise DatasetError(f"unknown feature kind {kind!r}; choose one of {sorted(FEATURE_KINDS)}")
+    columns = []
+    for part in feature_parts(kind):
+        if part in ("shape", "curvature") and not operators:
+            raise DatasetError(f"feature part {part!r} of {kind!r} needs the surface's patch operators")
+        if part == "xyz":
+            columns.append(default_features(surface))
+        elif part == "normals":
+            columns.append(surface.vertex_normals().astype(np.float32))
+        elif part == "ones":
+            columns.append(np.ones((surface.n_vertices, 1), dtype=np.float32))
+        elif part == "shape":
+            columns += [shape_descriptors(surface, op, boundary=False) for op in operators]
+            columns.append(shape_descriptors(surface, operators[0])[:, -1:])
+        elif part == "curvature":
+            columns.append(curvature_descriptors(surface, [float(op.config.r0) for op in operators]))
+        elif part == "membrane":
+            columns.append(membrane_descriptors(surface, cache_dir))
+    return np.concatenate(columns, axis=1).astype(np.float32)
+
+
+def membrane_descriptors(surface: Surface, cache_dir=None) -> np.ndarray:
+    """log of the membrane stress under unit inner pressure at each :data:`MEMBRANE_PRESTRESSES`, (N, 3).
+
+    Why: for stress targets this solves the wall's equilibrium (see :mod:`zernet.membrane`) instead of asking
+    the network to learn it from a few shapes. The log makes a scaled stress a shifted feature. A point
+    cloud has no wall: DatasetError naming the shape.
+    """
+    if surface.is_point_cloud:
+        raise DatasetError(f"{surface.name}: feature part 'membrane' needs a triangle mesh, got a point cloud")
+    stresses = np.stack([membrane_stress(surface, tau, cache_dir=cache_dir) for tau in MEMBRANE_PRESTRESSES], 1)
+    # A vertex whose triangles all lie on the clamped rim carries no stress: keep the log finite there.
+    floor = 1e-3 * max(float(stresses.mean()), np.finfo(float).tiny)
+    return np.log(stresses + floor).astype(np.float32)
 
 
 def carve_validation(train: Sequence[int], n_val: int | float, seed: int) -> tuple[list[int], list[int]]:
@@ -242,7 +284,7 @@ class ShapeDataset(Sequence[ShapeRecord]):
         splits: {"train": [...], "val": [...], "test": [...]} index lists (more keys are allowed).
         patch_configs: the :class:`~zernet.patches.PatchConfig` list (one per scale) of every record.
         in_channels: number of input feature channels (C_in).
-        feature_kind: which :data:`FEATURE_KINDS` the features are.
+        feature_kind: the feature kind of the records (see :func:`compute_features`).
         target_area: the area every surface was normalised to.
         failures: {name: reason} of shapes that could not be preprocessed and are left out.
         info: free-form description (source folder, label base, ...), JSON-serialisable.

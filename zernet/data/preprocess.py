@@ -39,7 +39,6 @@ import numpy as np
 import torch
 
 from zernet.data.base import (
-    FEATURE_KINDS,
     DatasetError,
     ShapeDataset,
     ShapeRecord,
@@ -47,6 +46,7 @@ from zernet.data.base import (
     carve_validation,
     compute_features,
     feature_channels,
+    feature_parts,
 )
 from zernet.io_utils import atomic_write_bytes
 from zernet.nn.geometry import Geometry
@@ -427,7 +427,7 @@ def _make_record(surface: Surface, target, scale: float, name: str, configs, cac
     return ShapeRecord(
         name=name,
         surface=surface,
-        features=compute_features(surface, feature_kind, operators),
+        features=compute_features(surface, feature_kind, operators, cache_dir=cache_dir),
         target=_as_target(target, task, surface.n_vertices, surface.name),
         geometry=geometry,
         scale=scale,
@@ -509,15 +509,14 @@ def build_dataset(
         split_names: {"train": names, "test": names, ...}; a "val" split is carved from "train"
             (``n_val`` shapes or a fraction, seeded by ``seed``) unless split_names already has one.
             Shapes that failed are dropped from every split.
-        feature_kind: one of :data:`~zernet.data.base.FEATURE_KINDS`.
+        feature_kind: parts of :data:`~zernet.data.base.FEATURE_PARTS` joined by '+'.
         workers, repair, progress: see :func:`preprocess_shapes`.
         strict: raise :class:`PreprocessError` if any shape fails (otherwise only if all fail).
         in_memory: hold every record in memory; None decides by size (:data:`IN_MEMORY_VERTEX_LIMIT`).
         info: extra description stored on the data set.
         correspondence: mark the data set as template correspondence (class = vertex index).
     """
-    if feature_kind not in FEATURE_KINDS:
-        raise DatasetError(f"unknown feature kind {feature_kind!r}; choose one of {sorted(FEATURE_KINDS)}")
+    feature_parts(feature_kind)  # an unknown kind fails here, before any preprocessing
     if not sources:
         raise DatasetError("no shapes to preprocess")
     configs = as_patch_configs(patch_configs)
