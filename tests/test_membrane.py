@@ -57,6 +57,19 @@ def test_invariant_under_rigid_motion_reindexing_and_orientation_and_linear_in_s
     np.testing.assert_allclose(membrane_stress(larger, 0.02), 3.0 * reference, rtol=1e-6)
 
 
+def test_unused_vertex_and_a_second_closed_part_change_nothing():
+    sphere = _sphere(subdivisions=2)
+    cylinder = open_cylinder(radius=1.0, height=4.0, around=24, along=13)
+    alone = membrane_stress(cylinder, 0.02)
+    # One surface of an open cylinder, a closed sphere far away and a stray vertex no face uses.
+    vertices = np.concatenate([cylinder.vertices, sphere.vertices + [10.0, 0.0, 0.0], [[0.0, 0.0, 50.0]]])
+    faces = np.concatenate([cylinder.faces, sphere.faces + cylinder.n_vertices])
+    both = membrane_stress(Surface(vertices, faces, name="parts"), 0.02)
+    np.testing.assert_allclose(both[: cylinder.n_vertices], alone, rtol=1e-6)
+    np.testing.assert_allclose(both[cylinder.n_vertices:-1], membrane_stress(sphere, 0.02), rtol=1e-6)
+    assert both[-1] == 0.0
+
+
 def test_errors_name_the_surface():
     flat = grid(6)
     with pytest.raises(SurfaceError, match="grid.*singular.*prestress"):

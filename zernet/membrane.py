@@ -9,8 +9,8 @@ held. Solving the membrane's equilibrium on the surface captures both, and costs
   vertex are unknown.
 - A unit pressure pushes each triangle along its normal (``A/3 · n`` per corner, so the normals' side is the
   inside being pressurised: outward normals mean inner pressure).
-- Boundary vertices (cuts of the vessel) are clamped. A closed surface is held by nothing: the pressure's net
-  force is zero, and a vanishing shift fixes the free translation.
+- Boundary vertices (cuts of the vessel) are clamped, and so are vertices no face uses. A closed surface is
+  held by nothing: the pressure's net force is zero, and a vanishing shift fixes the free translation.
 - A pure membrane has no stiffness against bending: flat and saddle-shaped regions can fold at no cost, and the
   linear system is then (nearly) singular. A uniform *prestress* ``τ`` (in units of the plane-stress modulus
   ``E / (1 - ν²)``) adds the geometric stiffness of a pre-tensioned film, ``τ ∫ ∇u · ∇v`` (the cotangent
@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse
+import scipy.sparse.csgraph
 import scipy.sparse.linalg
 
 from zernet.io_utils import atomic_write_bytes
@@ -133,13 +134,21 @@ def _solve(surface: Surface, prestress: float, nu: float) -> np.ndarray:
     for corner in range(3):
         np.add.at(load, faces[:, corner], (area / 3)[:, None] * normal)
 
+    # Clamped: the cut boundaries, and vertices no face uses (nothing holds or loads them).
+    unused = np.ones(n, dtype=bool)
+    unused[faces.ravel()] = False
+    clamped = np.flatnonzero(surface.boundary_vertices() | unused)
     free = np.ones(3 * n, dtype=bool)
-    clamped = np.flatnonzero(surface.boundary_vertices())
     free[(3 * clamped[:, None] + np.arange(3)).ravel()] = False
-    system = stiffness[free][:, free].tocsc()
-    if clamped.size == 0:
-        # Closed surface: translations are free and the load has no net force; pin them with a tiny shift.
-        system = system + scipy.sparse.identity(system.shape[0], format="csc") * (1e-9 * system.diagonal().mean())
+    # A closed part (no clamped vertex) is free to translate and its load has no net force: a vanishing
+    # shift (1e-9 of the stiffness) on its unknowns pins the translation without changing the stresses.
+    edges = surface.edges()
+    graph = scipy.sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, part = scipy.sparse.csgraph.connected_components(graph, directed=False)
+    held_parts = np.unique(part[clamped])
+    unheld = np.repeat(~np.isin(part, held_parts), 3)
+    shift = scipy.sparse.diags(unheld * (1e-9 * stiffness.diagonal().mean()))
+    system = (stiffness + shift)[free][:, free].tocsc()
     with warnings.catch_warnings():
         warnings.simplefilter("error", scipy.sparse.linalg.MatrixRankWarning)
         try:
