@@ -12,7 +12,7 @@ import scipy.io
 import trimesh
 
 from zernet.data import DatasetError, PreprocessError, ShapeSource, build_dataset, load_dataset
-from zernet.data.base import carve_validation, default_features
+from zernet.data.base import MEMBRANE_PRESTRESSES, carve_validation, default_features, feature_channels
 from zernet.data.faust import load_faust
 from zernet.data.regression import leave_one_out_splits, load_aneurysm, load_regression
 from zernet.data.segmentation import face_to_vertex_labels, load_segmentation
@@ -239,6 +239,27 @@ def test_aneurysm_mat_layout_area_exponent_and_leave_one_out(tmp_path):
     assert [dataset.names[i] for i in fold["test"]] == ["TP_Ia1I"] and len(fold["val"]) == 1
     assert sorted(fold["train"] + fold["val"] + fold["test"]) == [0, 1, 2]
     assert dataset.with_splits(fold).split("test").names == ["TP_Ia1I"]
+
+
+def test_aneurysm_recipe_features_through_the_pipeline(tmp_path):
+    """The aneurysm recipe's input: shape + curvature + membrane, built from the files and cached."""
+    for i in range(2):
+        vertices, faces = _sphere(i, noise=0.0)
+        vertices = vertices * np.sqrt(100.0 / Surface(vertices, faces).area)
+        scipy.io.savemat(tmp_path / f"TP_Ia{i}I.mat", {"X": vertices, "F": (faces + 1).astype(np.uint16),
+                                                      "J2m": np.full((len(vertices), 1), 0.1)})
+    dataset = load_aneurysm(tmp_path, patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0, progress=False,
+                            feature_kind="shape+curvature+membrane", test=["TP_Ia1I"], n_val=0)
+    record = dataset[0]
+    assert record.features.shape == (record.n_vertices, dataset.in_channels)
+    assert dataset.in_channels == feature_channels("shape+curvature+membrane", [c.n_max for c in CONFIGS])
+    # Closed spheres of area 100: membrane stress R/2/(1 + τ/(1 + ν)) with R = sqrt(100 / 4π).
+    radius = np.sqrt(100.0 / (4 * np.pi))
+    expected = np.log(radius / 2 / (1 + np.array(MEMBRANE_PRESTRESSES) / 1.45))
+    np.testing.assert_allclose(np.median(record.features[:, -3:], axis=0), expected, atol=0.02)
+    dataset[1]
+    # Both files hold the same sphere: the cache is keyed by geometry, one entry per prestress.
+    assert len(list((tmp_path / "c" / "membrane").glob("*.npy"))) == len(MEMBRANE_PRESTRESSES)
 
 
 def test_generic_regression_and_value_count_mismatch(tmp_path):
