@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from zernet.surface import Surface
 from zernet.train import (
     ConfigError,
     _predict_record,
@@ -322,6 +323,9 @@ def test_log_target_transform_trains_and_predicts_positive_values(tmp_path, cach
     surface, _, curvature = make_creature(123, n_vertices=200)
     prediction = predict(tmp_path / "run", surface)
     assert prediction.shape == (200,) and np.all(prediction > 0)
+    # Predictions come in the surface's own units: curvature is 1/length, so twice the size, half the value.
+    larger = Surface(surface.vertices * 2.0, surface.faces, name="larger")
+    np.testing.assert_allclose(predict(tmp_path / "run", larger), prediction / 2.0, rtol=1e-4)
 
 
 def test_log_target_transform_rejects_non_positive_targets(cache_dir):

@@ -887,6 +887,7 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
         "area": None if dataset.target_area is None else float(dataset.target_area),
         "feature_kind": str(dataset.feature_kind),
         "class_names": _plain(dataset.info.get("class_names")),
+        "target_exponent": float(dataset.info.get("target_exponent") or 0.0),
     }
     first = dataset[train_idx[0]]
     out_channels = int(dataset.num_classes) if task == "classification" else 1
@@ -1378,8 +1379,9 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
         probabilities: classification only — also return the (N, C) softmax probabilities.
 
     Returns:
-        (N,) int64 class indices or (N,) float32 values (regression, in the units of the training targets,
-        i.e. area-normalised); with ``probabilities=True`` a tuple (prediction, probabilities).
+        (N,) int64 class indices or (N,) float32 values (regression: in the surface's own units — the model
+        predicts at the training area, and a target of area exponent e is divided by ``scale ** (2 e)``);
+        with ``probabilities=True`` a tuple (prediction, probabilities).
     """
     from zernet.data import prepare_record
     from zernet.patches import PatchConfig
@@ -1401,7 +1403,11 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
     model = _build_model(checkpoint["model_spec"]).to(device)
     model.load_state_dict(checkpoint["model"])
     pred, probs = _predict_record([(model, checkpoint)], record, device)
-    pred = pred.astype(np.int64) if checkpoint["task"] == "classification" else pred.astype(np.float32)
+    if checkpoint["task"] == "classification":
+        pred = pred.astype(np.int64)
+    else:
+        exponent = float(spec.get("target_exponent", 0.0))  # checkpoints before this key: area-normalised
+        pred = (pred / record.scale ** (2 * exponent)).astype(np.float32)
     if probabilities:
         if probs is None:
             raise ValueError("probabilities exist only for classification models")

@@ -287,7 +287,9 @@ class ShapeDataset(Sequence[ShapeRecord]):
         feature_kind: the feature kind of the records (see :func:`compute_features`).
         target_area: the area every surface was normalised to.
         failures: {name: reason} of shapes that could not be preprocessed and are left out.
-        info: free-form description (source folder, label base, ...), JSON-serialisable.
+        info: free-form description (source folder, label base, ...), JSON-serialisable. Regression data
+            sets say their target's area exponent as ``info["target_exponent"]``, so that predictions on a
+            new surface are returned in its own units.
         correspondence: True when the class of a vertex is a vertex index of a shared template (FAUST):
             evaluation then measures geodesic errors on the test shape.
 

@@ -167,7 +167,8 @@ def load_aneurysm(
         sources, patch_configs if patch_configs else aneurysm_patch_configs(), cache_dir, area,
         task="regression", num_classes=None, split_names=_splits_for(names, test, root), n_val=n_val, seed=seed,
         feature_kind=feature_kind, workers=workers, strict=strict, progress=progress,
-        info={"kind": "aneurysm", "root": str(root), "field": field, "paper_cases": list(PAPER_CASES)},
+        info={"kind": "aneurysm", "root": str(root), "field": field, "paper_cases": list(PAPER_CASES),
+              "target_exponent": 0.5},
     )
 
 

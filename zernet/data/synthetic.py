@@ -213,6 +213,7 @@ def make_synthetic_dataset(
     if not 0 < test_fraction < 1:
         raise DatasetError(f"test_fraction must be in (0, 1), got {test_fraction}")
     configs = patch_configs if patch_configs else demo_patch_configs()
+    target_exponent = -0.5 if task == "regression" else 0.0  # curvature is 1/length
     sources = []
     for i in range(n_shapes):
         shape_seed = seed * 100003 + i
@@ -222,7 +223,7 @@ def make_synthetic_dataset(
             name=f"creature_{i:03d}",
             load=partial(_load_creature, shape_seed, n_vertices, rotate, task),
             key=key,
-            target_exponent=-0.5 if task == "regression" else 0.0,
+            target_exponent=target_exponent,
         ))
     n_test = min(n_shapes - 1, max(1, int(round(test_fraction * n_shapes))))
     names = [s.name for s in sources]
@@ -233,5 +234,5 @@ def make_synthetic_dataset(
         split_names={"train": names[: n_shapes - n_test], "test": names[n_shapes - n_test:]},
         n_val=n_val, seed=seed, feature_kind=feature_kind, workers=workers, progress=progress,
         info={"kind": "synthetic", "task": task, "class_names": list(PART_NAMES) if task == "segmentation" else None,
-              "n_vertices": n_vertices, "rotate": rotate},
+              "n_vertices": n_vertices, "rotate": rotate, "target_exponent": target_exponent},
     )
