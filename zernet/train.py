@@ -887,7 +887,6 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
         "area": None if dataset.target_area is None else float(dataset.target_area),
         "feature_kind": str(dataset.feature_kind),
         "class_names": _plain(dataset.info.get("class_names")),
-        "target_exponent": float(dataset.info.get("target_exponent") or 0.0),
     }
     first = dataset[train_idx[0]]
     out_channels = int(dataset.num_classes) if task == "classification" else 1
@@ -1022,6 +1021,8 @@ def _train(config: dict, run_dir: Path, checkpoint: dict | None, progress: bool,
             "num_classes": None if dataset.num_classes is None else int(dataset.num_classes),
             "correspondence": _is_correspondence(dataset, config),
             "target_stats": target_stats,
+            # Area exponent of the regression target: predict() returns values in a new surface's own units.
+            "target_exponent": float(dataset.info.get("target_exponent") or 0.0),
             "feature_stats": feature_stats,
             "preprocess": preprocess_spec,
             "model": _cpu_state_dict(model),
@@ -1406,7 +1407,7 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
     if checkpoint["task"] == "classification":
         pred = pred.astype(np.int64)
     else:
-        exponent = float(spec.get("target_exponent", 0.0))  # checkpoints before this key: area-normalised
+        exponent = float(checkpoint.get("target_exponent", 0.0))  # older checkpoints: area-normalised
         pred = (pred / record.scale ** (2 * exponent)).astype(np.float32)
     if probabilities:
         if probs is None:
