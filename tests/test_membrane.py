@@ -76,6 +76,11 @@ def test_errors_name_the_surface():
         membrane_stress(flat, 0.0)
     with pytest.raises(SurfaceError, match="cloud.*triangle mesh"):
         membrane_stress(Surface(flat.vertices, name="cloud"))
+    midpoint = (flat.vertices[0] + flat.vertices[1]) / 2  # a face through it and its edge has no area
+    degenerate = Surface(np.concatenate([flat.vertices, [midpoint]]),
+                         np.concatenate([flat.faces, [[0, 1, flat.n_vertices]]]), name="sliver")
+    with pytest.raises(SurfaceError, match=f"sliver: face {flat.n_faces} has zero area"):
+        membrane_stress(degenerate, 0.02)
     with pytest.raises(ValueError, match="poisson_ratio"):
         membrane_stress(flat, 0.02, poisson_ratio=0.5)
     # With a prestress the clamped flat plate is well posed: pressure bulges it.

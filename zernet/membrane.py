@@ -96,15 +96,13 @@ def _solve(surface: Surface, prestress: float, nu: float) -> np.ndarray:
 
     vertices, faces = surface.vertices, surface.faces
     n, n_faces = surface.n_vertices, len(faces)
-    corners = vertices[faces]  # (T, 3, 3)
-    edge1, edge2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-    cross = np.cross(edge1, edge2)
-    double_area = np.linalg.norm(cross, axis=1)
-    if np.any(double_area <= 0):
-        bad = int(np.flatnonzero(double_area <= 0)[0])
+    area, normal = surface.face_areas(), surface.face_normals()
+    if np.any(area <= 0):
+        bad = int(np.flatnonzero(area <= 0)[0])
         raise SurfaceError(f"{surface.name}: face {bad} has zero area; run validate_surface(repair=True) first")
-    area = double_area / 2
-    normal = cross / double_area[:, None]
+    double_area = 2 * area
+    corners = vertices[faces]  # (T, 3, 3)
+    edge1 = corners[:, 1] - corners[:, 0]
 
     # Element frame (e1 along the first edge, e2 in plane) and in-plane corner coordinates (x, y).
     e1 = edge1 / np.linalg.norm(edge1, axis=1, keepdims=True)

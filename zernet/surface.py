@@ -320,9 +320,7 @@ class Surface:
     def _cloud_mean_curvature(self) -> np.ndarray:
         points, normals = self.vertices, self.vertex_normals()
         _, neighbours = self._cloud_neighbours()
-        helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-        t1 = _unit_rows(np.cross(normals, helper))
-        t2 = np.cross(normals, t1)
+        t1, t2 = _tangent_basis(normals)
         offsets = points[neighbours] - points[:, None, :]  # (N, k, 3)
         u = np.einsum("nki,ni->nk", offsets, t1)
         v = np.einsum("nki,ni->nk", offsets, t2)
@@ -378,11 +376,7 @@ class Surface:
     def _cloud_vertex_areas(self) -> np.ndarray:
         points = self.vertices
         distance, neighbours = self._cloud_neighbours()
-        normals = self.vertex_normals()
-        # Orthonormal tangent basis (t1, t2) per point.
-        helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-        t1 = _unit_rows(np.cross(normals, helper))
-        t2 = np.cross(normals, t1)
+        t1, t2 = _tangent_basis(self.vertex_normals())
         offsets = points[neighbours] - points[:, None, :]  # (N, k, 3)
         q = np.stack([np.einsum("nki,ni->nk", offsets, t1), np.einsum("nki,ni->nk", offsets, t2)], axis=-1)
         # Voronoi cell of the origin among the projected neighbours q_j: {x : x·q_j <= |q_j|²/2}. Along a
@@ -400,6 +394,13 @@ class Surface:
             radius = np.minimum(bound.min(axis=2), cap[chunk, None])
             areas[chunk] = 0.5 * (radius**2).sum(axis=1) * (2 * np.pi / _VORONOI_DIRECTIONS)
         return areas
+
+
+def _tangent_basis(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An orthonormal tangent basis (t1, t2) per unit normal, each (N, 3), with (t1, t2, n) right-handed."""
+    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = _unit_rows(np.cross(normals, helper))
+    return t1, np.cross(normals, t1)
 
 
 def _as_float_array(values, what: str, name: str) -> np.ndarray:

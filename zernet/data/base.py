@@ -192,11 +192,11 @@ def curvature_descriptors(surface: Surface, radii: Sequence[float]) -> np.ndarra
     curvature = surface.mean_curvature()
     areas = surface.vertex_areas()
     tree = cKDTree(surface.vertices)
+    n = surface.n_vertices
     columns = [curvature * radii[0]]
     for radius in radii:
-        # Sparse ball-membership matrix B (N, N): each row averages over one ball.
+        # Sparse ball-membership matrix B (N, N), area-weighted: each row averages over one ball.
         pairs = tree.query_pairs(radius, output_type="ndarray")
-        n = surface.n_vertices
         rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(n)])
         cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(n)])
         ball = scipy.sparse.csr_matrix((areas[cols], (rows, cols)), shape=(n, n))
