@@ -10,6 +10,7 @@ import pytest
 import scipy.io
 import trimesh
 
+from test_polar import cylinder_mesh
 from zernet.surface import (
     Surface,
     SurfaceError,
@@ -477,14 +478,8 @@ def test_no_warning_for_clean_meshes():
 
 # ---------------------------------------------------------------------------------------------- curvature
 def open_cylinder(radius=1.5, height=6.0, around=64, along=25) -> Surface:
-    phi = 2 * np.pi * np.arange(around) / around
-    z = np.linspace(-height / 2, height / 2, along)
-    P, Z = np.meshgrid(phi, z)
-    vertices = np.stack([radius * np.cos(P).ravel(), radius * np.sin(P).ravel(), Z.ravel()], axis=1)
-    index = np.arange(around * along).reshape(along, around)
-    nxt = np.roll(index, -1, axis=1)
-    a, b, c, d = index[:-1].ravel(), nxt[:-1].ravel(), index[1:].ravel(), nxt[1:].ravel()
-    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    """test_polar's open cylinder, oriented with outward normals."""
+    vertices, faces = cylinder_mesh(radius, height, around, along)
     surface = Surface(vertices, faces, name="cylinder")
     radial = vertices * [1.0, 1.0, 0.0]
     if np.einsum("ij,ij->i", surface.vertex_normals(), radial).mean() < 0:

@@ -186,7 +186,7 @@ class Surface:
         normals, ``1/(2R)`` on a cylinder, 0 on a plane; negative where the surface bends away from its normal.
 
         - Mesh: ``H_i = (L x)_i · n_i / (2 A_i)``, L the cotangent Laplacian (positive semi-definite) and A_i
-          the vertex area, both from potpourri3d, n_i from :meth:`vertex_normals`. On a boundary vertex this
+          the vertex area (:meth:`vertex_areas`), n_i from :meth:`vertex_normals`. On a boundary vertex this
           is a one-sided estimate (the surface does not continue past the cut).
         - Point cloud: a quadric ``h = a u² + b uv + c v² + d u + e v`` fitted by least squares to the 16
           nearest neighbours in the tangent frame of :meth:`vertex_normals`; ``H = -(a + c)``.
@@ -313,7 +313,7 @@ class Surface:
         import potpourri3d as pp3d  # imported here: only curvature needs it, and it is slow to import
 
         laplacian = pp3d.cotan_laplacian(self.vertices, self.faces)
-        areas = pp3d.vertex_areas(self.vertices, self.faces)
+        areas = self.vertex_areas()
         mean_normal = np.asarray(laplacian @ self.vertices) / (2.0 * np.maximum(areas, 1e-300)[:, None])
         return np.einsum("ij,ij->i", mean_normal, self.vertex_normals())
 
