@@ -17,7 +17,7 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
     "$PY" -m pip install --quiet --upgrade pip
     # The CPU build of torch first: a bare `torch` requirement would pull a multi-GB CUDA build.
     "$PY" -c "import torch" 2>/dev/null || "$PY" -m pip install --quiet "torch==2.13.0"
-    "$PY" -m pip install --quiet -e ".[dev]"
+    "$PY" -m pip install --quiet -e ".[dev,bodies]"
     echo "$WANT" > "$STAMP"
 fi
 cmd="${1:-demo}"
