@@ -111,10 +111,10 @@ class DirectionalZerNet(SurfaceModel):
         """``geometry.directional[0]``, checked to be of this model's order (``ValueError`` naming the fix)."""
         have = getattr(geometry, "directional_order", None)
         if have != self.order:
-            built = "without directional operators" if have is None else f"with directional operators of order {have}"
+            has = "none" if have is None else f"order {have}"
             raise ValueError(
-                f"{type(self).__name__} needs directional operators of order L={self.order} but the geometry was "
-                f"built {built}: call geometry.with_directional({self.order}) (zernet.operators.Geometry."
-                f"with_directional) when preparing the data"
+                f"{type(self).__name__}: the geometry was built without directional operators of order "
+                f"L={self.order} (it has {has}): call geometry.with_directional({self.order}) "
+                f"(zernet.operators.Geometry.with_directional) when preparing the data"
             )
         return geometry.directional[0]
