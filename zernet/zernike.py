@@ -1,6 +1,6 @@
 """Zernike polynomials on the unit disk: basis, index helpers, rotation, harmonic form.
 
-Conventions (see ``../shared/GUIDE.md`` section 1):
+Conventions:
 
 * Single index, ANSI/OSA order: ``j = (n (n + 2) + m) / 2`` for ``n = 0, 1, ...`` and
   ``m = -n, -n + 2, ..., n``.  ``k = (n_max + 1)(n_max + 2) / 2`` bases; ``k = 21`` is ``n_max = 5``.

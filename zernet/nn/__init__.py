@@ -1,16 +1,22 @@
-"""Neural-network layers and models on surfaces.
+"""Neural-network layers on surfaces, and the models built from them.
 
-- :class:`ZernikeConv` (``conv.py``): Zernike convolution through the harmonic form, angular pooling.
-- ``pooling.py``: pooling modes and the harmonic-form helpers (``trig_basis``, ``evaluate_harmonics``,
-  ``discrete_max``, ``continuous_max``); ``conv.py``: ``harmonic_plan``, ``harmonic_contraction``.
-- :class:`Geometry` (``geometry.py``): what a model needs about one surface or a batch of surfaces.
-- ``models.py``: ``build_model``, ``register_model`` and the ZerNet models.
+- ``conv.py``: :class:`ZernikeConv`, the Zernike convolution through the harmonic form (``harmonic_plan``,
+  ``harmonic_contraction``, ``float32_forward``).
+- ``pooling.py``: angular pooling modes and the harmonic-form helpers (``trig_basis``,
+  ``evaluate_harmonics``, ``discrete_max``, ``continuous_max``).
+- ``directional.py``: the direction-preserving layers (``DirectionalZernikeConv``, ``DirectionalLifting``,
+  ``DirectionalPooling``, ``DirectionalReLU``).
 - ``reference.py``: the rotated-kernel formulation (test reference) and ``MatrixOperator``.
+- ``models/``: ``build_model``, ``register_model`` and the model families.
+
+``Geometry`` lives in :mod:`zernet.operators`; it is re-exported here for code written before it moved.
 """
 
-from .conv import HarmonicPlan, ZernikeConv, harmonic_contraction, harmonic_plan
-from .geometry import Geometry
-from .models import MODEL_REGISTRY, available_models, build_model, register_model
+from zernet.operators import Geometry
+
+from .conv import HarmonicPlan, ZernikeConv, float32_forward, harmonic_contraction, harmonic_plan
+from .directional import DirectionalLifting, DirectionalPooling, DirectionalReLU, DirectionalZernikeConv
+from .models import MODEL_REGISTRY, available_models, build_model, directional_order, register_model
 from .pooling import (
     POOLING_MODES,
     angular_pool,
@@ -28,10 +34,16 @@ __all__ = [
     "HarmonicPlan",
     "harmonic_plan",
     "harmonic_contraction",
+    "float32_forward",
+    "DirectionalZernikeConv",
+    "DirectionalLifting",
+    "DirectionalPooling",
+    "DirectionalReLU",
     "Geometry",
     "build_model",
     "register_model",
     "available_models",
+    "directional_order",
     "MODEL_REGISTRY",
     "POOLING_MODES",
     "trig_basis",

@@ -306,7 +306,7 @@ class ZernikeConv(nn.Module):
 
     Shapes:
         - input: ``x`` ``(N, C_in)``; ``operator`` anything with ``apply(x) -> (N, k, C_in)`` and ``.k``
-          (a :class:`zernet.patches.PatchOperator`).
+          (a :class:`zernet.operators.PatchOperator`).
         - output: ``(N, C_out)``, or ``(N, s, C_out)`` with ``pooling="none"`` (angle ``a`` is the kernel
           turned by ``2π a / s``).
 

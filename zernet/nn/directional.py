@@ -1,34 +1,12 @@
-r"""Direction-preserving (gauge-equivariant) Zernike convolution (paper section 4.4, GUIDE section 2).
+r"""Direction-preserving (gauge-equivariant) Zernike convolution layers (paper section 4.4).
 
 A *directional channel* at vertex ``q`` is a real function on the circle ``h_q(ψ)``, the angle ``ψ``
-measured in ``q``'s tangent plane from ``q``'s reference direction ``e1_q`` towards ``e2_q``. It is
-stored by its real Fourier coefficients up to order ``L``, in the layout ``[a_0, a_1, b_1, ..., a_L, b_L]``
-along a *direction axis* of length ``2L + 1``:
-
-.. math::
-    h_q(ψ) = a_0 + \sum_{\ell=1}^{L} a_\ell \cos \ell ψ + b_\ell \sin \ell ψ .
-
-This is the harmonic layout of :mod:`zernet.nn.pooling` (there along the first axis, here along axis 1),
-whose :func:`~zernet.nn.pooling.continuous_max` and :func:`~zernet.nn.pooling.discrete_max` pool it.
-:func:`fourier_to_samples` / :func:`samples_to_fourier` convert to and from ``s`` samples at
-``ψ_a = 2π a / s``; :func:`rotate_fourier` gives the coefficients of ``h(ψ + δ)`` (the same convention as
-:func:`zernet.zernike.rotate_coefficients`: each ``(a_ℓ, b_ℓ)`` turns by ``[[cos ℓδ, sin ℓδ], [-sin ℓδ,
-cos ℓδ]]``).
-
-**Transport.** ``γ_qp`` (:func:`zernet.polar.transport_angles`) is the angle, in ``p``'s frame, of ``q``'s
-reference direction after the minimal rotation taking ``n_q`` onto ``n_p``: a direction at angle ``ψ`` in
-``q``'s frame has angle ``ψ + γ_qp`` in ``p``'s. So in ``p``'s frame the channel of ``q`` reads
-``h_q(ψ - γ_qp)``, complex coefficient ``ĥ_q(ℓ) e^{-iℓγ_qp}``; in the real layout
-
-.. math::
-    (a_\ell, b_\ell) \mapsto (a_\ell \cos \ell γ_{qp} - b_\ell \sin \ell γ_{qp},\;
-                              a_\ell \sin \ell γ_{qp} + b_\ell \cos \ell γ_{qp}).
-
-**Fit.** With ``A`` the scalar patch operator (``PatchOperator.matrix``, row ``p k + j``, column ``q``), the
-Zernike coefficients of the transported channel in ``p``'s patch are, per order ``ℓ``,
-``α_p(j, ℓ) = Σ_q A[(p, j), q] ĥ_q(ℓ) e^{-iℓγ_qp}``: with ``C_ℓ = A ⊙ cos ℓγ`` and ``S_ℓ = A ⊙ sin ℓγ``,
-``α_a = C_ℓ a - S_ℓ b`` and ``α_b = S_ℓ a + C_ℓ b``. :class:`DirectionalOperator` holds, per order, ``C_ℓ`` and
-``S_ℓ`` as one real sparse matrix, built once per surface and cached on the patch operator.
+measured in ``q``'s tangent plane from ``q``'s reference direction ``e1_q`` towards ``e2_q``, stored by its
+real Fourier coefficients up to order ``L`` along axis 1 (layout and helpers in :mod:`zernet.fourier`).
+The channels of every neighbour, transported into ``p``'s frame and fitted with Zernike polynomials, are
+``α_p[j, r]`` = :meth:`zernet.operators.DirectionalOperator.apply` (transport and fit explained in
+:mod:`zernet.operators.directional`); that operator is built once per surface when the data are prepared
+and handed to the layers, which never build it themselves.
 
 **Convolution.** The local field at ``p`` is ``F_p(r, θ; ψ) = Σ_{j, r} α_p[j, r] Z_j(r, θ) T_r(ψ)`` with
 ``T = (1, cos ψ, sin ψ, ..., cos Lψ, sin Lψ)``; a kernel is ``g(r, θ; ψ) = Σ_{j, r} G[j, r] Z_j T_r``.
@@ -41,7 +19,7 @@ disk and the mean over the circle,
            = \sum_{j, r, j', r'} α_p[j, r]\, w_r\, R(-φ)_{j j'}\, Q(-φ)_{r r'}\, G[j', r'],
 
 ``R`` the Zernike rotation (:func:`zernet.zernike.rotation_matrix`), ``Q`` its Fourier analogue
-(:func:`fourier_rotation_matrix`) and ``w = (1, 1/2, ..., 1/2)`` the mean of ``T_r^2``. ``o_p`` is a
+(:func:`zernet.fourier.fourier_rotation_matrix`) and ``w = (1, 1/2, ..., 1/2)`` the mean of ``T_r^2``. ``o_p`` is a
 trigonometric polynomial in ``φ`` of degree ``<= n_max + L_in``; its Fourier coefficients up to
 ``L_out`` (or its values at ``s`` angles) are an exact, fixed linear function of ``G``. The layer
 precomputes that coupling once (float64, by an exact DFT) and contracts in one dense matmul.
@@ -61,304 +39,32 @@ Relation to :class:`zernet.nn.conv.ZernikeConv`, which evaluates ``Σ F · Rot(�
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import numpy as np
-import scipy.sparse as sp
 import torch
 from torch import Tensor, nn
 
-from zernet.patches import SparseApply, to_torch_csr
-from zernet.polar import transport_angles
-from zernet.zernike import n_max_for, num_bases, rotation_matrix
+from zernet.fourier import (
+    fourier_dim,
+    fourier_rotation_matrix,
+    fourier_to_samples,
+    sample_angles,
+    samples_to_fourier,
+    trig_table,
+)
+from zernet.operators.directional import DirectionalOperator
+from zernet.zernike import num_bases, rotation_matrix
 
 from .conv import float32_forward
-from .models import register_model
 from .pooling import continuous_max, discrete_max
 
 __all__ = [
-    "fourier_dim",
-    "fourier_orders",
-    "fourier_to_samples",
-    "samples_to_fourier",
-    "fourier_rotation_matrix",
-    "rotate_fourier",
-    "DirectionalOperator",
-    "directional_operator",
     "coupling_tensor",
     "DirectionalZernikeConv",
     "DirectionalLifting",
     "DirectionalPooling",
     "DirectionalReLU",
-    "DirectionalZerNet",
 ]
-
-
-# --------------------------------------------------------------------------------------------------
-# Functions on the circle: real Fourier layout [a_0, a_1, b_1, ..., a_L, b_L]
-# --------------------------------------------------------------------------------------------------
-
-
-def fourier_dim(order: int) -> int:
-    """Length ``2 L + 1`` of the direction axis for Fourier order ``L``."""
-    if order < 0:
-        raise ValueError(f"Fourier order must be >= 0, got {order}")
-    return 2 * int(order) + 1
-
-
-def fourier_orders(order: int) -> np.ndarray:
-    """Order ``ℓ`` of every entry of the layout ``[a_0, a_1, b_1, ...]``, shape ``(2L + 1,)``."""
-    return np.concatenate([[0], np.repeat(np.arange(1, order + 1), 2)]).astype(np.int64)
-
-
-def _trig_table(angles: np.ndarray, order: int) -> np.ndarray:
-    """``T[a, r] = T_r(ψ_a)`` for ``T = (1, cos ψ, sin ψ, ..., cos Lψ, sin Lψ)``, shape ``(len, 2L + 1)``."""
-    angles = np.asarray(angles, dtype=np.float64)
-    table = np.empty((angles.shape[0], fourier_dim(order)), dtype=np.float64)
-    table[:, 0] = 1.0
-    for ell in range(1, order + 1):
-        table[:, 2 * ell - 1] = np.cos(ell * angles)
-        table[:, 2 * ell] = np.sin(ell * angles)
-    return table
-
-
-def _sample_angles(s: int) -> np.ndarray:
-    if s < 1:
-        raise ValueError(f"angular resolution s must be >= 1, got {s}")
-    return np.arange(s, dtype=np.float64) * (2.0 * math.pi / s)
-
-
-def _order_of(length: int) -> int:
-    if length < 1 or length % 2 == 0:
-        raise ValueError(f"a direction axis in Fourier layout has odd length 2L+1, got {length}")
-    return (length - 1) // 2
-
-
-def fourier_to_samples(coeffs: Tensor, s: int, dim: int = -2) -> Tensor:
-    """Values ``h(ψ_a)`` at ``ψ_a = 2π a / s`` of circle functions given by Fourier coefficients.
-
-    Args:
-        coeffs: real Fourier coefficients, direction axis (length ``2L + 1``) at ``dim``,
-            e.g. ``(N, 2L + 1, C)``.
-        s: number of equally spaced angles.
-        dim: direction axis.
-
-    Returns:
-        Same shape with the direction axis replaced by ``s`` samples, e.g. ``(N, s, C)``.
-    """
-    order = _order_of(coeffs.shape[dim])
-    table = torch.as_tensor(_trig_table(_sample_angles(s), order), dtype=coeffs.dtype, device=coeffs.device)
-    x = coeffs.movedim(dim, -1)
-    return (x @ table.T).movedim(-1, dim)
-
-
-def samples_to_fourier(samples: Tensor, order: int, dim: int = -2) -> Tensor:
-    """Fourier coefficients up to order ``L`` of ``s`` equally spaced samples (the discrete Fourier transform).
-
-    Exact inverse of :func:`fourier_to_samples` for functions of order ``<= L``; requires ``2L < s``.
-    It commutes with cyclic shifts of the samples: shifting by ``a`` samples equals
-    ``rotate_fourier(·, 2π a / s)``.
-
-    Args:
-        samples: values at ``ψ_a = 2π a / s`` along ``dim``, e.g. ``(N, s, C)``.
-        order: ``L``.
-        dim: direction axis.
-
-    Returns:
-        Same shape with ``s`` replaced by ``2L + 1``, e.g. ``(N, 2L + 1, C)``.
-    """
-    s = samples.shape[dim]
-    if 2 * order >= s:
-        raise ValueError(f"{s} samples determine Fourier orders < s/2 only; got order {order}")
-    table = _trig_table(_sample_angles(s), order)  # (s, 2L+1)
-    weights = np.full(fourier_dim(order), 2.0 / s)
-    weights[0] = 1.0 / s
-    dft = torch.as_tensor(table * weights, dtype=samples.dtype, device=samples.device)  # (s, 2L+1)
-    x = samples.movedim(dim, -1)
-    return (x @ dft).movedim(-1, dim)
-
-
-def fourier_rotation_matrix(delta, order: int):
-    """Matrix ``Q(δ)`` with ``rotate_fourier(c, δ) = Q(δ) @ c``; numpy (float64) or torch like ``delta``.
-
-    Args:
-        delta: angle(s), scalar or shape ``B``.
-        order: ``L``.
-
-    Returns:
-        Shape ``B + (2L + 1, 2L + 1)``.
-    """
-    is_torch = isinstance(delta, torch.Tensor)
-    lib = torch if is_torch else np
-    if not is_torch:
-        delta = np.asarray(delta, dtype=np.float64)
-    d = fourier_dim(order)
-    out = (
-        torch.zeros(delta.shape + (d, d), dtype=delta.dtype, device=delta.device)
-        if is_torch
-        else np.zeros(delta.shape + (d, d))
-    )
-    out[..., 0, 0] = 1.0
-    for ell in range(1, order + 1):
-        c, s = lib.cos(ell * delta), lib.sin(ell * delta)
-        i, k = 2 * ell - 1, 2 * ell
-        out[..., i, i] = c
-        out[..., i, k] = s
-        out[..., k, i] = -s
-        out[..., k, k] = c
-    return out
-
-
-def rotate_fourier(coeffs: Tensor, delta, dim: int = -2) -> Tensor:
-    """Coefficients of ``h(ψ + δ)`` given those of ``h(ψ)``.
-
-    Args:
-        coeffs: Fourier coefficients with the direction axis (``2L + 1``) at ``dim``, e.g. ``(N, 2L + 1, C)``.
-        delta: scalar angle, or a tensor broadcastable against ``coeffs`` with the direction axis removed
-            (e.g. one angle per vertex, shape ``(N, 1)`` for ``(N, 2L + 1, C)``).
-        dim: direction axis.
-
-    Returns:
-        Rotated coefficients, same shape.
-    """
-    order = _order_of(coeffs.shape[dim])
-    x = coeffs.movedim(dim, -1)
-    delta = torch.as_tensor(delta, dtype=x.dtype, device=x.device)
-    q = fourier_rotation_matrix(delta, order)  # delta.shape + (d, d)
-    return (q @ x.unsqueeze(-1)).squeeze(-1).movedim(-1, dim)
-
-
-# --------------------------------------------------------------------------------------------------
-# Transport angles and the transported patch operator
-# --------------------------------------------------------------------------------------------------
-
-
-class DirectionalOperator:
-    r"""Transported Zernike fit of directional channels of Fourier order ``<= L``, for one surface.
-
-    ``apply`` maps per-vertex channels ``h`` (``(N, 2L + 1, C)``, Fourier layout) to the Zernike
-    coefficients of their transports into every vertex's patch, ``α[p, j, r, c]`` (module docstring).
-    Order 0 needs no transport and goes through the scalar operator itself. For each order ``ℓ >= 1``
-    one real sparse matrix ``phases[ℓ - 1]`` of shape ``(2 N k, N)`` interleaves ``C_ℓ = A ⊙ cos ℓγ``
-    (row ``2 (p k + j)``) and ``S_ℓ = A ⊙ sin ℓγ`` (row ``2 (p k + j) + 1``); it is applied to
-    ``[a_ℓ | b_ℓ]`` at once and ``α_a = C_ℓ a - S_ℓ b``, ``α_b = S_ℓ a + C_ℓ b``. Extra storage:
-    ``2 L nnz(A)`` entries.
-
-    Attributes:
-        operator: the scalar patch operator (``apply``, ``k``, ``matrix``, ``frames``).
-        n_vertices: ``N``.
-        k: Zernike bases per patch.
-        n_max: their highest radial degree.
-        order: ``L``.
-        phases: list of ``L`` ``scipy.sparse.csr_matrix`` float64, ``(2 N k, N)``.
-    """
-
-    def __init__(self, operator, phases: Sequence[sp.csr_matrix]) -> None:
-        self.operator = operator
-        self.k = int(operator.k)
-        self.n_vertices = int(operator.matrix.shape[1])
-        self.n_max = n_max_for(self.k)
-        self.order = len(phases)
-        shape = (2 * self.n_vertices * self.k, self.n_vertices)
-        for ell, m in enumerate(phases, start=1):
-            if m.shape != shape:
-                raise ValueError(f"phase matrix of order {ell} must be {shape}, got {m.shape}")
-        self.phases = [m.tocsr() for m in phases]
-        self._torch: dict = {}
-
-    @classmethod
-    def from_patch_operator(cls, operator, order: int) -> DirectionalOperator:
-        """Build from a :class:`~zernet.patches.PatchOperator` (its ``matrix``, ``k`` and ``frames``)."""
-        fourier_dim(order)
-        a = operator.matrix.tocsr()
-        k = int(operator.k)
-        n = int(a.shape[1])
-        if order == 0:
-            return cls(operator, [])
-        frames = getattr(operator, "frames", None)
-        if frames is None:
-            raise ValueError("directional channels of order >= 1 need the operator's tangent frames (operator.frames)")
-        frames = np.asarray(frames, dtype=np.float64)
-        a.sort_indices()
-        rows = np.repeat(np.arange(a.shape[0], dtype=np.int64), np.diff(a.indptr))
-        cols = a.indices.astype(np.int64)
-        centers = rows // k
-        pairs, inverse = np.unique(centers * n + cols, return_inverse=True)
-        gamma = transport_angles(frames, pairs // n, pairs % n)
-        # Interleave C_ℓ and S_ℓ rows: same sparsity as A, twice the rows.
-        indptr = np.zeros(2 * a.shape[0] + 1, dtype=np.int64)
-        counts = np.diff(a.indptr)
-        indptr[1::2] = counts
-        indptr[2::2] = counts
-        indptr = np.cumsum(indptr)
-        row_starts = a.indptr[:-1]
-        # position of every entry of A inside the interleaved arrays (cos copy; the sin copy follows its row)
-        offset = np.repeat(indptr[0:-1:2] - row_starts, counts) + np.arange(a.nnz)
-        indices = np.empty(2 * a.nnz, dtype=a.indices.dtype)
-        indices[offset] = a.indices
-        indices[offset + np.repeat(counts, counts)] = a.indices
-        phases = []
-        for ell in range(1, order + 1):
-            angle = ell * gamma
-            data = np.empty(2 * a.nnz, dtype=np.float64)
-            data[offset] = a.data * np.cos(angle)[inverse.reshape(-1)]
-            data[offset + np.repeat(counts, counts)] = a.data * np.sin(angle)[inverse.reshape(-1)]
-            phases.append(sp.csr_matrix((data, indices, indptr), shape=(2 * a.shape[0], n)))
-        return cls(operator, phases)
-
-    def _tensors(self, ell: int, dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
-        key = (ell, dtype, torch.device(device))
-        if key not in self._torch:
-            m = self.phases[ell - 1]
-            self._torch[key] = (to_torch_csr(m, dtype, device), to_torch_csr(m.T.tocsr(), dtype, device))
-        return self._torch[key]
-
-    def apply(self, x: Tensor) -> Tensor:
-        """``x`` ``(N, 2L + 1, C)`` -> ``(N, k, 2L + 1, C)``, in ``x``'s dtype and device, differentiable."""
-        d = fourier_dim(self.order)
-        n, k = self.n_vertices, self.k
-        if x.dim() != 3 or x.shape[0] != n or x.shape[1] != d:
-            raise ValueError(f"expected directional input ({n}, {d}, C) for order {self.order}, got {tuple(x.shape)}")
-        c = x.shape[2]
-        parts = [self.operator.apply(x[:, 0].contiguous()).unsqueeze(2)]
-        for ell in range(1, self.order + 1):
-            matrix, transpose = self._tensors(ell, x.dtype, x.device)
-            ab = x[:, 2 * ell - 1 : 2 * ell + 1].reshape(n, 2 * c)  # [a_ℓ | b_ℓ]
-            y = SparseApply.apply(ab, matrix, transpose).view(n, k, 2, 2, c)  # [C, S] x [a, b]
-            parts.append((y[:, :, 0, 0] - y[:, :, 1, 1]).unsqueeze(2))  # α_a
-            parts.append((y[:, :, 1, 0] + y[:, :, 0, 1]).unsqueeze(2))  # α_b
-        return torch.cat(parts, dim=2) if len(parts) > 1 else parts[0]
-
-    __call__ = apply
-
-
-_CACHE_ATTRIBUTE = "_zernet_directional_operators"
-
-
-def directional_operator(operator, order: int) -> DirectionalOperator:
-    """The :class:`DirectionalOperator` of order ``L`` for a patch operator, built once and cached on it.
-
-    ``operator`` may already be a :class:`DirectionalOperator` of that order (returned as is).
-    """
-    if isinstance(operator, DirectionalOperator):
-        if operator.order != order:
-            raise ValueError(f"directional operator has order {operator.order}, layer needs {order}")
-        return operator
-    cache = getattr(operator, _CACHE_ATTRIBUTE, None)
-    if cache is None:
-        cache = {}
-        try:
-            setattr(operator, _CACHE_ATTRIBUTE, cache)
-        except AttributeError:  # an operator that refuses attributes: build every time
-            pass
-    if order not in cache:
-        cache[order] = DirectionalOperator.from_patch_operator(operator, order)
-    return cache[order]
-
-
-# --------------------------------------------------------------------------------------------------
-# Layers
-# --------------------------------------------------------------------------------------------------
 
 
 def _coupling(n_max: int, in_order: int, angles: np.ndarray) -> np.ndarray:
@@ -385,11 +91,11 @@ def coupling_tensor(n_max: int, in_order: int, out_order: int | None = None, sam
     if (out_order is None) == (samples is None):
         raise ValueError("give exactly one of out_order and samples")
     if samples is not None:
-        return np.moveaxis(_coupling(n_max, in_order, _sample_angles(samples)), 0, -1)
+        return np.moveaxis(_coupling(n_max, in_order, sample_angles(samples)), 0, -1)
     degree = max(n_max + in_order, out_order)
     grid = 2 * degree + 1  # exact DFT of a trigonometric polynomial of this degree
-    values = _coupling(n_max, in_order, _sample_angles(grid))  # (grid, X, Y)
-    table = _trig_table(_sample_angles(grid), out_order)  # (grid, T)
+    values = _coupling(n_max, in_order, sample_angles(grid))  # (grid, X, Y)
+    table = trig_table(sample_angles(grid), out_order)  # (grid, T)
     weights = np.full(fourier_dim(out_order), 2.0 / grid)
     weights[0] = 1.0 / grid
     out = np.einsum("bxy,bt->xyt", values, table * weights)
@@ -436,8 +142,9 @@ class DirectionalZernikeConv(nn.Module):
 
     Shapes:
         - input: ``x`` ``(N, 2 L_in + 1, C_in)`` (or ``(N, C_in)`` when ``L_in = 0``); ``operator`` a
-          :class:`~zernet.patches.PatchOperator` (its :class:`DirectionalOperator` is built once and
-          cached on it) or a :class:`DirectionalOperator` of order ``L_in``.
+          :class:`~zernet.operators.DirectionalOperator` of order ``L_in``
+          (:func:`~zernet.operators.build_directional_operator`), or for ``L_in = 0`` also the scalar
+          :class:`~zernet.operators.PatchOperator`.
         - output: ``(N, 2 L_out + 1, C_out)`` (``"fourier"``) or ``(N, s, C_out)`` (``"samples"``).
     """
 
@@ -545,7 +252,14 @@ class DirectionalZernikeConv(nn.Module):
             raise ValueError(f"layer has k={self.k} Zernike bases (n_max={self.n_max}) but the operator has k={operator.k}")
         if self.order == 0 and not isinstance(operator, DirectionalOperator):
             return operator.apply(x[:, 0]).unsqueeze(2)  # no transport for scalars: the plain operator
-        return directional_operator(operator, self.order).apply(x)
+        if not isinstance(operator, DirectionalOperator) or operator.order != self.order:
+            have = f"order {operator.order}" if isinstance(operator, DirectionalOperator) else type(operator).__name__
+            raise ValueError(
+                f"{type(self).__name__} with input order {self.order} needs a DirectionalOperator of order "
+                f"{self.order}, got {have}: build it once per surface with "
+                f"zernet.operators.build_directional_operator(operator, {self.order})"
+            )
+        return operator.apply(x)
 
     @float32_forward
     def forward(self, x: Tensor, operator) -> Tensor:
@@ -591,7 +305,7 @@ class DirectionalLifting(DirectionalZernikeConv):
         out_order: ``L_out`` (default 1; ``n_max`` keeps the whole response).
 
     Shapes:
-        - input: ``x`` ``(N, C_in)``; ``operator`` a :class:`~zernet.patches.PatchOperator`.
+        - input: ``x`` ``(N, C_in)``; ``operator`` a :class:`~zernet.operators.PatchOperator`.
         - output: ``(N, 2 L_out + 1, C_out)`` or ``(N, s, C_out)``.
     """
 
@@ -709,95 +423,3 @@ class DirectionalReLU(nn.Module):
         return f"{self.channels}, order={self.order}, mode={self.mode!r}" + (
             f", s={self.angular_resolution}" if self.mode == "regular" else ""
         )
-
-
-# --------------------------------------------------------------------------------------------------
-# Model
-# --------------------------------------------------------------------------------------------------
-
-
-@register_model("zernet-directional")
-class DirectionalZerNet(nn.Module):
-    r"""ZerNet with direction-preserving convolutions (paper section 4.4).
-
-    ``DirectionalLifting(w_0) -> act -> (DirectionalZernikeConv(w_i), act)_i -> DirectionalZernikeConv(w_last,
-    whole response) -> DirectionalPooling -> ReLU -> Lin(widths[-1]), ReLU -> Dropout -> Lin(out_channels)``
-
-    Between convolution blocks every feature keeps its direction axis as Fourier coefficients of order
-    ``L`` (default ``(s - 1) // 2``: ``L = 1`` at the paper's ``s = 4``); ``act`` is
-    :class:`DirectionalReLU`. The last convolution keeps its whole response (order ``n_max + L``), which
-    ``pooling`` reduces to scalars. At the default widths this is the paper's
-    ``Conv64 -> Conv128 -> Conv256 -> Lin512 -> Lin(C)``.
-
-    Args:
-        in_channels: ``C_in``.
-        out_channels: ``C_out``.
-        widths: convolution widths followed by the hidden linear width.
-        k: Zernike bases per patch (21 in the paper).
-        angular_resolution: ``s`` (4 in the paper).
-        order: ``L`` of the directional features; default ``(s - 1) // 2``.
-        pooling: ``"continuous"`` (default), ``"discrete"`` or ``"mean"`` at the end.
-        nonlinearity: ``"regular"`` (ReLU at the ``s`` angles, default) or ``"norm"``.
-        dropout: dropout probability before the output layer.
-
-    Shapes:
-        - input: ``x`` ``(N, C_in)``; ``geometry.operators[0]`` the single-scale patch operator.
-        - output: ``(N, C_out)``.
-    """
-
-    def __init__(
-        self,
-        in_channels: int,
-        out_channels: int,
-        widths: Sequence[int] = (64, 128, 256, 512),
-        k: int = 21,
-        angular_resolution: int = 4,
-        order: int | None = None,
-        pooling: str = "continuous",
-        nonlinearity: str = "regular",
-        dropout: float = 0.25,
-    ) -> None:
-        super().__init__()
-        widths = tuple(int(w) for w in widths)
-        if len(widths) < 2 or min(widths) < 1:
-            raise ValueError(
-                f"widths must list at least one convolution width and the hidden linear width, all >= 1, "
-                f"e.g. (64, 128, 256, 512); got {widths}"
-            )
-        self.in_channels = int(in_channels)
-        self.out_channels = int(out_channels)
-        self.widths = widths
-        n_max = n_max_for(int(k))
-        s = int(angular_resolution)
-        order = (s - 1) // 2 if order is None else int(order)
-        self.order = order
-        conv_widths = widths[:-1]
-        self.convs = nn.ModuleList()
-        self.acts = nn.ModuleList()
-        channels, in_order = self.in_channels, 0
-        for i, width in enumerate(conv_widths):
-            last = i == len(conv_widths) - 1
-            self.convs.append(
-                DirectionalZernikeConv(
-                    channels, width, n_max=n_max, order=in_order, out_order=n_max + in_order if last else order
-                )
-            )
-            if not last:
-                self.acts.append(DirectionalReLU(width, order, mode=nonlinearity, angular_resolution=s))
-            channels, in_order = width, order
-        self.pool = DirectionalPooling(pooling, angular_resolution=s)
-        self.hidden = nn.Linear(channels, widths[-1])
-        self.dropout = nn.Dropout(dropout)
-        self.output = nn.Linear(widths[-1], out_channels)
-
-    def forward(self, x: Tensor, geometry) -> Tensor:
-        """``x`` ``(N, C_in)``, ``geometry.operators[0]`` -> ``(N, C_out)``."""
-        operator = geometry.operators[0]
-        h = x
-        for i, conv in enumerate(self.convs):
-            h = conv(h, operator)
-            if i < len(self.acts):
-                h = self.acts[i](h)
-        h = torch.relu(self.pool(h))
-        h = torch.relu(self.hidden(h))
-        return self.output(self.dropout(h))

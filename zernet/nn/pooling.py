@@ -1,7 +1,7 @@
 r"""Angular pooling of Zernike convolution responses, and the harmonic-form helpers.
 
 The response of a Zernike convolution at a vertex, as a function of the kernel rotation :math:`\varphi`, is a
-trigonometric polynomial of degree :math:`D \le n_{max}` (``../shared/GUIDE.md`` section 2):
+trigonometric polynomial of degree :math:`D \le n_{max}` (:mod:`zernet.nn.conv` derives it):
 
 .. math::
     \mathrm{resp}(\varphi) = A_0 + \sum_{m=1}^{D} \big(A_m \cos m\varphi + B_m \sin m\varphi\big).

@@ -6,7 +6,7 @@ describes (cost linear in ``s``). It is the reference the harmonic form of :clas
 is tested against, and the contraction of the "paper formulation" baseline.
 
 :class:`MatrixOperator` applies a given sparse ``(N k) x N`` decomposition matrix; it has the interface of
-:class:`zernet.patches.PatchOperator` that layers and :class:`~zernet.nn.geometry.Geometry` use (``apply``,
+:class:`zernet.operators.PatchOperator` that layers and :class:`~zernet.operators.Geometry` use (``apply``,
 ``k``, ``n_max``, ``n_vertices``, ``matrix``, ``to``, ``concatenate``), for tests, benchmarks, and users
 who compute patch coefficients their own way.
 """
@@ -21,7 +21,7 @@ import scipy.sparse as sp
 import torch
 from torch import Tensor
 
-from zernet.patches import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
+from zernet.operators import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
 from zernet.zernike import n_max_for, rotate_coefficients
 
 from .conv import ZernikeConv
@@ -108,7 +108,7 @@ class MatrixOperator:
 
     def apply(self, x: Tensor, basis_order: tuple | None = None) -> Tensor:
         """``x`` ``(N, d)`` -> ``(N, k, d)``, in ``x``'s dtype and device; ``basis_order`` as
-        :meth:`zernet.patches.PatchOperator.apply`."""
+        :meth:`zernet.operators.PatchOperator.apply`."""
         if x.dim() != 2 or x.shape[0] != self.n_vertices:
             raise ValueError(f"MatrixOperator.apply: x must be ({self.n_vertices}, d), got {tuple(x.shape)}")
         A, At = self._tensors(x.dtype, x.device, checked_basis_order(basis_order, self.k))

@@ -5,7 +5,7 @@ import pytest
 import torch
 import trimesh
 
-from zernet.patches import CacheWarning, PatchConfig, PatchOperator, assemble_operator, build_patch_operator, cache_key
+from zernet.operators import CacheWarning, PatchConfig, PatchOperator, assemble_operator, build_patch_operator, cache_key
 from zernet.polar import compute_polar
 from zernet.surface import Surface, sample_surface
 from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
@@ -270,11 +270,11 @@ def test_cache_hit_and_bad_files_are_rebuilt(tmp_path):
 
 
 def test_version_mismatch_rejected(tmp_path, monkeypatch):
-    import zernet.patches as patches
+    import zernet.operators.cache as cache
 
     op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=500))
     data = op.to_bytes(key="k")
-    monkeypatch.setattr(patches, "FORMAT_VERSION", patches.FORMAT_VERSION + 1)
+    monkeypatch.setattr(cache, "FORMAT_VERSION", cache.FORMAT_VERSION + 1)
     with pytest.raises(ValueError, match="format version"):
         PatchOperator.from_bytes(data, key="k", name="somefile.npz")
 

@@ -1,6 +1,6 @@
 """Tests for the direction-preserving (gauge-equivariant) Zernike convolution, zernet/nn/directional.py.
 
-Gauge-change convention used throughout (module docstring of zernet.nn.directional):
+Gauge-change convention used throughout (module docstrings of zernet.nn.directional and zernet.operators.directional):
 turning vertex p's frame by δ_p, i.e. ``e1 ← cos δ e1 + sin δ e2``, ``e2 ← -sin δ e1 + cos δ e2``,
 
 * changes p's polar angles to θ - δ_p, so the Zernike coefficients of every patch field at p become
@@ -21,10 +21,13 @@ import pytest
 import scipy.sparse as sp
 import torch
 
-from zernet.nn import directional as D
+import zernet.operators.directional as directional_operators
+from zernet.fourier import fourier_rotation_matrix, fourier_to_samples, rotate_fourier, samples_to_fourier, trig_table
 from zernet.nn.conv import ZernikeConv
-from zernet.nn.geometry import Geometry
+from zernet.nn.directional import DirectionalLifting, DirectionalPooling, DirectionalReLU, DirectionalZernikeConv
+from zernet.nn.models import DirectionalZerNet
 from zernet.nn.reference import MatrixOperator
+from zernet.operators import Geometry, build_directional_operator
 from zernet.polar import transport_angles
 from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
 
@@ -84,33 +87,33 @@ def test_fourier_samples_round_trip_and_rotation():
     torch.manual_seed(0)
     L, s = 3, 9
     c = torch.randn(5, 2 * L + 1, 2, dtype=torch.float64)
-    samples = D.fourier_to_samples(c, s, dim=1)
+    samples = fourier_to_samples(c, s, dim=1)
     assert samples.shape == (5, s, 2)
-    torch.testing.assert_close(D.samples_to_fourier(samples, L, dim=1), c)
+    torch.testing.assert_close(samples_to_fourier(samples, L, dim=1), c)
     # direct evaluation of h(ψ) = a0 + Σ a cos ℓψ + b sin ℓψ
     psi = 2 * math.pi * 4 / s
     direct = c[:, 0] + sum(c[:, 2 * l - 1] * math.cos(l * psi) + c[:, 2 * l] * math.sin(l * psi) for l in range(1, L + 1))
     torch.testing.assert_close(samples[:, 4], direct)
     # rotate_fourier(·, δ) gives h(ψ + δ); by 2π a / s it is a cyclic shift of the samples
     delta = 0.37
-    rotated = D.fourier_to_samples(D.rotate_fourier(c, delta, dim=1), 1, dim=1)[:, 0]
-    at_delta = D.fourier_to_samples(D.rotate_fourier(c, 0.0, dim=1), 1, dim=1)  # h(0)
+    rotated = fourier_to_samples(rotate_fourier(c, delta, dim=1), 1, dim=1)[:, 0]
+    at_delta = fourier_to_samples(rotate_fourier(c, 0.0, dim=1), 1, dim=1)  # h(0)
     assert at_delta.shape == (5, 1, 2)
     direct = c[:, 0] + sum(c[:, 2 * l - 1] * math.cos(l * delta) + c[:, 2 * l] * math.sin(l * delta) for l in range(1, L + 1))
     torch.testing.assert_close(rotated, direct)
-    shifted = D.fourier_to_samples(D.rotate_fourier(c, 2 * math.pi * 2 / s, dim=1), s, dim=1)
+    shifted = fourier_to_samples(rotate_fourier(c, 2 * math.pi * 2 / s, dim=1), s, dim=1)
     torch.testing.assert_close(shifted, torch.roll(samples, -2, dims=1))
     with pytest.raises(ValueError):
-        D.samples_to_fourier(samples[:, :6], L, dim=1)  # 6 samples cannot hold order 3
+        samples_to_fourier(samples[:, :6], L, dim=1)  # 6 samples cannot hold order 3
 
 
 def test_fourier_rotation_matrix_is_a_group_action():
     L = 2
     a, b = 0.4, -1.3
-    qa, qb = D.fourier_rotation_matrix(a, L), D.fourier_rotation_matrix(b, L)
-    np.testing.assert_allclose(qa @ qb, D.fourier_rotation_matrix(a + b, L), atol=1e-14)
+    qa, qb = fourier_rotation_matrix(a, L), fourier_rotation_matrix(b, L)
+    np.testing.assert_allclose(qa @ qb, fourier_rotation_matrix(a + b, L), atol=1e-14)
     np.testing.assert_allclose(qa @ qa.T, np.eye(2 * L + 1), atol=1e-14)
-    torch.testing.assert_close(D.fourier_rotation_matrix(torch.tensor(a, dtype=torch.float64), L), torch.as_tensor(qa))
+    torch.testing.assert_close(fourier_rotation_matrix(torch.tensor(a, dtype=torch.float64), L), torch.as_tensor(qa))
 
 
 # ------------------------------------------------------------------------------------ transported operator
@@ -119,8 +122,8 @@ def test_fourier_rotation_matrix_is_a_group_action():
 @pytest.mark.parametrize("order", [0, 1, 3])
 def test_directional_operator_is_the_transported_fit(order):
     op = _synthetic_operator()
-    dop = D.directional_operator(op, order)
-    assert D.directional_operator(op, order) is dop  # cached on the patch operator
+    dop = build_directional_operator(op, order)
+    assert not hasattr(op, "_zernet_directional_operators")  # a pure function: nothing is attached to op
     n = op.n_vertices
     assert dop.order == order and len(dop.phases) == order
     assert all(m.shape == (2 * n * K, n) and m.nnz == 2 * op.matrix.nnz for m in dop.phases)
@@ -143,7 +146,7 @@ def test_directional_operator_is_the_transported_fit(order):
 
 def test_directional_operator_gradcheck():
     op = _synthetic_operator(n=6, density=0.5)
-    dop = D.directional_operator(op, 2)
+    dop = build_directional_operator(op, 2)
     x = torch.randn(6, 5, 2, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(dop.apply, (x,))
 
@@ -156,10 +159,11 @@ def test_response_equals_the_integral_over_disk_and_circle():
     torch.manual_seed(2)
     op = _synthetic_operator()
     L = 2
-    conv = D.DirectionalZernikeConv(3, 4, n_max=N_MAX, order=L, out_order=N_MAX + L, bias=False).double()
+    conv = DirectionalZernikeConv(3, 4, n_max=N_MAX, order=L, out_order=N_MAX + L, bias=False).double()
     x = torch.randn(op.n_vertices, 2 * L + 1, 3, dtype=torch.float64)
-    alpha = conv.fit(x, op)[5].numpy()  # (k, 2L+1, C_in) at vertex 5
-    out = conv(x, op)[5].detach()  # (2(N_MAX+L)+1, C_out)
+    dop = build_directional_operator(op, L)
+    alpha = conv.fit(x, dop)[5].numpy()  # (k, 2L+1, C_in) at vertex 5
+    out = conv(x, dop)[5].detach()  # (2(N_MAX+L)+1, C_out)
     G = conv.weight.detach().numpy()
     xr, wr = np.polynomial.legendre.leggauss(12)
     r, wr = (xr + 1) / 2, wr / 2
@@ -167,12 +171,12 @@ def test_response_equals_the_integral_over_disk_and_circle():
     theta = np.arange(n_theta) * 2 * np.pi / n_theta
     psi = np.arange(n_psi) * 2 * np.pi / n_psi
     rr, tt = np.meshgrid(r, theta, indexing="ij")
-    field = np.einsum("abj,sr,jrc->absc", zernike_basis(rr, tt, N_MAX), D._trig_table(psi, L), alpha)
+    field = np.einsum("abj,sr,jrc->absc", zernike_basis(rr, tt, N_MAX), trig_table(psi, L), alpha)
     area = (wr * r)[:, None] * (2 * np.pi / n_theta)
     for phi in (0.0, 0.7, 2.9):
-        kernel = np.einsum("abj,sr,jrco->absco", zernike_basis(rr, tt - phi, N_MAX), D._trig_table(psi - phi, L), G)
+        kernel = np.einsum("abj,sr,jrco->absco", zernike_basis(rr, tt - phi, N_MAX), trig_table(psi - phi, L), G)
         integral = np.einsum("absc,absco,ab->o", field, kernel, area) / n_psi
-        value = torch.as_tensor(D._trig_table(np.array([phi]), N_MAX + L)) @ out
+        value = torch.as_tensor(trig_table(np.array([phi]), N_MAX + L)) @ out
         np.testing.assert_allclose(value[0].numpy(), integral, rtol=1e-10, atol=1e-10)
 
 
@@ -180,16 +184,17 @@ def test_samples_output_is_the_fourier_output_sampled():
     torch.manual_seed(3)
     op = _synthetic_operator()
     L, s = 1, 8
-    full = D.DirectionalZernikeConv(2, 3, n_max=N_MAX, order=L, out_order=N_MAX + L).double()
-    sampled = D.DirectionalZernikeConv(2, 3, n_max=N_MAX, order=L, output="samples", angular_resolution=s).double()
+    full = DirectionalZernikeConv(2, 3, n_max=N_MAX, order=L, out_order=N_MAX + L).double()
+    sampled = DirectionalZernikeConv(2, 3, n_max=N_MAX, order=L, output="samples", angular_resolution=s).double()
     sampled.load_state_dict(full.state_dict())
     with torch.no_grad():
         full.bias.normal_()
         sampled.bias.copy_(full.bias)
     x = torch.randn(op.n_vertices, 2 * L + 1, 2, dtype=torch.float64)
-    torch.testing.assert_close(sampled(x, op), D.fourier_to_samples(full(x, op), s, dim=1))
+    op = build_directional_operator(op, L)
+    torch.testing.assert_close(sampled(x, op), fourier_to_samples(full(x, op), s, dim=1))
     # truncating the output order keeps exactly the low orders of the full response
-    low = D.DirectionalZernikeConv(2, 3, n_max=N_MAX, order=L, out_order=2).double()
+    low = DirectionalZernikeConv(2, 3, n_max=N_MAX, order=L, out_order=2).double()
     low.load_state_dict(full.state_dict())
     torch.testing.assert_close(low(x, op), full(x, op)[:, :5])
 
@@ -201,21 +206,21 @@ def test_layer_is_gauge_equivariant(order):
     op = _synthetic_operator(seed=order)
     n = op.n_vertices
     delta = np.random.default_rng(5).uniform(-np.pi, np.pi, n)
-    op_turned = _gauge_transform(op, delta)
-    conv = D.DirectionalZernikeConv(3, 4, n_max=N_MAX, order=order, out_order=N_MAX + order)
+    op, op_turned = (build_directional_operator(o, order) for o in (op, _gauge_transform(op, delta)))
+    conv = DirectionalZernikeConv(3, 4, n_max=N_MAX, order=order, out_order=N_MAX + order)
     x = torch.randn(n, 2 * order + 1, 3)
-    x_turned = D.rotate_fourier(x, _per_vertex(delta, x.dtype), dim=1)
+    x_turned = rotate_fourier(x, _per_vertex(delta, x.dtype), dim=1)
     y, y_turned = conv(x, op), conv(x_turned, op_turned)
-    expected = D.rotate_fourier(y, _per_vertex(delta, y.dtype), dim=1)
+    expected = rotate_fourier(y, _per_vertex(delta, y.dtype), dim=1)
     scale = y.abs().max().item()
     torch.testing.assert_close(y_turned, expected, rtol=0, atol=2e-6 * scale)
-    pool = D.DirectionalPooling("continuous")
+    pool = DirectionalPooling("continuous")
     torch.testing.assert_close(pool(y_turned), pool(y), rtol=0, atol=2e-6 * scale)
     # the same in float64 is exact to float64 rounding
     conv64 = conv.double()
     x64 = x.double()
-    y64, y64_turned = conv64(x64, op), conv64(D.rotate_fourier(x64, _per_vertex(delta), dim=1), op_turned)
-    torch.testing.assert_close(y64_turned, D.rotate_fourier(y64, _per_vertex(delta), dim=1), rtol=0, atol=1e-12 * scale)
+    y64, y64_turned = conv64(x64, op), conv64(rotate_fourier(x64, _per_vertex(delta), dim=1), op_turned)
+    torch.testing.assert_close(y64_turned, rotate_fourier(y64, _per_vertex(delta), dim=1), rtol=0, atol=1e-12 * scale)
     torch.testing.assert_close(pool(y64_turned), pool(y64), rtol=0, atol=1e-12 * scale)
 
 
@@ -226,12 +231,13 @@ def test_equivariance_needs_the_transport(monkeypatch):
     n = op.n_vertices
     delta = np.random.default_rng(7).uniform(-np.pi, np.pi, n)
     op_turned = _gauge_transform(op, delta)
-    monkeypatch.setattr(D, "transport_angles", lambda frames, p, q: np.zeros(len(p)))
-    conv = D.DirectionalZernikeConv(2, 2, n_max=N_MAX, order=1, out_order=N_MAX + 1).double()
+    monkeypatch.setattr(directional_operators, "transport_angles", lambda frames, p, q: np.zeros(len(p)))
+    op, op_turned = (build_directional_operator(o, 1) for o in (op, op_turned))
+    conv = DirectionalZernikeConv(2, 2, n_max=N_MAX, order=1, out_order=N_MAX + 1).double()
     x = torch.randn(n, 3, 2, dtype=torch.float64)
     y = conv(x, op)
-    y_turned = conv(D.rotate_fourier(x, _per_vertex(delta), dim=1), op_turned)
-    err = (y_turned - D.rotate_fourier(y, _per_vertex(delta), dim=1)).abs().max()
+    y_turned = conv(rotate_fourier(x, _per_vertex(delta), dim=1), op_turned)
+    err = (y_turned - rotate_fourier(y, _per_vertex(delta), dim=1)).abs().max()
     assert err > 1e-2 * y.abs().max()
 
 
@@ -243,18 +249,18 @@ def test_discrete_rotations_shift_samples_exactly():
     n = op.n_vertices
     shift = np.random.default_rng(9).integers(0, s, n)
     delta = 2 * np.pi * shift / s
-    op_turned = _gauge_transform(op, delta)
-    conv = D.DirectionalZernikeConv(3, 5, n_max=N_MAX, order=1, output="samples", angular_resolution=s)
+    op_turned = build_directional_operator(_gauge_transform(op, delta), 1)
+    conv = DirectionalZernikeConv(3, 5, n_max=N_MAX, order=1, output="samples", angular_resolution=s)
     x = torch.randn(n, 3, 3)
-    y = conv(x, op)
-    y_turned = conv(D.rotate_fourier(x, _per_vertex(delta, x.dtype), dim=1), op_turned)
+    y = conv(x, build_directional_operator(op, 1))
+    y_turned = conv(rotate_fourier(x, _per_vertex(delta, x.dtype), dim=1), op_turned)
     expected = torch.stack([torch.roll(y[p], -int(shift[p]), dims=0) for p in range(n)])
     scale = y.abs().max().item()
     torch.testing.assert_close(y_turned, expected, rtol=0, atol=2e-6 * scale)
     torch.testing.assert_close(y_turned.amax(1), y.amax(1), rtol=0, atol=2e-6 * scale)
     # contrast: a turn that is not a multiple of 2π/s changes the discrete max beyond rounding
-    op_off = _gauge_transform(op, delta + 0.3)
-    y_off = conv(D.rotate_fourier(x, _per_vertex(delta + 0.3, x.dtype), dim=1), op_off)
+    op_off = build_directional_operator(_gauge_transform(op, delta + 0.3), 1)
+    y_off = conv(rotate_fourier(x, _per_vertex(delta + 0.3, x.dtype), dim=1), op_off)
     assert (y_off.amax(1) - y.amax(1)).abs().max() > 1e-3 * scale
 
 
@@ -265,7 +271,7 @@ def test_lifting_agrees_with_zernike_conv():
     op = _synthetic_operator()
     x = torch.randn(op.n_vertices, 3, dtype=torch.float64)
     ref = ZernikeConv(3, 4, n_max=N_MAX, angular_resolution=s, pooling="none").double()
-    lift = D.DirectionalLifting(3, 4, n_max=N_MAX, output="samples", angular_resolution=s).double()
+    lift = DirectionalLifting(3, 4, n_max=N_MAX, output="samples", angular_resolution=s).double()
     with torch.no_grad():
         ref.bias.normal_()
         lift.weight.copy_(ref.weight[:, None])
@@ -273,13 +279,13 @@ def test_lifting_agrees_with_zernike_conv():
     mine, theirs = lift(x, op), ref(x, op)
     torch.testing.assert_close(mine, theirs[:, (-torch.arange(s)) % s])
     # pooled: the whole response's continuous / discrete max equals ZernikeConv's
-    full = D.DirectionalLifting(3, 4, n_max=N_MAX, out_order=N_MAX).double()
+    full = DirectionalLifting(3, 4, n_max=N_MAX, out_order=N_MAX).double()
     full.load_state_dict(lift.state_dict())
     for mode, pooling in (("continuous", "continuous"), ("discrete", "max"), ("mean", "mean")):
         ref.pooling = pooling
-        torch.testing.assert_close(D.DirectionalPooling(mode, angular_resolution=s)(full(x, op)), ref(x, op))
+        torch.testing.assert_close(DirectionalPooling(mode, angular_resolution=s)(full(x, op)), ref(x, op))
     # a directional layer fed only a_0 with a kernel without ψ-dependence computes the same
-    conv = D.DirectionalZernikeConv(3, 4, n_max=N_MAX, order=2, output="samples", angular_resolution=s).double()
+    conv = DirectionalZernikeConv(3, 4, n_max=N_MAX, order=2, output="samples", angular_resolution=s).double()
     with torch.no_grad():
         conv.weight.zero_()
         conv.weight[:, 0] = ref.weight
@@ -287,13 +293,14 @@ def test_lifting_agrees_with_zernike_conv():
     x_dir = torch.zeros(op.n_vertices, 5, 3, dtype=torch.float64)
     x_dir[:, 0] = x
     ref.pooling = "none"
-    torch.testing.assert_close(conv(x_dir, op), theirs[:, (-torch.arange(s)) % s])
+    torch.testing.assert_close(conv(x_dir, build_directional_operator(op, 2)), theirs[:, (-torch.arange(s)) % s])
 
 
 def test_gradcheck_float64():
     torch.manual_seed(11)
     op = _synthetic_operator(n=6, density=0.5)
-    conv = D.DirectionalZernikeConv(2, 2, n_max=N_MAX, order=1, out_order=2).double()
+    conv = DirectionalZernikeConv(2, 2, n_max=N_MAX, order=1, out_order=2).double()
+    op = build_directional_operator(op, 1)
     x = torch.randn(6, 3, 2, dtype=torch.float64, requires_grad=True)
     weight = conv.weight.detach().clone().requires_grad_(True)
     bias = torch.randn(2, dtype=torch.float64, requires_grad=True)
@@ -302,15 +309,15 @@ def test_gradcheck_float64():
         return torch.func.functional_call(conv, {"weight": weight, "bias": bias}, (x, op))
 
     assert torch.autograd.gradcheck(f, (x, weight, bias))
-    relu = D.DirectionalReLU(2, 1, mode="norm").double()
+    relu = DirectionalReLU(2, 1, mode="norm").double()
     with torch.no_grad():
         relu.norm_bias.fill_(0.1)
     assert torch.autograd.gradcheck(relu, (x,))
-    regular = D.DirectionalReLU(2, 1, mode="regular", angular_resolution=5)
+    regular = DirectionalReLU(2, 1, mode="regular", angular_resolution=5)
     assert torch.autograd.gradcheck(regular, (x,))
     full = torch.randn(6, 9, 2, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(D.DirectionalPooling("continuous"), (full,))
-    assert torch.autograd.gradcheck(D.DirectionalPooling("discrete", angular_resolution=4), (full,))
+    assert torch.autograd.gradcheck(DirectionalPooling("continuous"), (full,))
+    assert torch.autograd.gradcheck(DirectionalPooling("discrete", angular_resolution=4), (full,))
 
 
 # ------------------------------------------------------------------------------------ model
@@ -320,7 +327,7 @@ def _model_invariance(nonlinearity, pooling, delta, s=4, seed=12):
     torch.manual_seed(seed)
     op = _synthetic_operator(n=16, seed=seed)
     op_turned = _gauge_transform(op, delta)
-    model = D.DirectionalZerNet(
+    model = DirectionalZerNet(
         3, 5, widths=(6, 6, 8, 10), k=K, angular_resolution=s, pooling=pooling, nonlinearity=nonlinearity
     ).eval()
     if nonlinearity == "norm":
@@ -328,7 +335,8 @@ def _model_invariance(nonlinearity, pooling, delta, s=4, seed=12):
             for act in model.acts:
                 act.norm_bias.uniform_(-0.5, 0.5)
     x = torch.randn(16, 3)  # scalar input features are gauge-invariant
-    y, y_turned = model(x, Geometry([op])), model(x, Geometry([op_turned]))
+    order = model.directional_order
+    y, y_turned = model(x, Geometry([op]).with_directional(order)), model(x, Geometry([op_turned]).with_directional(order))
     return y, y_turned
 
 
@@ -350,45 +358,53 @@ def test_model_invariant_for_turns_by_multiples_of_2pi_over_s():
 def test_model_shapes_batching_and_state_dict(tmp_path):
     torch.manual_seed(15)
     ops = [_synthetic_operator(n=10, seed=1), _synthetic_operator(n=7, seed=2)]
-    model = D.DirectionalZerNet(3, 4, widths=(5, 6, 7), k=K).eval()
+    model = DirectionalZerNet(3, 4, widths=(5, 6, 7), k=K).eval()
     x = [torch.randn(10, 3), torch.randn(7, 3)]
-    separate = torch.cat([model(xi, Geometry([op])) for xi, op in zip(x, ops)])
-    batched = model(torch.cat(x), Geometry([MatrixOperator.concatenate(ops)]))
+    geometries = [Geometry([op]).with_directional(model.directional_order) for op in ops]
+    separate = torch.cat([model(xi, g) for xi, g in zip(x, geometries)])
+    batched = model(torch.cat(x), Geometry([MatrixOperator.concatenate(ops)]).with_directional(model.directional_order))
     assert batched.shape == (17, 4)
     torch.testing.assert_close(batched, separate, rtol=1e-5, atol=1e-6)
+    # concatenating the prepared geometries gives the same batch (block-diagonal directional operators)
+    torch.testing.assert_close(model(torch.cat(x), Geometry.concatenate(geometries)), batched, rtol=1e-6, atol=1e-7)
     path = tmp_path / "model.pt"
     torch.save(model.state_dict(), path)
-    clone = D.DirectionalZerNet(3, 4, widths=(5, 6, 7), k=K).eval()
+    clone = DirectionalZerNet(3, 4, widths=(5, 6, 7), k=K).eval()
     clone.load_state_dict(torch.load(path, weights_only=True))
-    torch.testing.assert_close(clone(x[0], Geometry([ops[0]])), model(x[0], Geometry([ops[0]])))
+    torch.testing.assert_close(clone(x[0], geometries[0]), model(x[0], geometries[0]))
     assert not any("coupling" in key for key in model.state_dict())  # fixed tensors are rebuilt, not saved
 
 
 def test_layer_shapes_repr_and_errors():
-    op = _synthetic_operator(n=9)
+    scalar_op = _synthetic_operator(n=9)
+    op = build_directional_operator(scalar_op, 1)
     x = torch.randn(9, 3, 2)
-    assert D.DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1)(x, op).shape == (9, 3, 5)
-    assert D.DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1, out_order=4)(x, op).shape == (9, 9, 5)
-    assert D.DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1, output="samples", angular_resolution=6)(x, op).shape == (9, 6, 5)
-    assert D.DirectionalLifting(2, 5, n_max=N_MAX, out_order=2)(x[:, 0], op).shape == (9, 5, 5)
-    assert D.DirectionalPooling("mean")(x).shape == (9, 2)
-    assert D.DirectionalReLU(2, 1)(x).shape == (9, 3, 2)
-    text = repr(D.DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1, out_order=4))
+    assert DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1)(x, op).shape == (9, 3, 5)
+    assert DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1, out_order=4)(x, op).shape == (9, 9, 5)
+    assert DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1, output="samples", angular_resolution=6)(x, op).shape == (9, 6, 5)
+    assert DirectionalLifting(2, 5, n_max=N_MAX, out_order=2)(x[:, 0], scalar_op).shape == (9, 5, 5)
+    assert DirectionalPooling("mean")(x).shape == (9, 2)
+    assert DirectionalReLU(2, 1)(x).shape == (9, 3, 2)
+    text = repr(DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1, out_order=4))
     assert "DirectionalZernikeConv(2, 5" in text and "order=1" in text and "out_order=4" in text
     with pytest.raises(ValueError):
-        D.DirectionalZernikeConv(2, 5, n_max=N_MAX + 1, order=1)(x, op)  # k mismatch
+        DirectionalZernikeConv(2, 5, n_max=N_MAX + 1, order=1)(x, op)  # k mismatch
+    with pytest.raises(ValueError, match="build_directional_operator"):
+        DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1)(x, scalar_op)  # the layer never builds it itself
     with pytest.raises(ValueError):
-        D.DirectionalZernikeConv(2, 5, n_max=N_MAX, order=2)(x, op)  # wrong direction axis
+        DirectionalZernikeConv(2, 5, n_max=N_MAX, order=2)(x, op)  # wrong direction axis
     with pytest.raises(ValueError):
-        D.DirectionalReLU(2, 2, mode="regular", angular_resolution=4)  # s must exceed 2L
+        DirectionalReLU(2, 2, mode="regular", angular_resolution=4)  # s must exceed 2L
 
 
 def test_registered_as_zernet_directional():
     from zernet.nn.models import build_model
 
     model = build_model("zernet-directional", 3, 4, widths=(5, 6), k=K, angular_resolution=4)
-    assert isinstance(model, D.DirectionalZerNet)
-    assert model(torch.randn(9, 3), Geometry([_synthetic_operator(n=9)])).shape == (9, 4)
+    assert isinstance(model, DirectionalZerNet)
+    geometry = Geometry([_synthetic_operator(n=9)])
+    assert model.directional_order == 1
+    assert model(torch.randn(9, 3), geometry.with_directional(1)).shape == (9, 4)
 
 
 # ------------------------------------------------------------------------------------ a real mesh
@@ -398,7 +414,7 @@ def test_registered_as_zernet_directional():
 def sphere_patches():
     """Polar coordinates and the patch operator of a 162-vertex icosphere (n_max = 3)."""
     trimesh = pytest.importorskip("trimesh")
-    from zernet.patches import PatchConfig, assemble_operator
+    from zernet.operators import PatchConfig, assemble_operator
     from zernet.polar import compute_polar
     from zernet.surface import Surface, sample_surface
 
@@ -436,16 +452,17 @@ def test_real_mesh_directional_model_is_invariant(sphere_patches):
     torch.manual_seed(18)
     x = torch.randn(n, 3)
     for nonlinearity, pooling, delta in (("norm", "continuous", any_turn), ("regular", "discrete", quarter_turns)):
-        model = D.DirectionalZerNet(3, 4, widths=(8, 8, 16), k=K, pooling=pooling, nonlinearity=nonlinearity).eval()
+        model = DirectionalZerNet(3, 4, widths=(8, 8, 16), k=K, pooling=pooling, nonlinearity=nonlinearity).eval()
         if nonlinearity == "norm":
             with torch.no_grad():
                 model.acts[0].norm_bias.uniform_(-0.5, 0.5)
-        y, y_turned = model(x, Geometry([op])), model(x, Geometry([build(delta)]))
+        order = model.directional_order
+        y, y_turned = model(x, Geometry([op]).with_directional(order)), model(x, Geometry([build(delta)]).with_directional(order))
         torch.testing.assert_close(y_turned, y, rtol=0, atol=5e-6 * y.abs().max().item())
     # the transported fit on the mesh: order-1 Fourier coefficients at p turn by δ_p
-    conv = D.DirectionalZernikeConv(3, 4, n_max=N_MAX, order=1, out_order=2).double()
+    conv = DirectionalZernikeConv(3, 4, n_max=N_MAX, order=1, out_order=2).double()
     h = torch.randn(n, 3, 3, dtype=torch.float64)
     d = _per_vertex(any_turn)
-    y = conv(h, op)
-    y_turned = conv(D.rotate_fourier(h, d, dim=1), build(any_turn))
-    torch.testing.assert_close(y_turned, D.rotate_fourier(y, d, dim=1), rtol=0, atol=1e-10 * y.abs().max().item())
+    y = conv(h, build_directional_operator(op, 1))
+    y_turned = conv(rotate_fourier(h, d, dim=1), build_directional_operator(build(any_turn), 1))
+    torch.testing.assert_close(y_turned, rotate_fourier(y, d, dim=1), rtol=0, atol=1e-10 * y.abs().max().item())

@@ -12,12 +12,10 @@ import torch
 import trimesh
 from torch_geometric.nn import FeaStConv
 
-from zernet.nn.baselines import FeaStNet, PaperZernikeConv, PaperZerNet
+from zernet.nn.models import FeaStNet, PaperZernikeConv, PaperZerNet, build_model
 from zernet.nn.conv import ZernikeConv
-from zernet.nn.geometry import Geometry
-from zernet.nn.models import build_model
 from zernet.nn.reference import MatrixOperator
-from zernet.patches import PatchConfig, build_patch_operator
+from zernet.operators import Geometry, PatchConfig, build_patch_operator
 from zernet.surface import Surface
 from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
 

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from zernet.nn import Geometry, MatrixOperator, available_models, build_model, register_model
-from zernet.nn.models import MODEL_REGISTRY, MultiScaleZerNet, ZerNet
+from zernet.nn import MatrixOperator
+from zernet.nn.models import MODEL_REGISTRY, MultiScaleZerNet, ZerNet, available_models, build_model, register_model
+from zernet.operators import Geometry
 
 pytestmark = pytest.mark.filterwarnings("ignore:Sparse CSR tensor support is in beta")
 
@@ -171,7 +172,7 @@ def ellipsoid_geometry():
     import trimesh
 
     from zernet.data.preprocess import mesh_edge_index
-    from zernet.patches import PatchConfig, build_patch_operator
+    from zernet.operators import PatchConfig, build_patch_operator
     from zernet.surface import Surface
 
     mesh = trimesh.creation.icosphere(subdivisions=2)
@@ -189,6 +190,7 @@ def test_every_model_trains_under_bfloat16_autocast(name, ellipsoid_geometry):
         geometry = Geometry(geometry.operators * 3, geometry.edge_index)
     torch.manual_seed(0)
     model = build_model(name, 3, 5, widths=(8, 16, 16, 32))
+    geometry = geometry.with_directional(model.directional_order)  # built before the network, as the data do
     model.eval()  # no dropout: the two passes must see the same network
     x = torch.randn(geometry.operators[0].n_vertices, 3)
     reference = model(x, geometry)

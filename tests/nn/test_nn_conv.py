@@ -210,7 +210,7 @@ def test_options_and_errors():
 
 
 def test_real_patch_operator_on_small_mesh():
-    patches = pytest.importorskip("zernet.patches")
+    patches = pytest.importorskip("zernet.operators")
     surface_mod = pytest.importorskip("zernet.surface")
     trimesh = pytest.importorskip("trimesh")
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=1.0)

@@ -1,0 +1,127 @@
+"""The on-disk cache of patch operators: cache keys and the checked ``.npz`` file format.
+
+:func:`zernet.operators.build_patch_operator` with ``cache_dir`` stores one ``<key>.npz`` per (geometry,
+config), keyed by :func:`cache_key` = ``sha256(geometry_hash, config JSON, format version)``. The file holds
+the patch geometry (sample ids, polar coordinates, frames, interpolation; ~10 MB for 6,890 vertices) rather
+than the assembled matrix (~100 MB); assembling from it takes a fraction of a second.
+
+A file is an outer ``.npz`` holding an inner ``.npz`` payload, its sha256, the key and
+:data:`FORMAT_VERSION`; :func:`unpack_payload` rejects (``ValueError`` naming the file) a file that is
+unreadable, truncated, corrupt, stale or for another key, and the builder then warns with
+:class:`CacheWarning` and rebuilds. Files are written atomically (:func:`zernet.io_utils.atomic_write_bytes`).
+This module knows arrays, not operators: :class:`~zernet.operators.PatchOperator` turns itself into
+arrays and back (``to_bytes`` / ``from_bytes``, ``save`` / ``load``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse
+
+from zernet.io_utils import atomic_write_bytes
+
+__all__ = [
+    "FORMAT_VERSION",
+    "CacheWarning",
+    "cache_key",
+    "cache_path",
+    "pack_payload",
+    "unpack_payload",
+    "sparse_to_arrays",
+    "sparse_from_arrays",
+    "write_payload",
+    "read_payload",
+]
+
+FORMAT_VERSION = 1
+
+
+class CacheWarning(UserWarning):
+    """A cached operator file could not be trusted (corrupt, truncated, stale) and is being rebuilt."""
+
+
+def cache_key(surface, config) -> str:
+    """sha256 of the surface's ``geometry_hash()``, the config (``to_dict()``, JSON with sorted keys) and
+    the format version."""
+    text = json.dumps({"geometry": surface.geometry_hash(), "config": config.to_dict(), "version": FORMAT_VERSION}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def cache_path(cache_dir: str | os.PathLike, key: str) -> Path:
+    """The file of ``key`` in ``cache_dir``."""
+    return Path(cache_dir) / f"{key}.npz"
+
+
+def pack_payload(arrays: dict[str, np.ndarray], key: str = "") -> bytes:
+    """``.npz`` bytes: the arrays as an inner npz payload plus its sha256, ``key`` and the format version."""
+    inner = io.BytesIO()
+    np.savez(inner, **arrays)
+    payload = inner.getvalue()
+    outer = io.BytesIO()
+    np.savez(
+        outer,
+        payload=np.frombuffer(payload, dtype=np.uint8),
+        checksum=np.asarray(hashlib.sha256(payload).hexdigest()),
+        key=np.asarray(key),
+        version=np.asarray(FORMAT_VERSION),
+    )
+    return outer.getvalue()
+
+
+def unpack_payload(data: bytes, key: str | None = None, name: str = "<bytes>") -> dict[str, np.ndarray]:
+    """Inverse of :func:`pack_payload`; ``ValueError`` naming ``name`` on any inconsistency (unreadable,
+    other format version, other key when ``key`` is given, checksum mismatch)."""
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as outer:
+            version = int(outer["version"])
+            stored_key = str(outer["key"])
+            checksum = str(outer["checksum"])
+            payload = outer["payload"].tobytes()
+    except Exception as error:  # noqa: BLE001 - any read failure means "not a valid file"
+        raise ValueError(f"{name}: not a readable operator file ({type(error).__name__}: {error})") from error
+    if version != FORMAT_VERSION:
+        raise ValueError(f"{name}: format version {version}, expected {FORMAT_VERSION}")
+    if key is not None and stored_key != key:
+        raise ValueError(f"{name}: stored key {stored_key[:12]}... does not match {key[:12]}...")
+    if hashlib.sha256(payload).hexdigest() != checksum:
+        raise ValueError(f"{name}: payload checksum mismatch (file corrupt)")
+    try:
+        with np.load(io.BytesIO(payload), allow_pickle=False) as arrays:
+            return {entry: arrays[entry] for entry in arrays.files}
+    except Exception as error:  # noqa: BLE001
+        raise ValueError(f"{name}: inconsistent operator payload ({type(error).__name__}: {error})") from error
+
+
+def sparse_to_arrays(name: str, matrix: scipy.sparse.csr_matrix) -> dict[str, np.ndarray]:
+    """A CSR matrix as the arrays ``<name>_data``, ``_indices``, ``_indptr`` and ``_shape``."""
+    return {
+        f"{name}_data": matrix.data,
+        f"{name}_indices": matrix.indices,
+        f"{name}_indptr": matrix.indptr,
+        f"{name}_shape": np.asarray(matrix.shape, dtype=np.int64),
+    }
+
+
+def sparse_from_arrays(arrays: dict[str, np.ndarray], name: str) -> scipy.sparse.csr_matrix:
+    """Inverse of :func:`sparse_to_arrays`."""
+    return scipy.sparse.csr_matrix(
+        (arrays[f"{name}_data"], arrays[f"{name}_indices"], arrays[f"{name}_indptr"]),
+        shape=tuple(int(s) for s in arrays[f"{name}_shape"]),
+    )
+
+
+def write_payload(path: str | os.PathLike, arrays: dict[str, np.ndarray], key: str = "") -> Path:
+    """Write :func:`pack_payload` of the arrays atomically to ``path``."""
+    return atomic_write_bytes(path, pack_payload(arrays, key))
+
+
+def read_payload(path: str | os.PathLike, key: str | None = None) -> dict[str, np.ndarray]:
+    """Read a file written by :func:`write_payload`; ``ValueError`` naming the file if it cannot be trusted."""
+    path = Path(path)
+    return unpack_payload(path.read_bytes(), key=key, name=str(path))

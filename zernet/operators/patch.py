@@ -1,0 +1,490 @@
+"""The patch operator: one sparse linear map from per-vertex features to local Zernike coefficients.
+
+For vertex ``p`` with patch samples ``j`` at geodesic polar coordinates ``(r_j / r0, θ_j)``, the Zernike
+coefficients of a field ``f`` are the ridge least-squares fit ``a_p = P_p f(samples)`` with
+``P_p = (B_pᵀ B_p + λ I)⁻¹ B_pᵀ`` (``B_p``: n_p × k Zernike values). Samples carry vertex features by
+barycentric interpolation, so the whole map is ``A = blockrows_p(P_p · Interp[patch of p])``, an
+``(N·k) × N`` CSR matrix built once per surface and applied with a custom autograd function
+(:class:`SparseApply`) that keeps its transpose.
+
+Patch selection: the ``patch_size`` nearest samples within ``r0`` (nearest by geodesic radius), leaving
+out those with ``r < inner_radius``.
+
+Regularisation and truncated patches (boundary vertices, vertices with fewer than k samples):
+    λ is one absolute number per surface, ``λ = ridge · median_p(trace(B_pᵀ B_p) / k)``: ``ridge`` times
+    the typical eigenvalue of a full interior patch (≈ n_p / π for samples spread over the unit disk).
+    Interior patches are thus fitted with a relative bias of order ``ridge``; on a truncated patch the
+    modes the samples cannot see (eigenvalues ≪ λ) shrink to 0 instead of exploding — the least-squares
+    counterpart of the paper's zero padding (the field is treated as 0 where the surface has no samples).
+    The regularised system's condition number is at most ``1 + σ_max² / λ`` (about 1e3–1e4 for the
+    default ridge; the raw ``B_pᵀ B_p`` of boundary patches reaches 1e12). A vertex with no sample within
+    ``r0`` (e.g. an isolated vertex) gets all-zero rows.
+
+``subtract_center``: the fit is of ``f(sample) − f(p)``, i.e. ``A_p ← A_p − (P_p 1) e_pᵀ`` (still linear).
+
+Cache: :func:`build_patch_operator` with ``cache_dir`` keeps one file per (geometry, config); the key and
+the checked file format are in :mod:`zernet.operators.cache`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse
+import torch
+
+from zernet.polar import BACKENDS, compute_polar
+from zernet.surface import Surface, sample_surface
+from zernet.zernike import num_bases, zernike_basis
+
+from .cache import (
+    CacheWarning,
+    cache_key,
+    cache_path,
+    pack_payload,
+    read_payload,
+    sparse_from_arrays,
+    sparse_to_arrays,
+    unpack_payload,
+    write_payload,
+)
+from .sparse import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
+
+__all__ = [
+    "PatchConfig",
+    "PatchOperator",
+    "build_patch_operator",
+    "select_patches",
+    "fit_matrices",
+    "assemble_operator",
+]
+
+
+@dataclass(frozen=True)
+class PatchConfig:
+    """Everything that determines a patch operator besides the surface.
+
+    Attributes:
+        r0: patch radius (absolute units; 5.5 for bodies at area 15000).
+        n_samples: number of area-uniform surface samples (ignored for point clouds: the points are used).
+        patch_size: at most this many nearest samples per patch.
+        n_max: highest Zernike degree (k = (n_max + 1)(n_max + 2) / 2; 5 -> 21).
+        inner_radius: samples closer than this (absolute units) are left out.
+        subtract_center: fit ``f(sample) - f(p)`` instead of ``f(sample)``.
+        ridge: regularisation relative to a full patch's typical eigenvalue (module docstring).
+        backend: polar-coordinate backend, ``"fast"`` or ``"accurate"``.
+        seed: seed of the surface sampling.
+    """
+
+    r0: float
+    n_samples: int = 12000
+    patch_size: int = 50
+    n_max: int = 5
+    inner_radius: float = 0.0
+    subtract_center: bool = False
+    ridge: float = 1e-3
+    backend: str = "fast"
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.r0 > 0:
+            raise ValueError(f"PatchConfig.r0 must be positive, got {self.r0}")
+        if self.n_samples < 1 or self.patch_size < 1 or self.n_max < 0:
+            raise ValueError(f"PatchConfig needs n_samples >= 1, patch_size >= 1, n_max >= 0: {self}")
+        if not 0 <= self.inner_radius < self.r0:
+            raise ValueError(f"PatchConfig.inner_radius must be in [0, r0), got {self.inner_radius}")
+        if not self.ridge > 0:
+            raise ValueError(f"PatchConfig.ridge must be positive (it keeps truncated patches well-posed), got {self.ridge}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"PatchConfig.backend must be one of {BACKENDS}, got {self.backend!r}")
+
+    @property
+    def k(self) -> int:
+        """Number of Zernike coefficients per vertex."""
+        return num_bases(self.n_max)
+
+    def to_dict(self) -> dict:
+        """Plain dict (JSON-serialisable) of all fields."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> PatchConfig:
+        """Inverse of :meth:`to_dict`."""
+        return cls(**values)
+
+
+class PatchOperator:
+    """Sparse map from per-vertex features to per-vertex Zernike coefficients, plus its patch data.
+
+    Attributes:
+        n_vertices: N.
+        k: Zernike coefficients per vertex.
+        n_max: highest Zernike degree.
+        config: the :class:`PatchConfig` it was built with.
+        matrix: scipy CSR (N·k, N) float64; row ``p·k + j`` gives coefficient j at vertex p.
+        frames: (N, 3, 3) rows (e1, e2, normal); θ is measured from e1 towards e2.
+        patch_sample_index: (N, n) int64 sample ids per patch, nearest first, -1 where a patch is shorter.
+        patch_radius: (N, n) float64 normalised radius r / r0 (0 where -1).
+        patch_angle: (N, n) float64 θ (0 where -1).
+        interpolation: scipy CSR (M, N) vertex field -> samples.
+        lam: the absolute ridge λ used.
+    """
+
+    def __init__(
+        self,
+        matrix: scipy.sparse.csr_matrix,
+        frames: np.ndarray,
+        patch_sample_index: np.ndarray,
+        patch_radius: np.ndarray,
+        patch_angle: np.ndarray,
+        interpolation: scipy.sparse.csr_matrix,
+        config: PatchConfig,
+        lam: float = 0.0,
+    ) -> None:
+        self.matrix = matrix.tocsr()
+        self.frames = frames
+        self.patch_sample_index = patch_sample_index
+        self.patch_radius = patch_radius
+        self.patch_angle = patch_angle
+        self.interpolation = interpolation.tocsr()
+        self.config = config
+        self.lam = float(lam)
+        self.n_vertices = int(frames.shape[0])
+        self.n_max = config.n_max
+        self.k = config.k
+        if self.matrix.shape != (self.n_vertices * self.k, self.n_vertices):
+            raise ValueError(f"operator matrix has shape {self.matrix.shape}, expected {(self.n_vertices * self.k, self.n_vertices)}")
+        self._transpose: scipy.sparse.csr_matrix | None = None  # built with the first torch tensors
+        self._tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # (dtype, device, basis order)
+        self._basis: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ data
+    @property
+    def patch_basis(self) -> np.ndarray:
+        """(N, n, k) float64 Zernike values at the patch samples (0 where the index is -1); computed on
+        first use from :attr:`patch_radius` and :attr:`patch_angle`."""
+        if self._basis is None:
+            basis = zernike_basis(self.patch_radius, self.patch_angle, self.n_max)
+            basis[self.patch_sample_index < 0] = 0.0
+            self._basis = basis
+        return self._basis
+
+    @property
+    def nnz(self) -> int:
+        """Non-zeros of the matrix."""
+        return int(self.matrix.nnz)
+
+    def __repr__(self) -> str:
+        return f"PatchOperator(N={self.n_vertices}, k={self.k}, nnz={self.nnz}, r0={self.config.r0})"
+
+    # ------------------------------------------------------------------ apply
+    # Operators accept ``apply(x, basis_order=...)`` (see :meth:`apply`); layers that consume the coefficients
+    # in another order (the harmonic contraction, grouped by frequency) ask for it instead of gathering.
+    accepts_basis_order = True
+
+    def _torch_matrices(
+        self, dtype: torch.dtype, device: torch.device, basis_order: tuple | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """CSR tensors of A and Aᵀ (rows in ``basis_order`` within each vertex) for this dtype and device,
+        built on first use and kept."""
+        key = (dtype, device, basis_order)
+        if key not in self._tensors:
+            if basis_order is None:
+                if self._transpose is None:
+                    self._transpose = self.matrix.T.tocsr()
+                matrix, transpose = self.matrix, self._transpose
+            else:
+                matrix = reorder_basis_rows(self.matrix, self.k, basis_order)
+                transpose = matrix.T.tocsr()
+            self._tensors[key] = tuple(to_torch_csr(m, dtype, device) for m in (matrix, transpose))
+        return self._tensors[key]
+
+    def apply(self, x: torch.Tensor, basis_order: tuple | None = None) -> torch.Tensor:
+        """Zernike coefficients of the features' local patches.
+
+        Args:
+            x: (N,) or (N, *C) tensor; any floating dtype and device.
+            basis_order: optional permutation of ``range(k)``: coefficient ``i`` of the output is basis
+                ``basis_order[i]`` (the same as ``apply(x)[:, basis_order]``, without the gather; the
+                reordered matrix is built once and kept).
+
+        Returns:
+            (N, k) or (N, k, *C), same dtype and device; differentiable in ``x``.
+        """
+        if x.shape[0] != self.n_vertices:
+            raise ValueError(f"features have {x.shape[0]} rows but the operator has {self.n_vertices} vertices")
+        trailing = x.shape[1:]
+        flat = x.reshape(self.n_vertices, -1)
+        matrix, transpose = self._torch_matrices(x.dtype, x.device, checked_basis_order(basis_order, self.k))
+        out = SparseApply.apply(flat.contiguous(), matrix, transpose)
+        return out.reshape((self.n_vertices, self.k) + tuple(trailing))
+
+    __call__ = apply
+
+    def to(self, device) -> PatchOperator:
+        """Move the cached torch tensors to ``device`` (the next :meth:`apply` there needs no conversion).
+
+        Returns ``self``; the numpy/scipy data stay on the host. Tensors for other devices are dropped.
+        """
+        device = torch.device(device)
+        if self._tensors and all(have == device for _, have, _ in self._tensors):
+            return self  # already there: training calls this every step
+        kinds = {(dtype, order) for dtype, _, order in self._tensors} or {(torch.float32, None)}
+        self._tensors = {}
+        for dtype, order in kinds:
+            self._torch_matrices(dtype, device, order)
+        return self
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_tensors"] = {}  # torch tensors are rebuilt on demand after unpickling
+        state["_basis"] = None
+        return state
+
+    # ------------------------------------------------------------------ batching
+    @staticmethod
+    def concatenate(ops: list[PatchOperator]) -> PatchOperator:
+        """Block-diagonal operator of several surfaces (vertices and samples stacked in order).
+
+        All operators must have the same ``k``; the result carries the first operator's config. Patch
+        arrays are padded to the longest patch with -1 / 0.
+        """
+        ops = list(ops)
+        if not ops:
+            raise ValueError("concatenate needs at least one operator")
+        if len({op.k for op in ops}) != 1:
+            raise ValueError(f"cannot concatenate operators with different k: {[op.k for op in ops]}")
+        width = max(op.patch_sample_index.shape[1] for op in ops)
+        sample_offset = np.cumsum([0] + [op.interpolation.shape[0] for op in ops])[:-1]
+
+        def pad(array, fill):
+            out = np.full((array.shape[0], width), fill, dtype=array.dtype)
+            out[:, : array.shape[1]] = array
+            return out
+
+        index = np.concatenate(
+            [pad(np.where(op.patch_sample_index >= 0, op.patch_sample_index + off, -1), -1) for op, off in zip(ops, sample_offset)]
+        )
+        return PatchOperator(
+            matrix=scipy.sparse.block_diag([op.matrix for op in ops], format="csr"),
+            frames=np.concatenate([op.frames for op in ops]),
+            patch_sample_index=index,
+            patch_radius=np.concatenate([pad(op.patch_radius, 0.0) for op in ops]),
+            patch_angle=np.concatenate([pad(op.patch_angle, 0.0) for op in ops]),
+            interpolation=scipy.sparse.block_diag([op.interpolation for op in ops], format="csr"),
+            config=ops[0].config,
+            lam=ops[0].lam,
+        )
+
+    # ------------------------------------------------------------------ files
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Everything that defines the operator, as named numpy arrays (the cache file's payload)."""
+        arrays = {
+            "frames": self.frames,
+            "patch_sample_index": self.patch_sample_index,
+            "patch_radius": self.patch_radius,
+            "patch_angle": self.patch_angle,
+            "lam": np.asarray(self.lam),
+            "config": np.asarray(json.dumps(self.config.to_dict(), sort_keys=True)),
+        }
+        arrays.update(sparse_to_arrays("matrix", self.matrix))
+        arrays.update(sparse_to_arrays("interpolation", self.interpolation))
+        return arrays
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], name: str = "<arrays>") -> PatchOperator:
+        """Inverse of :meth:`to_arrays`; ``ValueError`` naming ``name`` if the arrays do not fit together."""
+        try:
+            return cls(
+                matrix=sparse_from_arrays(arrays, "matrix"),
+                frames=arrays["frames"],
+                patch_sample_index=arrays["patch_sample_index"],
+                patch_radius=arrays["patch_radius"],
+                patch_angle=arrays["patch_angle"],
+                interpolation=sparse_from_arrays(arrays, "interpolation"),
+                config=PatchConfig.from_dict(json.loads(str(arrays["config"]))),
+                lam=float(arrays["lam"]),
+            )
+        except Exception as error:  # noqa: BLE001
+            raise ValueError(f"{name}: inconsistent operator payload ({type(error).__name__}: {error})") from error
+
+    def to_bytes(self, key: str = "") -> bytes:
+        """Serialise to checked ``.npz`` bytes (:func:`zernet.operators.cache.pack_payload`)."""
+        return pack_payload(self.to_arrays(), key)
+
+    @classmethod
+    def from_bytes(cls, data: bytes, key: str | None = None, name: str = "<bytes>") -> PatchOperator:
+        """Inverse of :meth:`to_bytes`; raises ``ValueError`` (naming ``name``) on any inconsistency."""
+        return cls.from_arrays(unpack_payload(data, key=key, name=name), name=name)
+
+    def save(self, path: str | os.PathLike, key: str = "") -> Path:
+        """Write atomically to ``path`` (``.npz``)."""
+        return write_payload(path, self.to_arrays(), key)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, key: str | None = None) -> PatchOperator:
+        """Read a file written by :meth:`save`; ``ValueError`` naming the file if it cannot be trusted."""
+        return cls.from_arrays(read_payload(path, key=key), name=str(path))
+
+
+# ====================================================================== building
+def build_patch_operator(
+    surface: Surface,
+    config: PatchConfig,
+    cache_dir: str | os.PathLike | None = None,
+    progress: bool = False,
+    n_jobs: int | None = None,
+) -> PatchOperator:
+    """Build (or load from the cache) the patch operator of a surface.
+
+    Args:
+        surface: mesh or point cloud.
+        config: :class:`PatchConfig`.
+        cache_dir: folder of cached operators (``<key>.npz``); ``None`` disables caching.
+        progress: print the stage timings.
+        n_jobs: worker processes of the accurate backend (``None``: all cores).
+
+    Returns:
+        :class:`PatchOperator`.
+    """
+    key = cache_key(surface, config)
+    path = None
+    if cache_dir is not None:
+        path = cache_path(cache_dir, key)
+        if path.exists():
+            try:
+                return PatchOperator.load(path, key=key)
+            except (ValueError, OSError) as error:
+                warnings.warn(f"rebuilding cached patch operator {path}: {error}", CacheWarning, stacklevel=2)
+    start = time.perf_counter()
+    samples = sample_surface(surface, config.n_samples, seed=config.seed)
+    polar = compute_polar(surface, samples, config.r0, backend=config.backend, n_jobs=n_jobs)
+    if progress:
+        print(f"{surface.name}: polar coordinates ({config.backend}) {polar.seconds:.2f} s, {polar.n_pairs} pairs")
+    operator = assemble_operator(
+        polar.center, polar.sample, polar.radius, polar.angle, polar.frames, samples.interpolation, config
+    )
+    if progress:
+        print(f"{surface.name}: operator {operator} in {time.perf_counter() - start:.2f} s")
+    if path is not None:
+        operator.save(path, key=key)
+    return operator
+
+
+def select_patches(center, sample, radius, angle, n_vertices: int, config: PatchConfig):
+    """The ``patch_size`` nearest samples of each vertex with ``inner_radius <= r <= r0``.
+
+    Args:
+        center, sample, radius, angle: (P,) pairs sorted by (center, radius), as in ``PolarCoordinates``.
+
+    Returns:
+        ``(index, r, theta)``, each (N, n): sample ids (-1 for padding), normalised radii r / r0 and angles
+        (0 for padding), nearest first. ``n`` is the longest patch (<= patch_size).
+    """
+    keep = (radius >= config.inner_radius) & (radius <= config.r0)
+    center, sample, radius, angle = center[keep], sample[keep], radius[keep], angle[keep]
+    start = np.searchsorted(center, np.arange(n_vertices))
+    rank = np.arange(len(center)) - start[center]
+    keep = rank < config.patch_size
+    center, sample, radius, angle, rank = center[keep], sample[keep], radius[keep], angle[keep], rank[keep]
+    width = int(rank.max()) + 1 if len(rank) else 1
+    index = np.full((n_vertices, width), -1, dtype=np.int64)
+    r = np.zeros((n_vertices, width))
+    theta = np.zeros((n_vertices, width))
+    index[center, rank] = sample
+    r[center, rank] = radius / config.r0
+    theta[center, rank] = angle
+    return index, r, theta
+
+
+def fit_matrices(basis: np.ndarray, mask: np.ndarray, ridge: float) -> tuple[np.ndarray, float]:
+    """Batched ridge least-squares fit matrices.
+
+    Args:
+        basis: (N, n, k) Zernike values, zero rows at padding.
+        mask: (N, n) bool, True at real samples.
+        ridge: relative ridge (module docstring).
+
+    Returns:
+        ``(P, lam)``: (N, k, n) with ``P_p = (B_pᵀB_p + λI)⁻¹ B_pᵀ`` (zero columns at padding, zero for
+        empty patches) and the absolute λ.
+    """
+    basis_t = np.ascontiguousarray(basis.transpose(0, 2, 1))  # (N, k, n)
+    basis_t *= mask[:, None, :]
+    gram = basis_t @ basis_t.transpose(0, 2, 1)
+    k = basis.shape[-1]
+    trace = np.trace(gram, axis1=1, axis2=2)
+    populated = mask.any(axis=1)
+    scale = float(np.median(trace[populated]) / k) if populated.any() else 1.0
+    lam = ridge * max(scale, 1e-12)
+    gram[:, np.arange(k), np.arange(k)] += lam
+    # Inverting the k × k systems (k right-hand sides) is cheaper than solving for the n columns of Bᵀ;
+    # the systems are symmetric positive definite with condition number <= 1 + σ_max² / λ.
+    fit = np.linalg.inv(gram) @ basis_t
+    fit[~populated] = 0.0
+    return fit, lam
+
+
+def assemble_operator(center, sample, radius, angle, frames, interpolation, config: PatchConfig) -> PatchOperator:
+    """Patch selection, fit and the sparse operator ``A = blockrows(P_p · Interp[patch p])``.
+
+    Args:
+        center, sample, radius, angle: (P,) polar pairs sorted by (center, radius).
+        frames: (N, 3, 3).
+        interpolation: (M, N) CSR.
+        config: :class:`PatchConfig`.
+
+    Returns:
+        :class:`PatchOperator`.
+    """
+    n = frames.shape[0]
+    k = config.k
+    index, r, theta = select_patches(center, sample, radius, angle, n, config)
+    mask = index >= 0
+    basis = zernike_basis(r, theta, config.n_max)
+    fit, lam = fit_matrices(basis, mask, config.ridge)  # (N, k, n)
+
+    # Rows p*k + i, columns = patch sample ids; then one sparse product carries samples to vertices.
+    # With subtract_center the vertex itself is an extra pseudo-sample (column M + p) of weight -Σ_j P_p[i, j].
+    m_samples = interpolation.shape[0]
+    counts = mask.sum(axis=1)
+    row_lengths = np.repeat(counts, k) + (1 if config.subtract_center else 0)
+    indptr = np.concatenate([[0], np.cumsum(row_lengths)])
+    cols = np.broadcast_to(index[:, None, :], fit.shape)[np.broadcast_to(mask[:, None, :], fit.shape)]
+    vals = fit[np.broadcast_to(mask[:, None, :], fit.shape)]
+    if config.subtract_center:
+        # Append the centre entry at the end of every row (row-major order is kept by a stable scatter).
+        total = indptr[-1]
+        all_cols = np.empty(total, dtype=np.int64)
+        all_vals = np.empty(total)
+        is_center = np.zeros(total, dtype=bool)
+        is_center[indptr[1:] - 1] = True
+        all_cols[~is_center] = cols
+        all_vals[~is_center] = vals
+        all_cols[is_center] = m_samples + np.repeat(np.arange(n), k)
+        all_vals[is_center] = -fit.sum(axis=2).ravel()
+        cols, vals = all_cols, all_vals
+        carry = scipy.sparse.vstack([interpolation, scipy.sparse.identity(n, format="csr")], format="csr")
+    else:
+        carry = interpolation
+    blocks = scipy.sparse.csr_matrix((vals, cols, indptr), shape=(n * k, carry.shape[0]))
+    matrix = (blocks @ carry).tocsr()
+    matrix.sum_duplicates()
+    matrix.eliminate_zeros()
+    return PatchOperator(
+        matrix=matrix,
+        frames=frames,
+        patch_sample_index=index,
+        patch_radius=r,
+        patch_angle=theta,
+        interpolation=interpolation,
+        config=config,
+        lam=lam,
+    )
