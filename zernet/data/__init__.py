@@ -2,46 +2,52 @@
 
 Entry point for training and the command line::
 
-    dataset = load_dataset(kind, patch_configs=..., area=..., cache_dir=..., progress=..., workers=...,
-                           seed=0, val_fraction=0.1, val_count=None, **loader_options)
+    dataset = load_dataset(kind, options=LoaderOptions(patch_configs=..., cache_dir=..., workers=...,
+                                                       seed=0, n_val=0.1, feature_kind="xyz", ...),
+                           **kind_arguments)
 
-Kinds (:data:`DATASET_KINDS`) and their loader options:
+:class:`~zernet.data.options.LoaderOptions` holds the options every data set shares (patch settings, cache,
+features, seed and validation count, workers, strict, repair, progress); ``kind_arguments`` are the
+arguments particular to the kind's loader (:data:`DATASET_KINDS`):
 
 - ``"synthetic"`` / ``"synthetic-parts"``: built-in creatures, part segmentation (4 classes);
-  ``"synthetic-curvature"``: the same creatures, mean-curvature regression. Options of
-  :func:`~zernet.data.synthetic.make_synthetic_dataset`: n_shapes, n_vertices, rotate, test_fraction,
-  feature_kind (``task`` is set by the kind, or give ``task=`` with "synthetic").
-- ``"faust"``: :func:`~zernet.data.faust.load_faust` — root (required), train_indices, test_indices, ...
+  ``"synthetic-curvature"``: the same creatures, mean-curvature regression. Arguments of
+  :func:`~zernet.data.synthetic.make_synthetic_dataset`: n_shapes, n_vertices, rotate, test_fraction, area
+  (``task`` is set by the kind, or give ``task=`` with "synthetic").
+- ``"faust"``: :func:`~zernet.data.faust.load_faust` — root (required), train_indices, test_indices,
+  n_vertices, area.
 - ``"segmentation"``: :func:`~zernet.data.segmentation.load_segmentation` — meshes (required), labels,
-  num_classes, label_base, label_kind, test, test_fraction, ...
-- ``"aneurysm"``: :func:`~zernet.data.regression.load_aneurysm` — root (required), field, test, ...
+  num_classes, class_names, label_base, label_kind, test, test_fraction, area.
+- ``"aneurysm"``: :func:`~zernet.data.regression.load_aneurysm` — root (required), field, test, area.
 - ``"regression"``: :func:`~zernet.data.regression.load_regression` — root (required), field,
-  target_exponent, test, test_fraction, ...
+  target_exponent, test, test_fraction, area.
 
-``patch_configs`` empty or None uses the kind's default patch settings; ``area`` None uses the kind's
-default area (FAUST/segmentation 15000, aneurysm 100, synthetic 1000; the generic regression default keeps
-the files' scale). ``val_count`` (a count) overrides ``val_fraction``. An option a loader does not take
-raises TypeError.
+Without ``options``, every shared option is also accepted as a keyword, together with ``val_fraction``
+(default 0.1) and ``val_count`` (a count, overrides ``val_fraction``) for ``n_val``, and ``area=None`` then
+means the kind's default area (FAUST/segmentation 15000, aneurysm 100, synthetic 1000; the generic
+regression default keeps the files' scale) — the interface the run configuration uses. An argument the
+kind does not take raises TypeError naming it and listing what the kind takes.
 """
 
 from __future__ import annotations
 
 import inspect
+from collections.abc import Callable
 
-from zernet.data.base import (
-    FEATURE_PARTS,
-    DatasetError,
-    ShapeDataset,
-    ShapeRecord,
-    carve_validation,
-    compute_features,
-    default_features,
-)
-from zernet.data.preprocess import PreprocessError, ShapeSource, build_dataset, prepare_record
+from zernet.data.dataset import DatasetError, ShapeDataset, ShapeRecord, carve_validation
+from zernet.data.faust import load_faust
+from zernet.data.features import FEATURE_PARTS, compute_features, default_features
+from zernet.data.options import SHARED_OPTIONS, LoaderOptions
+from zernet.data.preprocess import PreprocessError, build_dataset, prepare_record
+from zernet.data.regression import load_aneurysm, load_regression
+from zernet.data.segmentation import load_segmentation
+from zernet.data.source import ShapeSource
+from zernet.data.synthetic import make_synthetic_dataset
 
 __all__ = [
     "DATASET_KINDS",
     "load_dataset",
+    "LoaderOptions",
     "ShapeRecord",
     "ShapeDataset",
     "ShapeSource",
@@ -55,46 +61,57 @@ __all__ = [
     "carve_validation",
 ]
 
-DATASET_KINDS = ("synthetic", "synthetic-parts", "synthetic-curvature", "faust", "segmentation", "aneurysm",
-                 "regression")
+#: The loader of each data set kind.
+LOADERS: dict[str, Callable[..., ShapeDataset]] = {
+    "synthetic": make_synthetic_dataset,
+    "synthetic-parts": make_synthetic_dataset,
+    "synthetic-curvature": make_synthetic_dataset,
+    "faust": load_faust,
+    "segmentation": load_segmentation,
+    "aneurysm": load_aneurysm,
+    "regression": load_regression,
+}
+DATASET_KINDS = tuple(LOADERS)
+# The synthetic kinds that fix the task.
+_SYNTHETIC_TASKS = {"synthetic-parts": "segmentation", "synthetic-curvature": "regression"}
+# Keywords of the configuration interface that become LoaderOptions.n_val.
+_VALIDATION_KEYWORDS = ("val_fraction", "val_count")
 
 
-def load_dataset(
-    kind: str,
-    patch_configs=None,
-    area: float | None = None,
-    cache_dir=".zernet-cache",
-    progress: bool = True,
-    workers: int | None = None,
-    seed: int = 0,
-    val_fraction: float = 0.1,
-    val_count: int | None = None,
-    **options,
-) -> ShapeDataset:
-    """Build (preprocess and cache) the data set of ``kind``; see the module docstring for the options."""
-    from zernet.data import faust, regression, segmentation, synthetic
-
-    n_val = val_count if val_count is not None else float(val_fraction)
-    common = {"patch_configs": patch_configs or None, "cache_dir": cache_dir, "progress": progress,
-              "workers": workers, "seed": seed, "n_val": n_val}
-    if kind in ("synthetic", "synthetic-parts", "synthetic-curvature"):
-        if kind != "synthetic" and "task" in options:
-            raise TypeError(f"data kind {kind!r} fixes the task; use kind 'synthetic' with task=...")
-        task = options.pop("task", "regression" if kind == "synthetic-curvature" else "segmentation")
-        function, extra = synthetic.make_synthetic_dataset, {"task": task, "area": area}
-    elif kind == "faust":
-        function, extra = faust.load_faust, ({"area": area} if area is not None else {})
-    elif kind == "segmentation":
-        function, extra = segmentation.load_segmentation, ({"area": area} if area is not None else {})
-    elif kind == "aneurysm":
-        function, extra = regression.load_aneurysm, ({"area": area} if area is not None else {})
-    elif kind == "regression":
-        function, extra = regression.load_regression, {"area": area}
-    else:
+def load_dataset(kind: str, options: LoaderOptions | None = None, **arguments) -> ShapeDataset:
+    """Build (preprocess and cache) the data set of ``kind``; see the module docstring for the arguments."""
+    if kind not in LOADERS:
         raise DatasetError(f"unknown data set kind {kind!r}; choose one of {', '.join(DATASET_KINDS)}")
-    accepted = set(inspect.signature(function).parameters)
-    unknown = sorted(set(options) - accepted)
+    if kind in _SYNTHETIC_TASKS:
+        if "task" in arguments:
+            raise TypeError(f"data kind {kind!r} fixes the task; use kind 'synthetic' with task=...")
+        arguments["task"] = _SYNTHETIC_TASKS[kind]
+    if options is None:
+        options, arguments = _options_from_keywords(arguments)
+    elif not isinstance(options, LoaderOptions):
+        raise TypeError(f"options must be a LoaderOptions, got {type(options).__name__}")
+    else:
+        shared = sorted(set(arguments) & (set(SHARED_OPTIONS) | set(_VALIDATION_KEYWORDS)))
+        if shared:
+            raise TypeError(f"{', '.join(shared)}: give shared options inside options=LoaderOptions(...), "
+                            "not as keywords beside it")
+    loader = LOADERS[kind]
+    accepted = set(inspect.signature(loader).parameters) - {"options"}
+    unknown = sorted(set(arguments) - accepted)
     if unknown:
-        raise TypeError(f"unknown option(s) {', '.join(unknown)} for data kind {kind!r} "
-                        f"(it takes: {', '.join(sorted(accepted - set(common) - {'area', 'task'}))})")
-    return function(**{**common, **extra, **options})
+        takes = sorted(accepted - ({"task"} if kind in _SYNTHETIC_TASKS else set()))
+        raise TypeError(f"unknown option(s) {', '.join(unknown)} for data kind {kind!r} (it takes: "
+                        f"{', '.join(takes)}; and the shared options {', '.join(SHARED_OPTIONS)})")
+    return loader(**arguments, options=options)
+
+
+def _options_from_keywords(arguments: dict) -> tuple[LoaderOptions, dict]:
+    """Split the configuration interface's keywords into LoaderOptions and the loader's own arguments."""
+    arguments = dict(arguments)
+    shared = {name: arguments.pop(name) for name in SHARED_OPTIONS if name in arguments}
+    val_fraction = arguments.pop("val_fraction", 0.1)
+    val_count = arguments.pop("val_count", None)
+    shared.setdefault("n_val", val_count if val_count is not None else float(val_fraction))
+    if "area" in arguments and arguments["area"] is None:
+        del arguments["area"]  # the kind's default area
+    return LoaderOptions(**shared), arguments

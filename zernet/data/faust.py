@@ -23,8 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from zernet.data.base import DatasetError, ShapeDataset
-from zernet.data.preprocess import ShapeSource, build_dataset, file_key
+from zernet.data.dataset import DatasetError, ShapeDataset
+from zernet.data.options import LoaderOptions
+from zernet.data.preprocess import build_dataset
+from zernet.data.source import ShapeSource, file_key
+from zernet.patches import PatchConfig
 from zernet.surface import Surface, load_surface
 
 __all__ = ["FAUST_AREA", "FAUST_VERTICES", "load_faust", "find_registrations", "faust_patch_configs"]
@@ -37,8 +40,6 @@ _PATTERN = "tr_reg_{:03d}.ply"
 def faust_patch_configs(n_scales: int = 1, **overrides):
     """The authors' settings at area 15000: r0 = 5.5 (then 11, 22 for more scales), 12000 samples, 50 per
     patch, samples closer than r0/4 left out (``inner_radius``), centre value subtracted."""
-    from zernet.patches import PatchConfig
-
     settings = {"n_samples": 12000, "patch_size": 50, "inner_radius": 0.25, "subtract_center": True}
     settings.update(overrides)
     return [PatchConfig(r0=5.5 * 2**s, **settings) for s in range(n_scales)]
@@ -81,34 +82,27 @@ def _load_registration(path: str, n_vertices: int, faces_digest: str, reference:
 
 def load_faust(
     root: str | os.PathLike,
-    patch_configs=None,
-    cache_dir: str | os.PathLike = ".zernet-cache",
-    area: float | None = FAUST_AREA,
     train_indices: Sequence[int] = range(0, 80),
     test_indices: Sequence[int] = range(80, 100),
-    n_val: int | float = 8,
-    seed: int = 0,
     n_vertices: int | None = FAUST_VERTICES,
-    feature_kind: str = "xyz",
-    workers: int | None = None,
-    strict: bool = True,
-    progress: bool = True,
+    area: float | None = FAUST_AREA,
+    options: LoaderOptions = LoaderOptions(),
 ) -> ShapeDataset:
     """The FAUST correspondence data set (classification, one class per template vertex).
 
     Args:
         root: see the module docstring.
-        patch_configs: PatchConfig list (default :func:`faust_patch_configs`).
-        cache_dir: preprocessing cache.
-        area: target surface area (default 15000; None keeps the files' scale).
         train_indices, test_indices: registration numbers XXX of each split (defaults: the standard split).
-        n_val: validation shapes carved from the training ones (count or fraction), seeded by ``seed``.
         n_vertices: the expected vertex count of every registration (None: take the first file's).
-        strict: a shape that fails stops everything (default: with correspondence by vertex index, a
-            broken registration means a broken copy of the data set).
+        area: target surface area (default 15000; None keeps the files' scale).
+        options: the shared :class:`~zernet.data.options.LoaderOptions`. FAUST's defaults:
+            ``patch_configs`` :func:`faust_patch_configs`, ``n_val`` 8 validation shapes carved from the
+            training ones, ``strict`` True (with correspondence by vertex index, a broken registration means
+            a broken copy of the data set).
 
     Returns a :class:`ShapeDataset` with ``correspondence = True`` and ``num_classes`` = vertex count.
     """
+    options = options.with_defaults(n_val=8, strict=True, patch_configs=faust_patch_configs())
     folder = find_registrations(root)
     train_indices, test_indices = [int(i) for i in train_indices], [int(i) for i in test_indices]
     overlap = sorted(set(train_indices) & set(test_indices))
@@ -142,21 +136,13 @@ def load_faust(
         )
         for i in wanted
     ]
-    dataset = build_dataset(
+    return build_dataset(
         sources,
-        patch_configs if patch_configs else faust_patch_configs(),
-        cache_dir,
-        area,
+        target_area=area,
         task="classification",
         num_classes=count,
         split_names={"train": [paths[i].stem for i in train_indices], "test": [paths[i].stem for i in test_indices]},
-        n_val=n_val,
-        seed=seed,
-        feature_kind=feature_kind,
-        workers=workers,
-        strict=strict,
-        progress=progress,
         correspondence=True,
         info={"kind": "faust", "root": str(folder)},
+        **options.build_arguments(),
     )
-    return dataset

@@ -8,10 +8,11 @@ objects and hands them to :func:`build_dataset`, which
    (:func:`~zernet.surface.normalize_area`; a regression target scales with ``area ** target_exponent``),
 3. builds one patch operator per :class:`~zernet.patches.PatchConfig` with
    :func:`~zernet.patches.build_patch_operator` (which keeps its own on-disk cache under ``cache_dir``),
-4. writes the normalised surface and target to ``cache_dir/shapes/`` — the marker that the shape is done.
+4. writes the normalised surface and target to the shape cache (:mod:`zernet.data.cache`) — the marker that
+   the shape is done.
 
-Steps 1-4 run in worker processes (``workers``; 0 or 1 runs them in this process) with a bounded number of
-shapes in flight, so memory stays at a few shapes per worker whatever the data set size. A worker returns
+Steps 1-4 run in worker processes (:mod:`zernet.data.pool`; ``workers`` 0 or 1 runs them in this process)
+with a bounded number of shapes in flight, so memory stays at a few shapes per worker whatever the data set size. A worker returns
 only a short status; the records are then read back from the cache. A shape whose cache entry exists is
 skipped without loading its file (the entry is read back once to check it; a truncated or corrupt one is
 reported by file name and rebuilt). A shape that fails (unreadable file, label mismatch, ...) is reported
@@ -21,34 +22,30 @@ every shape failed or when ``strict=True``.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
-import multiprocessing
 import os
-import re
-import sys
 import warnings
-from collections.abc import Callable, Sequence
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import dataclass, is_dataclass, asdict
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
+from tqdm.auto import tqdm
 
-from zernet.data.base import (
-    DatasetError,
-    ShapeDataset,
-    ShapeRecord,
-    _as_target,
-    carve_validation,
-    compute_features,
-    feature_channels,
-    feature_parts,
+from zernet.data.cache import (
+    cached_vertex_count,
+    read_cached_target,
+    read_shape,
+    shape_cache_path,
+    usable_cache_entry,
+    write_shape,
 )
-from zernet.io_utils import atomic_write_bytes
+from zernet.data.dataset import DatasetError, ShapeDataset, ShapeRecord, as_target, carve_validation
+from zernet.data.features import compute_features, feature_channels, feature_parts
+from zernet.data.pool import WORKER_DIED, pool_context, run_jobs, worker_init
+from zernet.data.source import ShapeSource, file_key
 from zernet.nn.geometry import Geometry
 from zernet.patches import PatchConfig, build_patch_operator
 from zernet.surface import Surface, normalize_area, validate_surface
@@ -63,7 +60,12 @@ __all__ = [
     "as_patch_configs",
     "file_key",
     "IN_MEMORY_VERTEX_LIMIT",
+    "WORKER_DIED",
 ]
+
+# Old private spellings of the pool's public names, kept for the benchmarks until they import zernet.data.pool.
+_pool_context = pool_context
+_worker_init = worker_init
 
 logger = logging.getLogger(__name__)
 
@@ -71,8 +73,6 @@ logger = logging.getLogger(__name__)
 #: larger ones (FAUST: 100 × 6890) are read back from the cache on each access.
 IN_MEMORY_VERTEX_LIMIT = 200_000
 
-# Bump when the content of the shape cache files changes, so old entries are not misread.
-_CACHE_FORMAT = "zernet-shape-1"
 # The name under which a regression target travels through normalize_area as a surface field.
 _TARGET_FIELD = "__zernet_target__"
 
@@ -83,40 +83,6 @@ class PreprocessError(RuntimeError):
     def __init__(self, message: str, failures: dict[str, str]):
         super().__init__(message)
         self.failures = dict(failures)
-
-
-@dataclass(frozen=True)
-class ShapeSource:
-    """How to obtain one shape and its ground truth.
-
-    Attributes:
-        name: unique name within the data set (used in splits, messages and the cache file name).
-        load: zero-argument callable returning ``(surface, target)``; ``target`` is an (N,) per-vertex array
-            or None. It runs in a worker process, so it must be picklable: a module-level function or a
-            ``functools.partial`` of one — never a lambda or a closure. It should raise
-            :class:`~zernet.surface.SurfaceError` / :class:`~zernet.data.base.DatasetError` with a clear
-            message for a bad file.
-        key: a string that changes whenever the shape's content would change (e.g. file paths with sizes
-            and modification times, or generator parameters), used to skip already cached shapes without
-            loading them. None disables the skip (operators are still cached by geometry hash).
-        target_exponent: area exponent of a regression target: the target is multiplied by
-            ``(target_area / area) ** target_exponent`` when the surface is normalised (0.5 for wall stress,
-            -0.5 for a curvature, 0 for labels and dimensionless values).
-    """
-
-    name: str
-    load: Callable[[], tuple[Surface, np.ndarray | None]]
-    key: str | None = None
-    target_exponent: float = 0.0
-
-
-def file_key(*paths: str | os.PathLike) -> str:
-    """Content key for file-based sources: absolute path, size and modification time of each file."""
-    parts = []
-    for path in paths:
-        stat = os.stat(path)
-        parts.append(f"{os.path.abspath(path)}|{stat.st_size}|{stat.st_mtime_ns}")
-    return ";".join(parts)
 
 
 def as_patch_configs(configs) -> list[PatchConfig]:
@@ -140,98 +106,12 @@ def mesh_edge_index(surface: Surface, k_cloud: int = 8) -> torch.Tensor:
     if surface.faces is not None:
         edges = surface.edges()  # (E, 2) unique undirected pairs
     else:
-        from scipy.spatial import cKDTree
-
         k = min(k_cloud, surface.n_vertices - 1)
         _, neighbours = cKDTree(surface.vertices).query(surface.vertices, k=k + 1)
         rows = np.repeat(np.arange(surface.n_vertices), k)
         edges = np.unique(np.sort(np.stack([rows, neighbours[:, 1:].reshape(-1)], axis=1), axis=1), axis=0)
     both = np.concatenate([edges, edges[:, ::-1]], axis=0).T
     return torch.from_numpy(np.ascontiguousarray(both, dtype=np.int64))
-
-
-# --------------------------------------------------------------------------------------------- cache entries
-def _config_fingerprint(config: PatchConfig) -> dict:
-    return asdict(config) if is_dataclass(config) else dict(vars(config))
-
-
-def _cache_path(cache_dir: Path, source: ShapeSource, target_area: float | None, configs, repair: bool) -> Path | None:
-    """Cache file of one shape, or None when the source has no content key."""
-    if source.key is None:
-        return None
-    description = json.dumps(
-        {
-            "format": _CACHE_FORMAT,
-            "key": source.key,
-            "area": target_area,
-            "exponent": source.target_exponent,
-            "repair": repair,
-            "configs": [_config_fingerprint(c) for c in configs],
-        },
-        sort_keys=True,
-        default=str,
-    )
-    digest = hashlib.sha256(description.encode()).hexdigest()[:20]
-    safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", source.name)[:60]
-    return cache_dir / "shapes" / f"{safe}-{digest}.npz"
-
-
-def _write_shape(path: Path, surface: Surface, target: np.ndarray | None, scale: float) -> None:
-    import io
-
-    buffer = io.BytesIO()
-    arrays = {"vertices": surface.vertices, "scale": np.float64(scale), "surface_name": np.str_(surface.name)}
-    if surface.faces is not None:
-        arrays["faces"] = surface.faces
-    if surface.normals is not None:
-        arrays["normals"] = surface.normals
-    if target is not None:
-        arrays["target"] = target
-    for key, value in surface.fields.items():
-        arrays[f"field:{key}"] = value
-    np.savez(buffer, **arrays)
-    atomic_write_bytes(path, buffer.getvalue())
-
-
-def _read_shape(path: Path) -> tuple[Surface, np.ndarray | None, float]:
-    """Read a shape cache entry; :class:`DatasetError` naming the file if it is truncated or corrupt.
-
-    Every array is read in full, so the zip CRC of each member is checked: a damaged file cannot pass.
-    """
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            fields = {key[6:]: data[key] for key in data.files if key.startswith("field:")}
-            surface = Surface(
-                data["vertices"],
-                data["faces"] if "faces" in data.files else None,
-                data["normals"] if "normals" in data.files else None,
-                fields,
-                str(data["surface_name"]),
-            )
-            target = data["target"] if "target" in data.files else None
-            return surface, target, float(data["scale"])
-    except FileNotFoundError:
-        raise
-    except Exception as error:  # BadZipFile, EOFError, KeyError, ValueError, zlib.error ...
-        raise DatasetError(f"{path}: shape cache file is unreadable ({type(error).__name__}: {error}); "
-                           "delete it or run the preprocessing again to rebuild it") from None
-
-
-def _usable_cache_entry(path: Path) -> bool:
-    """True if the cache entry exists and reads back; a damaged one is reported (named) and removed."""
-    if not path.is_file():
-        return False
-    try:
-        _read_shape(path)
-        return True
-    except DatasetError as error:
-        warnings.warn(f"{error} -- rebuilding it", RuntimeWarning, stacklevel=3)
-        logger.warning("%s -- rebuilding it", error)
-        try:
-            path.unlink()
-        except OSError:
-            pass  # rebuilt and atomically replaced anyway
-        return False
 
 
 # ------------------------------------------------------------------------------------------ per-shape work
@@ -267,83 +147,13 @@ def _prepare_one(job: tuple) -> tuple[str, str | None]:
         for config in configs:
             build_patch_operator(surface, config, cache_dir=cache_dir)
         if cache_path is not None:
-            _write_shape(cache_path, surface, target, scale)
+            write_shape(cache_path, surface, target, scale)
         return source.name, None
     except Exception as error:  # reported by name; the other shapes go on
         message = str(error) or type(error).__name__
         if not isinstance(error, (ValueError, OSError)):
             message = f"{type(error).__name__}: {message}"
         return source.name, message
-
-
-def _worker_init() -> None:
-    # Several workers share few cores: one thread each avoids oversubscription.
-    torch.set_num_threads(1)
-
-
-def _pool_context():
-    """Start method for the worker pool.
-
-    forkserver (or spawn) starts workers from a fresh interpreter, never a fork of a process that may
-    already run torch/OpenMP threads. Both re-import the main script in each worker, which is impossible
-    when the main module is not a real file (``python - < script``); fork is used there.
-    """
-    methods = multiprocessing.get_all_start_methods()
-    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
-    if main_file is not None and not os.path.isfile(main_file) and "fork" in methods:
-        return multiprocessing.get_context("fork")
-    if "forkserver" not in methods:
-        return multiprocessing.get_context("spawn")
-    context = multiprocessing.get_context("forkserver")
-    # The fork server imports torch and zernet once; every worker forked from it starts with them loaded
-    # instead of spending seconds importing them itself (which dominated the time for small shapes).
-    context.set_forkserver_preload(["zernet.data.preprocess"])
-    return context
-
-
-def _run_pool(jobs: list, workers: int, in_flight_limit: int, record) -> set[str]:
-    """Run jobs in a process pool with at most ``in_flight_limit`` submitted at once; returns the names
-    finished (all of them unless the pool broke)."""
-    from concurrent.futures.process import BrokenProcessPool
-
-    finished: set[str] = set()
-
-    def collect(futures) -> None:
-        for future in futures:
-            name, error = future.result()
-            finished.add(name)
-            record(name, error)
-
-    try:
-        with ProcessPoolExecutor(workers, mp_context=_pool_context(), initializer=_worker_init) as pool:
-            running: set = set()
-            for job in jobs:
-                running.add(pool.submit(_prepare_one, job))
-                if len(running) >= in_flight_limit:
-                    done, running = wait(running, return_when=FIRST_COMPLETED)
-                    collect(done)
-            collect(running)
-    except BrokenProcessPool as error:
-        logger.warning("preprocessing pool broke: %s", error)
-    return finished
-
-
-#: Reason recorded for a shape whose worker process died while working on it.
-WORKER_DIED = ("the worker process died while preprocessing this shape (killed, e.g. by the out-of-memory "
-               "killer, or crashed in native code)")
-
-
-def _prepare_isolated(job: tuple) -> tuple[str, str | None] | None:
-    """Run one job in a fresh one-worker pool; (name, WORKER_DIED) if that worker dies, None if no pool starts."""
-    from concurrent.futures.process import BrokenProcessPool
-
-    try:
-        with ProcessPoolExecutor(1, mp_context=_pool_context(), initializer=_worker_init) as pool:
-            return pool.submit(_prepare_one, job).result()
-    except BrokenProcessPool:
-        return job[0].name, WORKER_DIED
-    except OSError:  # no processes can be started here at all
-        return None
 
 
 def preprocess_shapes(
@@ -359,13 +169,12 @@ def preprocess_shapes(
     """Preprocess every source into ``cache_dir`` (see the module docstring). Returns {name: failure reason}.
 
     workers: processes to use; None = number of CPUs (at most the number of shapes to do); 0 or 1 = in this
-        process. Pool workers start from a fresh interpreter (forkserver/spawn; see ``_pool_context``), so a
-        script calling this needs the usual ``if __name__ == "__main__":`` guard. If the pool breaks, the
-        remaining shapes are processed in this process with a warning.
+        process. Pool workers start from a fresh interpreter (forkserver/spawn; see
+        :func:`~zernet.data.pool.pool_context`), so a script calling this needs the usual
+        ``if __name__ == "__main__":`` guard. If the pool breaks, the remaining shapes are processed one at a
+        time in fresh workers with a warning.
     max_in_flight: shapes submitted but not finished at any time (default 2 per worker), which bounds memory.
     """
-    from tqdm.auto import tqdm
-
     configs = as_patch_configs(patch_configs)
     cache_dir = Path(cache_dir)
     cache_dir.mkdir(parents=True, exist_ok=True)
@@ -373,11 +182,11 @@ def preprocess_shapes(
     if len(set(names)) != len(names):
         raise DatasetError(f"shape names must be unique; repeated: {sorted({n for n in names if names.count(n) > 1})[:5]}")
 
-    jobs = []
+    jobs = {}
     for source in sources:
-        path = _cache_path(cache_dir, source, target_area, configs, repair)
-        if path is None or not _usable_cache_entry(path):
-            jobs.append((source, configs, str(cache_dir), target_area, repair, path))
+        path = shape_cache_path(cache_dir, source, target_area, configs, repair)
+        if path is None or not usable_cache_entry(path):
+            jobs[source.name] = (source, configs, str(cache_dir), target_area, repair, path)
     if len(jobs) < len(sources):
         logger.info("preprocess: %d of %d shapes already cached, %d to do", len(sources) - len(jobs),
                     len(sources), len(jobs))
@@ -396,25 +205,7 @@ def preprocess_shapes(
         workers = os.cpu_count() or 1
     workers = max(0, min(int(workers), len(jobs)))
     try:
-        if workers <= 1:
-            for job in jobs:
-                record(*_prepare_one(job))
-        else:
-            done_names = _run_pool(jobs, workers, max_in_flight or 2 * workers, record)
-            leftover = [job for job in jobs if job[0].name not in done_names]
-            if leftover:
-                # The pool broke: a worker was killed (e.g. out of memory) or crashed, or workers cannot start
-                # here. Each remaining shape then runs in its own one-worker pool, so a shape that kills its
-                # worker is reported by name instead of taking this process down when retried here. Only if
-                # no worker ever finished a shape (a start-up problem) are the shapes processed in this process.
-                warnings.warn(f"preprocessing worker pool failed; processing the remaining {len(leftover)} shapes "
-                              "one at a time in fresh worker processes", RuntimeWarning, stacklevel=2)
-                outcomes = [_prepare_isolated(job) for job in leftover]
-                workers_work = bool(done_names) or any(o is not None and o[1] != WORKER_DIED for o in outcomes)
-                for job, outcome in zip(leftover, outcomes):
-                    if outcome is None or (outcome[1] == WORKER_DIED and not workers_work):
-                        outcome = _prepare_one(job)
-                    record(*outcome)
+        run_jobs(_prepare_one, jobs, workers, max_in_flight or 2 * workers, record)
     finally:
         bar.close()
     return failures
@@ -428,7 +219,7 @@ def _make_record(surface: Surface, target, scale: float, name: str, configs, cac
         name=name,
         surface=surface,
         features=compute_features(surface, feature_kind, operators, cache_dir=cache_dir),
-        target=_as_target(target, task, surface.n_vertices, surface.name),
+        target=as_target(target, task, surface.n_vertices, surface.name),
         geometry=geometry,
         scale=scale,
     )
@@ -443,13 +234,11 @@ class _CachedRecord:
 
     def target(self) -> np.ndarray | None:
         """Only the target, read from the cache file (no operators built)."""
-        with np.load(self.path, allow_pickle=False) as data:
-            if "target" not in data.files:
-                return None
-            return _as_target(data["target"], self.task, int(data["vertices"].shape[0]), self.name)
+        target, n_vertices = read_cached_target(self.path)
+        return as_target(target, self.task, n_vertices, self.name)
 
     def __call__(self) -> ShapeRecord:
-        surface, target, scale = _read_shape(self.path)
+        surface, target, scale = read_shape(self.path)
         return _make_record(surface, target, scale, self.name, self.configs, self.cache_dir, self.task,
                             self.feature_kind)
 
@@ -509,7 +298,7 @@ def build_dataset(
         split_names: {"train": names, "test": names, ...}; a "val" split is carved from "train"
             (``n_val`` shapes or a fraction, seeded by ``seed``) unless split_names already has one.
             Shapes that failed are dropped from every split.
-        feature_kind: parts of :data:`~zernet.data.base.FEATURE_PARTS` joined by '+'.
+        feature_kind: parts of :data:`~zernet.data.features.FEATURE_PARTS` joined by '+'.
         workers, repair, progress: see :func:`preprocess_shapes`.
         strict: raise :class:`PreprocessError` if any shape fails (otherwise only if all fail).
         in_memory: hold every record in memory; None decides by size (:data:`IN_MEMORY_VERTEX_LIMIT`).
@@ -531,27 +320,9 @@ def build_dataset(
         warnings.warn(message + "\n(continuing without them)", RuntimeWarning, stacklevel=2)
 
     kept = [s for s in sources if s.name not in failures]
-    loaders = []
-    for source in kept:
-        path = _cache_path(cache_dir, source, target_area, configs, repair)
-        if path is None:
-            # No content key: nothing on disk to reload from, so this shape is built here and kept in memory.
-            surface, target = source.load()
-            surface, target, scale = _normalise(surface, target, target_area, source.target_exponent, repair)
-            loaders.append(_make_record(surface, target, scale, source.name, configs, str(cache_dir), task,
-                                        feature_kind))
-        else:
-            loaders.append(_CachedRecord(path, source.name, configs, str(cache_dir), task, feature_kind))
-
+    loaders = [_record_loader(source, configs, cache_dir, target_area, task, feature_kind, repair) for source in kept]
     names = [s.name for s in kept]
-    position = {name: i for i, name in enumerate(names)}
-    unknown = sorted({n for split in split_names.values() for n in split} - {s.name for s in sources})
-    if unknown:
-        raise DatasetError(f"splits name shapes that are not in the data set: {unknown[:5]}")
-    splits = {key: sorted(position[n] for n in value if n in position) for key, value in split_names.items()}
-    if "val" not in splits:
-        splits["train"], splits["val"] = carve_validation(splits.get("train", []), n_val, seed)
-    splits.setdefault("test", [])
+    splits = _index_splits(split_names, names, {s.name for s in sources}, n_val, seed)
 
     if in_memory is None:
         in_memory = _estimate_vertices(loaders) * len(configs) <= IN_MEMORY_VERTEX_LIMIT
@@ -562,6 +333,32 @@ def build_dataset(
                         feature_kind, target_area, failures, info, correspondence)
 
 
+def _record_loader(source: ShapeSource, configs, cache_dir: Path, target_area: float | None, task: str,
+                   feature_kind: str, repair: bool) -> ShapeRecord | _CachedRecord:
+    """The record of a preprocessed shape, or its loader from the shape cache."""
+    path = shape_cache_path(cache_dir, source, target_area, configs, repair)
+    if path is not None:
+        return _CachedRecord(path, source.name, configs, str(cache_dir), task, feature_kind)
+    # No content key: nothing on disk to reload from, so this shape is built here and kept in memory.
+    surface, target = source.load()
+    surface, target, scale = _normalise(surface, target, target_area, source.target_exponent, repair)
+    return _make_record(surface, target, scale, source.name, configs, str(cache_dir), task, feature_kind)
+
+
+def _index_splits(split_names: dict[str, Sequence[str]], kept: list[str], every_name: set[str],
+                  n_val: int | float, seed: int) -> dict[str, list[int]]:
+    """Splits by name -> index lists into the kept shapes, with "val" carved from "train" when not given."""
+    position = {name: i for i, name in enumerate(kept)}
+    unknown = sorted({n for split in split_names.values() for n in split} - every_name)
+    if unknown:
+        raise DatasetError(f"splits name shapes that are not in the data set: {unknown[:5]}")
+    splits = {key: sorted(position[n] for n in value if n in position) for key, value in split_names.items()}
+    if "val" not in splits:
+        splits["train"], splits["val"] = carve_validation(splits.get("train", []), n_val, seed)
+    splits.setdefault("test", [])
+    return splits
+
+
 def _estimate_vertices(loaders) -> int:
     """Total vertex count of the data set (reads only the vertex arrays of the cache files)."""
     total = 0
@@ -569,6 +366,5 @@ def _estimate_vertices(loaders) -> int:
         if isinstance(item, ShapeRecord):
             total += item.n_vertices
         else:
-            with np.load(item.path, allow_pickle=False) as data:
-                total += int(data["vertices"].shape[0])
+            total += cached_vertex_count(item.path)
     return total

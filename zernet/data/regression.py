@@ -24,9 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from zernet.data.base import DatasetError, ShapeDataset, carve_validation
-from zernet.data.preprocess import ShapeSource, build_dataset, file_key
-from zernet.data.segmentation import MESH_EXTENSIONS, find_meshes
+from zernet.data.dataset import DatasetError, ShapeDataset, carve_validation
+from zernet.data.options import LoaderOptions
+from zernet.data.preprocess import build_dataset
+from zernet.data.segmentation import MESH_EXTENSIONS, draw_test_names, find_meshes
+from zernet.data.source import ShapeSource, file_key
+from zernet.patches import PatchConfig
 from zernet.surface import Surface, load_surface
 
 __all__ = [
@@ -37,6 +40,8 @@ __all__ = [
     "leave_one_out_splits",
     "aneurysm_patch_configs",
     "read_values",
+    "load_mat_field",
+    "load_mesh_values",
 ]
 
 ANEURYSM_AREA = 100.0
@@ -50,8 +55,6 @@ def aneurysm_patch_configs(n_scales: int = 1, **overrides):
     paper's FAUST setting: r0 = 5.5 · sqrt(100 / 15000) ≈ 0.45 (a disk covers 0.63 % of the surface) and
     12000 samples per surface, so a disk holds ~76 samples of which ``patch_size = 50`` are fitted.
     Scale s has radius 0.45 · 2**s. ``overrides`` go to every PatchConfig."""
-    from zernet.patches import PatchConfig
-
     settings = {"n_samples": 12000, "patch_size": 50}
     settings.update(overrides)
     return [PatchConfig(r0=0.45 * 2**s, **settings) for s in range(n_scales)]
@@ -87,7 +90,7 @@ def read_values(path: str | os.PathLike) -> np.ndarray:
     return values
 
 
-def _load_mat_field(path: str, field: str) -> tuple[Surface, np.ndarray]:
+def load_mat_field(path: str, field: str) -> tuple[Surface, np.ndarray]:
     """ShapeSource loader: a .mat surface and its named per-vertex field (removed from the surface)."""
     surface = load_surface(path)
     if field not in surface.fields:
@@ -99,7 +102,11 @@ def _load_mat_field(path: str, field: str) -> tuple[Surface, np.ndarray]:
     return Surface(surface.vertices, surface.faces, surface.normals, fields, surface.name), target
 
 
-def _load_mesh_values(mesh_path: str, value_path: str) -> tuple[Surface, np.ndarray]:
+# Old private spelling, kept importable for the tests until they use the public name.
+_load_mat_field = load_mat_field
+
+
+def load_mesh_values(mesh_path: str, value_path: str) -> tuple[Surface, np.ndarray]:
     """ShapeSource loader: a mesh and the per-vertex values of its companion file."""
     surface = load_surface(mesh_path)
     values = read_values(value_path)
@@ -133,23 +140,20 @@ def _splits_for(names: list[str], test: Sequence[str] | str | None, where: Path)
 
 def load_aneurysm(
     root: str | os.PathLike,
-    patch_configs=None,
-    cache_dir: str | os.PathLike = ".zernet-cache",
-    area: float | None = ANEURYSM_AREA,
     field: str = "J2m",
     test: Sequence[str] | str | None = None,
-    n_val: int | float = 2,
-    seed: int = 0,
-    feature_kind: str = "xyz",
-    workers: int | None = None,
-    strict: bool = False,
-    progress: bool = True,
+    area: float | None = ANEURYSM_AREA,
+    options: LoaderOptions = LoaderOptions(),
 ) -> ShapeDataset:
     """The aneurysm wall-stress data set: every ``*.mat`` file under ``root`` (not recursive).
 
-    ``test``: held-out case name(s) (e.g. "TP_Ia105I"); default none (use :func:`leave_one_out_splits` for
-    the paper's folds). The target is ``field`` (default J2m), area exponent 0.5.
+    ``field``: the target (default J2m), area exponent 0.5. ``test``: held-out case name(s) (e.g.
+    "TP_Ia105I"); default none (use :func:`leave_one_out_splits` for the paper's folds). ``area``: target
+    surface area (default 100, the files' own; None keeps the files' scale). ``options``: the shared
+    :class:`~zernet.data.options.LoaderOptions`; the aneurysm defaults are ``patch_configs``
+    :func:`aneurysm_patch_configs`, ``n_val`` 2 and ``strict`` False.
     """
+    options = options.with_defaults(n_val=2, patch_configs=aneurysm_patch_configs())
     root = Path(os.path.expanduser(os.fspath(root)))
     if not root.is_dir():
         raise DatasetError(f"aneurysm folder {root} does not exist" if not root.exists()
@@ -158,48 +162,45 @@ def load_aneurysm(
     if not files:
         raise DatasetError(f"{root}: no .mat files; expected the authors' layout TP_Ia<ID>I.mat (X, F, {field})")
     sources = [
-        ShapeSource(name=path.stem, load=partial(_load_mat_field, str(path), field),
+        ShapeSource(name=path.stem, load=partial(load_mat_field, str(path), field),
                     key=file_key(path) + f"|{field}", target_exponent=0.5)
         for path in files
     ]
     names = [s.name for s in sources]
     return build_dataset(
-        sources, patch_configs if patch_configs else aneurysm_patch_configs(), cache_dir, area,
-        task="regression", num_classes=None, split_names=_splits_for(names, test, root), n_val=n_val, seed=seed,
-        feature_kind=feature_kind, workers=workers, strict=strict, progress=progress,
+        sources, target_area=area, task="regression", num_classes=None,
+        split_names=_splits_for(names, test, root),
         info={"kind": "aneurysm", "root": str(root), "field": field, "paper_cases": list(PAPER_CASES),
               "target_exponent": 0.5},
+        **options.build_arguments(),
     )
 
 
 def load_regression(
     root: str | os.PathLike,
-    patch_configs=None,
-    cache_dir: str | os.PathLike = ".zernet-cache",
-    area: float | None = None,
     field: str | None = None,
     target_exponent: float = 0.0,
     test: Sequence[str] | str | None = None,
     test_fraction: float | None = None,
-    n_val: int | float = 0.1,
-    seed: int = 0,
-    feature_kind: str = "xyz",
-    workers: int | None = None,
-    strict: bool = False,
-    progress: bool = True,
+    area: float | None = None,
+    options: LoaderOptions = LoaderOptions(),
 ) -> ShapeDataset:
     """A generic per-vertex regression data set from the folder ``root`` (recursive).
 
     Each mesh ``<stem>.ply|.obj|.off|.stl`` needs ``<stem>.npy`` or ``<stem>.txt`` beside it; each ``.mat``
-    file needs ``field`` (its named per-vertex array). ``area``: target area (None keeps the files' scale);
-    ``target_exponent``: the target's area exponent. ``test``: names (paths relative to root, without
-    extension) of the test shapes, or ``test_fraction`` for a seeded random share; neither: no test split.
+    file needs ``field`` (its named per-vertex array). ``target_exponent``: the target's area exponent.
+    ``test``: names (paths relative to root, without extension) of the test shapes, or ``test_fraction`` for
+    a share drawn with ``options.seed``; neither: no test split. ``area``: target area (default None keeps
+    the files' scale). ``options``: the shared :class:`~zernet.data.options.LoaderOptions`;
+    ``options.patch_configs`` is required (no default suits every scale), ``n_val`` defaults to 0.1 and
+    ``strict`` to False.
     """
+    options = options.with_defaults(n_val=0.1)
     root = Path(os.path.expanduser(os.fspath(root)))
     if not root.is_dir():
         raise DatasetError(f"regression folder {root} does not exist" if not root.exists()
                            else f"regression root {root} is a file; give the folder of meshes and value files")
-    if not patch_configs:
+    if not options.patch_configs:
         raise DatasetError("regression: give patch_configs (a patch radius suited to the surfaces' area)")
     sources, missing = [], []
     for path in find_meshes(root, MESH_EXTENSIONS + (".mat",)):
@@ -207,14 +208,14 @@ def load_regression(
         if path.suffix.lower() == ".mat":
             if field is None:
                 raise DatasetError(f"{path}: .mat files need field= (the name of the per-vertex target array)")
-            sources.append(ShapeSource(name, partial(_load_mat_field, str(path), field),
+            sources.append(ShapeSource(name, partial(load_mat_field, str(path), field),
                                        file_key(path) + f"|{field}", target_exponent))
             continue
         companions = [path.with_suffix(ext) for ext in VALUE_EXTENSIONS if path.with_suffix(ext).is_file()]
         if not companions:
             missing.append(str(path.relative_to(root)))
             continue
-        sources.append(ShapeSource(name, partial(_load_mesh_values, str(path), str(companions[0])),
+        sources.append(ShapeSource(name, partial(load_mesh_values, str(path), str(companions[0])),
                                    file_key(path, companions[0]), target_exponent))
     if missing:
         shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
@@ -224,13 +225,9 @@ def load_regression(
         raise DatasetError(f"{root}: no meshes ({', '.join(MESH_EXTENSIONS)}) or .mat files found")
     names = [s.name for s in sources]
     if test is None and test_fraction is not None:
-        if not 0 < test_fraction < 1:
-            raise DatasetError(f"test_fraction must be in (0, 1), got {test_fraction}")
-        count = min(len(names) - 1, max(1, int(round(test_fraction * len(names)))))
-        test = [names[i] for i in sorted(np.random.default_rng(seed + 7919).permutation(len(names))[:count])]
+        test = draw_test_names(names, test_fraction, options.seed)
     return build_dataset(
-        sources, patch_configs, cache_dir, area, task="regression", num_classes=None,
-        split_names=_splits_for(names, test, root), n_val=n_val, seed=seed, feature_kind=feature_kind,
-        workers=workers, strict=strict, progress=progress,
+        sources, target_area=area, task="regression", num_classes=None, split_names=_splits_for(names, test, root),
         info={"kind": "regression", "root": str(root), "field": field, "target_exponent": target_exponent},
+        **options.build_arguments(),
     )

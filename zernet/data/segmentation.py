@@ -34,13 +34,17 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
-from zernet.data.base import DatasetError, ShapeDataset
-from zernet.data.preprocess import ShapeSource, build_dataset, file_key
+from zernet.data.dataset import DatasetError, ShapeDataset
+from zernet.data.options import LoaderOptions
+from zernet.data.preprocess import build_dataset
+from zernet.data.source import ShapeSource, file_key
 from zernet.surface import Surface, load_surface, validate_surface
 
 __all__ = [
@@ -51,6 +55,8 @@ __all__ = [
     "read_labels",
     "face_to_vertex_labels",
     "find_meshes",
+    "load_labelled_mesh",
+    "draw_test_names",
 ]
 
 MESH_EXTENSIONS = (".ply", ".obj", ".off", ".stl")
@@ -130,7 +136,7 @@ def _resolve_labels(mesh_path: Path, surface: Surface, raw: np.ndarray, label_pa
     return labels
 
 
-def _load_labelled_mesh(mesh_path: str, label_path: str, label_kind: str, base: int, num_classes: int,
+def load_labelled_mesh(mesh_path: str, label_path: str, label_kind: str, base: int, num_classes: int,
                         repair: bool) -> tuple[Surface, np.ndarray]:
     """ShapeSource loader: the mesh and its per-vertex labels.
 
@@ -153,10 +159,12 @@ def _load_labelled_mesh(mesh_path: str, label_path: str, label_kind: str, base: 
     return surface, labels
 
 
+# Old private spelling, kept importable for the tests until they use the public name.
+_load_labelled_mesh = load_labelled_mesh
+
+
 def _read_as_stored(mesh_path: str) -> Surface:
     """A mesh exactly as stored (vertex and face order kept, no validation yet)."""
-    import trimesh
-
     options = {"maintain_order": True} if mesh_path.lower().endswith(".obj") else {}
     try:
         mesh = trimesh.load(mesh_path, process=False, force="mesh", **options)
@@ -181,25 +189,72 @@ def _label_file_for(mesh: Path, mesh_root: Path, label_root: Path) -> Path | Non
     return matches[0] if len(matches) == 1 else None
 
 
+def _pair_with_labels(mesh_files: list[Path], mesh_root: Path, label_root: Path) -> list[tuple[Path, Path]]:
+    """Every mesh with its label file; DatasetError listing the meshes that have none."""
+    pairs: list[tuple[Path, Path]] = []
+    unlabelled = []
+    for mesh in mesh_files:
+        label = label_root if label_root.is_file() else _label_file_for(mesh, mesh_root, label_root)
+        if label is None:
+            unlabelled.append(str(mesh.relative_to(mesh_root)))
+        else:
+            pairs.append((mesh, label))
+    if unlabelled:
+        shown = ", ".join(unlabelled[:8]) + (f" and {len(unlabelled) - 8} more" if len(unlabelled) > 8 else "")
+        raise DatasetError(f"{label_root}: no label file (same name, {'/'.join(LABEL_EXTENSIONS)}) for "
+                           f"{len(unlabelled)} mesh(es): {shown}")
+    return pairs
+
+
+def _label_base(label_files: set[Path], label_base: int | str, num_classes: int) -> int:
+    """The labels' base (0 or 1), decided once over all label files (see the module docstring).
+
+    Every label file is read here, so an unreadable one stops the loader before any preprocessing."""
+    label_values = [read_labels(label) for label in label_files]
+    if label_base in (0, 1):
+        return int(label_base)
+    if label_base != "auto":
+        raise DatasetError(f"label_base must be 'auto', 0 or 1, got {label_base!r}")
+    has_zero = any((values == 0).any() for values in label_values)
+    has_top = any((values == num_classes).any() for values in label_values)
+    return 1 if (not has_zero and has_top) else 0
+
+
+def draw_test_names(names: Sequence[str], test_fraction: float, seed: int) -> list[str]:
+    """A seeded share ``test_fraction`` of ``names`` (at least one, and at least one left), in name order."""
+    if not 0 < test_fraction < 1:
+        raise DatasetError(f"test_fraction must be in (0, 1), got {test_fraction}")
+    count = min(len(names) - 1, max(1, int(round(test_fraction * len(names)))))
+    order = np.random.default_rng(seed + 7919).permutation(len(names))
+    return [names[i] for i in sorted(order[:count])]
+
+
+def _test_names(names: list[str], test: Sequence[str] | None, test_fraction: float, seed: int,
+                mesh_root: Path) -> list[str]:
+    """The test meshes: ``test`` if given, else those under a ``test`` folder, else a seeded share."""
+    if test is not None:
+        test_names = [str(t) for t in test]
+        unknown = sorted(set(test_names) - set(names))
+        if unknown:
+            raise DatasetError(f"{mesh_root}: test meshes {unknown[:5]} not found (names are paths relative to "
+                               f"the mesh folder without extension, e.g. {names[0]!r})")
+        return test_names
+    if any("test" in Path(name).parts[:-1] for name in names):
+        return [name for name in names if "test" in Path(name).parts[:-1]]
+    return draw_test_names(names, test_fraction, seed)
+
+
 def load_segmentation(
     meshes: str | os.PathLike,
     labels: str | os.PathLike | None = None,
-    patch_configs=None,
-    cache_dir: str | os.PathLike = ".zernet-cache",
-    area: float | None = 15000.0,
     num_classes: int = 8,
     class_names: Sequence[str] | None = None,
     label_base: int | str = "auto",
     label_kind: str = "auto",
     test: Sequence[str] | None = None,
     test_fraction: float = 0.2,
-    n_val: int | float = 0.1,
-    seed: int = 0,
-    feature_kind: str = "xyz",
-    workers: int | None = None,
-    strict: bool = False,
-    repair: bool = False,
-    progress: bool = True,
+    area: float | None = 15000.0,
+    options: LoaderOptions = LoaderOptions(),
 ) -> ShapeDataset:
     """A part-segmentation data set (per-vertex classification).
 
@@ -207,19 +262,20 @@ def load_segmentation(
         meshes: folder of meshes (searched recursively) or a single mesh file.
         labels: folder of per-mesh label files, or one label file shared by every mesh; default: the mesh
             folder (label files next to the meshes).
-        patch_configs: PatchConfig list (required: segmentation data comes at any scale; for human bodies
-            at area 15000 use :func:`zernet.data.faust.faust_patch_configs`).
-        area: target surface area (default 15000, human bodies as in the paper; None keeps the files').
         num_classes: number of parts (8 for the human benchmark).
         class_names: names for plots (default :data:`HUMAN_PART_NAMES` when num_classes == 8).
         label_base: "auto" (see the module docstring), 0 or 1.
         label_kind: "auto", "vertex" or "face".
         test: names (mesh paths relative to ``meshes``, without extension) of the test meshes; default: meshes
-            under a ``test`` folder, else a seeded ``test_fraction``.
-        n_val, seed: validation shapes carved from the training ones.
-        strict: stop at the first failing mesh instead of leaving it out.
-        repair: merge duplicate vertices and drop degenerate faces (labels follow).
+            under a ``test`` folder, else a ``test_fraction`` drawn with ``options.seed``.
+        area: target surface area (default 15000, human bodies as in the paper; None keeps the files').
+        options: the shared :class:`~zernet.data.options.LoaderOptions`. ``options.patch_configs`` is
+            required (segmentation data comes at any scale; for human bodies at area 15000 use
+            :func:`zernet.data.faust.faust_patch_configs`); ``n_val`` defaults to 0.1, ``strict`` (stop at
+            the first failing mesh instead of leaving it out) to False; ``repair`` merges duplicate vertices
+            and drops degenerate faces after the labels are read, the labels following.
     """
+    options = options.with_defaults(n_val=0.1)
     mesh_root = Path(os.path.expanduser(os.fspath(meshes)))
     if not mesh_root.exists():
         raise DatasetError(f"segmentation meshes: {mesh_root} does not exist")
@@ -234,67 +290,32 @@ def load_segmentation(
     if label_kind not in ("auto", "vertex", "face"):
         raise DatasetError(f"label_kind must be 'auto', 'vertex' or 'face', got {label_kind!r}")
 
-    # Pair every mesh with its label file.
-    pairs: list[tuple[Path, Path]] = []
-    unlabelled = []
-    for mesh in mesh_files:
-        label = label_root if label_root.is_file() else _label_file_for(mesh, mesh_root, label_root)
-        if label is None:
-            unlabelled.append(str(mesh.relative_to(mesh_root)))
-        else:
-            pairs.append((mesh, label))
-    if unlabelled:
-        shown = ", ".join(unlabelled[:8]) + (f" and {len(unlabelled) - 8} more" if len(unlabelled) > 8 else "")
-        raise DatasetError(f"{label_root}: no label file (same name, {'/'.join(LABEL_EXTENSIONS)}) for "
-                           f"{len(unlabelled)} mesh(es): {shown}")
-
-    # Label base, decided once over all label files.
-    label_values = {label: read_labels(label) for label in {label for _, label in pairs}}
-    if label_base == "auto":
-        has_zero = any((values == 0).any() for values in label_values.values())
-        has_top = any((values == num_classes).any() for values in label_values.values())
-        base = 1 if (not has_zero and has_top) else 0
-    elif label_base in (0, 1):
-        base = int(label_base)
-    else:
-        raise DatasetError(f"label_base must be 'auto', 0 or 1, got {label_base!r}")
+    pairs = _pair_with_labels(mesh_files, mesh_root, label_root)
+    base = _label_base({label for _, label in pairs}, label_base, num_classes)
 
     names = [str(mesh.relative_to(mesh_root).with_suffix("")) for mesh, _ in pairs]
     sources = [
         ShapeSource(
             name=name,
-            load=partial(_load_labelled_mesh, str(mesh), str(label), label_kind, base, num_classes, repair),
-            key=file_key(mesh, label) + f"|{label_kind}|{base}|{num_classes}|{repair}",
+            load=partial(load_labelled_mesh, str(mesh), str(label), label_kind, base, num_classes,
+                         options.repair),
+            key=file_key(mesh, label) + f"|{label_kind}|{base}|{num_classes}|{options.repair}",
         )
         for name, (mesh, label) in zip(names, pairs)
     ]
 
-    if test is not None:
-        test_names = [str(t) for t in test]
-        unknown = sorted(set(test_names) - set(names))
-        if unknown:
-            raise DatasetError(f"{mesh_root}: test meshes {unknown[:5]} not found (names are paths relative to "
-                               f"the mesh folder without extension, e.g. {names[0]!r})")
-    elif any("test" in Path(name).parts[:-1] for name in names):
-        test_names = [name for name in names if "test" in Path(name).parts[:-1]]
-    else:
-        if not 0 < test_fraction < 1:
-            raise DatasetError(f"test_fraction must be in (0, 1), got {test_fraction}")
-        count = min(len(names) - 1, max(1, int(round(test_fraction * len(names)))))
-        order = np.random.default_rng(seed + 7919).permutation(len(names))
-        test_names = [names[i] for i in sorted(order[:count])]
+    test_names = _test_names(names, test, test_fraction, options.seed, mesh_root)
     train_names = [name for name in names if name not in set(test_names)]
     if class_names is None and num_classes == len(HUMAN_PART_NAMES):
         class_names = HUMAN_PART_NAMES
 
-    if not patch_configs:
+    if not options.patch_configs:
         raise DatasetError("segmentation: give patch_configs (e.g. [{'r0': 5.5}] for human bodies at area 15000)")
+    # The shape loader repairs (so the labels follow the merged vertices); the pipeline must not repair again.
     return build_dataset(
-        sources, patch_configs, cache_dir, area,
-        task="classification", num_classes=num_classes,
+        sources, target_area=area, task="classification", num_classes=num_classes,
         split_names={"train": train_names, "test": test_names},
-        n_val=n_val, seed=seed, feature_kind=feature_kind, workers=workers, strict=strict, repair=False,
-        progress=progress,
         info={"kind": "segmentation", "meshes": str(mesh_root), "labels": str(label_root), "label_base": base,
               "class_names": list(class_names) if class_names is not None else None},
+        **replace(options, repair=False).build_arguments(),
     )

@@ -31,16 +31,16 @@ Here the area is 1000 and r0 = 2.5 (a patch covers about 2 % of the surface, ~30
 from __future__ import annotations
 
 import json
-import os
 from functools import partial
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from zernet.data.base import DatasetError, ShapeDataset
-from zernet.data.preprocess import ShapeSource, build_dataset
+from zernet.data.dataset import DatasetError, ShapeDataset
+from zernet.data.options import LoaderOptions
+from zernet.data.preprocess import build_dataset
+from zernet.data.source import ShapeSource
 from zernet.patches import PatchConfig
 from zernet.surface import Surface
 
@@ -53,6 +53,7 @@ __all__ = [
     "demo_patch_configs",
     "make_synthetic_dataset",
     "fibonacci_sphere",
+    "load_creature",
 ]
 
 #: Every creature is scaled to this surface area (see the module docstring for the patch density).
@@ -162,10 +163,14 @@ def make_creature(
     return surface, labels, curvature
 
 
-def _load_creature(seed: int, n_vertices: int, rotate: bool, task: str) -> tuple[Surface, np.ndarray]:
-    """ShapeSource loader (module level, so worker processes can unpickle it)."""
+def load_creature(seed: int, n_vertices: int, rotate: bool, task: str) -> tuple[Surface, np.ndarray]:
+    """ShapeSource loader of one creature and its ``task`` target (module level, so workers can unpickle it)."""
     surface, labels, curvature = make_creature(seed, n_vertices=n_vertices, rotate=rotate)
     return surface, labels if task == "segmentation" else curvature
+
+
+# Old private spelling, kept for the benchmarks until they use the public name.
+_load_creature = load_creature
 
 
 def demo_patch_configs(n_scales: int = 1, **overrides) -> list[PatchConfig]:
@@ -186,53 +191,48 @@ def make_synthetic_dataset(
     task: str = "segmentation",
     n_shapes: int = 40,
     n_vertices: int = 1500,
-    seed: int = 0,
     rotate: bool = True,
     test_fraction: float = 0.2,
-    n_val: int | float = 0.1,
-    patch_configs=None,
-    cache_dir: str | os.PathLike = ".zernet-cache",
     area: float | None = None,
-    feature_kind: str = "xyz",
-    workers: int | None = None,
-    progress: bool = True,
+    options: LoaderOptions = LoaderOptions(),
 ) -> ShapeDataset:
     """The built-in data set of ``n_shapes`` creatures (registry names "synthetic" / "synthetic-parts").
 
-    Shape i is generated from seed ``seed * 100003 + i``; the last ``round(test_fraction · n_shapes)``
-    shapes are the test split, and ``n_val`` shapes (count or fraction) are carved from the rest, seeded.
-    ``patch_configs`` defaults to :func:`demo_patch_configs` (), tuned for ``area`` = :data:`SYNTHETIC_AREA`
-    (the default; another area rescales the shapes and the curvature target). Returns a :class:`ShapeDataset` with
-    task "classification" (4 classes, :data:`PART_NAMES`) or "regression" (mean curvature; its area exponent
-    is -1/2, so it stays consistent if a different area is forced).
+    Shape i is generated from seed ``options.seed * 100003 + i``; the last ``round(test_fraction · n_shapes)``
+    shapes are the test split, and ``options.n_val`` shapes (count or fraction, default 0.1) are carved from
+    the rest, seeded. ``options.patch_configs`` defaults to :func:`demo_patch_configs` (), tuned for ``area``
+    = :data:`SYNTHETIC_AREA` (the default, also for None; another area rescales the shapes and the curvature
+    target). Returns a :class:`ShapeDataset` with task "classification" (4 classes, :data:`PART_NAMES`) or
+    "regression" (mean curvature; its area exponent is -1/2, so it stays consistent if a different area is
+    forced).
     """
+    options = options.with_defaults(n_val=0.1, patch_configs=demo_patch_configs())
     if task not in SYNTHETIC_TASKS:
         raise DatasetError(f"synthetic task must be one of {SYNTHETIC_TASKS}, got {task!r}")
     if n_shapes < 2:
         raise DatasetError(f"the synthetic data set needs at least 2 shapes (train and test), got {n_shapes}")
     if not 0 < test_fraction < 1:
         raise DatasetError(f"test_fraction must be in (0, 1), got {test_fraction}")
-    configs = patch_configs if patch_configs else demo_patch_configs()
     target_exponent = -0.5 if task == "regression" else 0.0  # curvature is 1/length
     sources = []
     for i in range(n_shapes):
-        shape_seed = seed * 100003 + i
+        shape_seed = options.seed * 100003 + i
         key = json.dumps({"generator": _GENERATOR_VERSION, "seed": shape_seed, "n": n_vertices, "rotate": rotate,
                           "task": task})
         sources.append(ShapeSource(
             name=f"creature_{i:03d}",
-            load=partial(_load_creature, shape_seed, n_vertices, rotate, task),
+            load=partial(load_creature, shape_seed, n_vertices, rotate, task),
             key=key,
             target_exponent=target_exponent,
         ))
     n_test = min(n_shapes - 1, max(1, int(round(test_fraction * n_shapes))))
     names = [s.name for s in sources]
     return build_dataset(
-        sources, configs, Path(cache_dir), SYNTHETIC_AREA if area is None else float(area),
+        sources, target_area=SYNTHETIC_AREA if area is None else float(area),
         task="classification" if task == "segmentation" else "regression",
         num_classes=len(PART_NAMES) if task == "segmentation" else None,
         split_names={"train": names[: n_shapes - n_test], "test": names[n_shapes - n_test:]},
-        n_val=n_val, seed=seed, feature_kind=feature_kind, workers=workers, progress=progress,
         info={"kind": "synthetic", "task": task, "class_names": list(PART_NAMES) if task == "segmentation" else None,
               "n_vertices": n_vertices, "rotate": rotate, "target_exponent": target_exponent},
+        **options.build_arguments(),
     )

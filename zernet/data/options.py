@@ -1,0 +1,80 @@
+"""The loader options every data set shares: :class:`LoaderOptions`.
+
+Each loader (:func:`~zernet.data.faust.load_faust`, :func:`~zernet.data.segmentation.load_segmentation`,
+:func:`~zernet.data.regression.load_aneurysm`, :func:`~zernet.data.regression.load_regression`,
+:func:`~zernet.data.synthetic.make_synthetic_dataset`) takes the arguments particular to its data set plus
+``options: LoaderOptions``. The fields whose default differs between data sets (``patch_configs``,
+``n_val``, ``strict``) are None here, meaning "the data set's default", which each loader's docstring gives.
+
+The target ``area`` is not a shared option: its default is a property of each data set (FAUST 15000,
+aneurysm 100, ...), and for a loader None means "keep the files' scale".
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, fields, replace
+from typing import Any
+
+from zernet.data.features import feature_parts
+from zernet.data.preprocess import as_patch_configs
+
+__all__ = ["LoaderOptions", "SHARED_OPTIONS"]
+
+
+@dataclass(frozen=True)
+class LoaderOptions:
+    """How a data set is preprocessed, cached, featurised and split.
+
+    Attributes:
+        patch_configs: :class:`~zernet.patches.PatchConfig` (or dicts), one per scale; None or empty: the
+            data set's default (segmentation and generic regression have none and require it).
+        cache_dir: folder of the preprocessing cache (shapes, patch operators, membrane stresses).
+        feature_kind: model input, parts of :data:`~zernet.data.features.FEATURE_PARTS` joined by "+".
+        seed: seeds the validation split (and the test split where a loader draws one, and the synthetic
+            shapes).
+        n_val: validation shapes carved from the training ones, a count or a fraction in (0, 1); None: the
+            data set's default.
+        workers: preprocessing processes; None: one per CPU; 0 or 1: in this process.
+        strict: a shape that fails to preprocess stops everything instead of being left out; None: the
+            data set's default (True for FAUST, False otherwise).
+        repair: merge duplicate vertices and drop degenerate faces while validating the surfaces.
+        progress: show a progress bar while preprocessing.
+    """
+
+    patch_configs: tuple | None = None
+    cache_dir: str | os.PathLike = ".zernet-cache"
+    feature_kind: str = "xyz"
+    seed: int = 0
+    n_val: int | float | None = None
+    workers: int | None = None
+    strict: bool | None = None
+    repair: bool = False
+    progress: bool = True
+
+    def __post_init__(self):
+        configs = self.patch_configs
+        # One PatchConfig, a dict or a list of either; empty means "the data set's default", like None.
+        object.__setattr__(self, "patch_configs", tuple(as_patch_configs(configs)) if configs else None)
+        feature_parts(self.feature_kind)  # an unknown feature kind fails here, before any file is read
+
+    def with_defaults(self, *, n_val: int | float, strict: bool = False, patch_configs=None) -> LoaderOptions:
+        """These options with a data set's defaults filled in where a field is None."""
+        return replace(
+            self,
+            n_val=n_val if self.n_val is None else self.n_val,
+            strict=strict if self.strict is None else self.strict,
+            patch_configs=self.patch_configs or patch_configs,
+        )
+
+    def build_arguments(self) -> dict[str, Any]:
+        """The keyword arguments of :func:`~zernet.data.preprocess.build_dataset` these options give."""
+        if self.n_val is None or self.strict is None:
+            raise ValueError("LoaderOptions.build_arguments needs n_val and strict: call with_defaults first")
+        return {"patch_configs": self.patch_configs, "cache_dir": self.cache_dir, "n_val": self.n_val,
+                "seed": self.seed, "feature_kind": self.feature_kind, "workers": self.workers,
+                "strict": self.strict, "repair": self.repair, "progress": self.progress}
+
+
+#: Names of the shared options (the fields of :class:`LoaderOptions`).
+SHARED_OPTIONS = tuple(field.name for field in fields(LoaderOptions))

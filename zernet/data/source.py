@@ -1,0 +1,47 @@
+"""How a loader describes one shape to the preprocessing: :class:`ShapeSource`, and content keys of files."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from zernet.surface import Surface
+
+__all__ = ["ShapeSource", "file_key"]
+
+
+@dataclass(frozen=True)
+class ShapeSource:
+    """How to obtain one shape and its ground truth.
+
+    Attributes:
+        name: unique name within the data set (used in splits, messages and the cache file name).
+        load: zero-argument callable returning ``(surface, target)``; ``target`` is an (N,) per-vertex array
+            or None. It runs in a worker process, so it must be picklable: a module-level function or a
+            ``functools.partial`` of one — never a lambda or a closure. It should raise
+            :class:`~zernet.surface.SurfaceError` / :class:`~zernet.data.dataset.DatasetError` with a clear
+            message for a bad file.
+        key: a string that changes whenever the shape's content would change (e.g. file paths with sizes
+            and modification times, or generator parameters), used to skip already cached shapes without
+            loading them. None disables the skip (operators are still cached by geometry hash).
+        target_exponent: area exponent of a regression target: the target is multiplied by
+            ``(target_area / area) ** target_exponent`` when the surface is normalised (0.5 for wall stress,
+            -0.5 for a curvature, 0 for labels and dimensionless values).
+    """
+
+    name: str
+    load: Callable[[], tuple[Surface, np.ndarray | None]]
+    key: str | None = None
+    target_exponent: float = 0.0
+
+
+def file_key(*paths: str | os.PathLike) -> str:
+    """Content key for file-based sources: absolute path, size and modification time of each file."""
+    parts = []
+    for path in paths:
+        stat = os.stat(path)
+        parts.append(f"{os.path.abspath(path)}|{stat.st_size}|{stat.st_mtime_ns}")
+    return ";".join(parts)
