@@ -19,8 +19,9 @@ from zernet.data.bodies import (  # noqa: E402
     write_bodies,
 )
 from zernet.data.faust import load_faust  # noqa: E402
+from zernet.data.options import LoaderOptions  # noqa: E402
 from zernet.data.segmentation import HUMAN_PART_NAMES, load_segmentation, read_labels  # noqa: E402
-from zernet.patches import PatchConfig  # noqa: E402
+from zernet.operators import PatchConfig  # noqa: E402
 from zernet.surface import Surface, load_surface, validate_surface  # noqa: E402
 
 COARSE = "coarse-369"
@@ -142,14 +143,14 @@ def test_written_bodies_load_with_the_existing_loaders(cache, tmp_path):
     np.testing.assert_allclose(mesh.vertices, body.vertices, atol=1e-6)
     np.testing.assert_array_equal(read_labels(layout.labels / "test" / "body_004.txt"), body.parts)
 
-    options = dict(patch_configs=CONFIGS, cache_dir=tmp_path / "cache", workers=0, progress=False)
-    segmentation = load_segmentation(layout.meshes, layout.labels, n_val=1, **options)
+    options = LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "cache", workers=0, progress=False, n_val=1)
+    segmentation = load_segmentation(layout.meshes, layout.labels, options=options)
     assert segmentation.num_classes == 8 and len(segmentation) == 6
     assert sorted(segmentation.names[i] for i in segmentation.splits["test"]) == ["test/body_004", "test/body_005"]
     index = segmentation.names.index("test/body_004")
     np.testing.assert_array_equal(segmentation[index].target, body.parts)
 
     correspondence = load_faust(layout.registrations.parent.parent, n_vertices=369, train_indices=range(4),
-                                test_indices=[4, 5], n_val=1, **options)
+                                test_indices=[4, 5], options=options)
     assert correspondence.correspondence and correspondence.num_classes == 369
     np.testing.assert_array_equal(correspondence[5].target, np.arange(369))
