@@ -1,11 +1,11 @@
-"""Rotation-invariant shape descriptors computed with the patch operator (zernet.data.base)."""
+"""Rotation-invariant shape descriptors computed with the patch operator (zernet.data.features)."""
 
 import numpy as np
 import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from zernet.data.base import (
+from zernet.data.features import (
     BOUNDARY_SATURATION,
     compute_features,
     curvature_descriptors,

@@ -1,22 +1,34 @@
-"""Data sets: containers, splits, preprocessing and its cache, the four loaders and their error messages.
+"""Data sets: containers, splits, loader options, preprocessing and its cache, the four loaders and their errors.
 
 Meshes here are tiny (icospheres of 162 vertices, creatures of 300) so the whole file runs in seconds.
 """
 
+import json
 import os
-import time
+from functools import partial
+from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.io
 import trimesh
 
-from zernet.data import DatasetError, PreprocessError, ShapeSource, build_dataset, load_dataset
-from zernet.data.base import MEMBRANE_PRESTRESSES, carve_validation, default_features, feature_channels
+from zernet.data import (
+    DatasetError,
+    LoaderOptions,
+    PreprocessError,
+    ShapeSource,
+    build_dataset,
+    load_dataset,
+    synthetic,
+)
+from zernet.data.cache import shape_cache_path
+from zernet.data.dataset import carve_validation
 from zernet.data.faust import load_faust
+from zernet.data.features import MEMBRANE_PRESTRESSES, default_features, feature_channels
 from zernet.data.regression import leave_one_out_splits, load_aneurysm, load_regression
 from zernet.data.segmentation import face_to_vertex_labels, load_segmentation
-from zernet.data.synthetic import PART_NAMES, make_creature, make_synthetic_dataset
+from zernet.data.synthetic import PART_NAMES, load_creature, make_creature, make_synthetic_dataset
 from zernet.patches import PatchConfig
 from zernet.surface import Surface
 
@@ -64,10 +76,16 @@ def test_creature_labels_and_curvature():
     assert curvature[labels == 1].mean() > curvature[labels == 0].mean() > curvature[labels == 3].mean()
 
 
-def test_synthetic_dataset_records_splits_subset_and_cache(tmp_path):
-    kwargs = dict(n_shapes=5, n_vertices=300, cache_dir=tmp_path, workers=0, progress=False, n_val=1,
-                  patch_configs=[PatchConfig(r0=4.0, n_samples=1000, patch_size=30, n_max=3)])
-    dataset = make_synthetic_dataset("segmentation", **kwargs)
+SYNTHETIC_CONFIGS = (PatchConfig(r0=4.0, n_samples=1000, patch_size=30, n_max=3),)
+
+
+def _no_creature(*args):
+    raise AssertionError("a cached creature was generated again")
+
+
+def test_synthetic_dataset_records_splits_subset_and_cache(tmp_path, monkeypatch):
+    options = LoaderOptions(patch_configs=SYNTHETIC_CONFIGS, cache_dir=tmp_path, workers=0, progress=False, n_val=1)
+    dataset = make_synthetic_dataset("segmentation", n_shapes=5, n_vertices=300, options=options)
     assert dataset.task == "classification" and dataset.num_classes == 4 and len(dataset) == 5
     assert dataset.splits["test"] == [4] and len(dataset.splits["val"]) == 1
     assert sorted(dataset.splits["train"] + dataset.splits["val"]) == [0, 1, 2, 3]
@@ -80,16 +98,65 @@ def test_synthetic_dataset_records_splits_subset_and_cache(tmp_path):
     assert sub.names == ["creature_004", "creature_000"] and sub.splits["test"] == [0]
     assert dataset.split("test").names == ["creature_004"]
 
-    started = time.perf_counter()
-    again = make_synthetic_dataset("segmentation", **kwargs)
-    assert time.perf_counter() - started < 2.0  # every shape comes from the cache
+    # Every shape now comes from the cache: the generator is not called again (workers=0: in this process).
+    monkeypatch.setattr(synthetic, "make_creature", _no_creature)
+    again = make_synthetic_dataset("segmentation", n_shapes=5, n_vertices=300, options=options)
     np.testing.assert_array_equal(again[2].target, dataset[2].target)
+    monkeypatch.undo()
 
-    regression = load_dataset("synthetic-curvature", patch_configs=kwargs["patch_configs"], cache_dir=tmp_path,
+    regression = load_dataset("synthetic-curvature", patch_configs=SYNTHETIC_CONFIGS, cache_dir=tmp_path,
                               workers=0, progress=False, n_shapes=3, n_vertices=300, val_count=1)
     assert regression.task == "regression" and regression[0].target.dtype == np.float32
     with pytest.raises(TypeError, match="unknown option"):
         load_dataset("synthetic", cache_dir=tmp_path, n_shape=3)
+
+
+def test_load_dataset_with_options_matches_the_keyword_interface(tmp_path):
+    keywords = dict(patch_configs=list(SYNTHETIC_CONFIGS), cache_dir=tmp_path, workers=0, progress=False, seed=2,
+                    val_count=1, feature_kind="xyz+normals")
+    by_keywords = load_dataset("synthetic-parts", n_shapes=4, n_vertices=300, **keywords)
+    options = LoaderOptions(patch_configs=SYNTHETIC_CONFIGS, cache_dir=tmp_path, workers=0, progress=False, seed=2,
+                            n_val=1, feature_kind="xyz+normals")
+    by_options = load_dataset("synthetic-parts", options=options, n_shapes=4, n_vertices=300)
+    assert by_options.splits == by_keywords.splits and by_options.in_channels == 6
+    np.testing.assert_array_equal(by_options[1].features, by_keywords[1].features)
+    # Shared options go inside options when it is given; unknown arguments are named with what the kind takes.
+    with pytest.raises(TypeError, match="workers: give shared options inside options"):
+        load_dataset("synthetic", options=options, workers=2)
+    with pytest.raises(TypeError, match=r"unknown option\(s\) bogus for data kind 'faust' \(it takes: area, "
+                                        r"n_vertices, root, test_indices, train_indices; and the shared options"):
+        load_dataset("faust", options=options, root=tmp_path, bogus=1)
+    with pytest.raises(TypeError, match="fixes the task"):
+        load_dataset("synthetic-curvature", options=options, task="segmentation")
+    with pytest.raises(DatasetError, match="unknown data set kind 'fuast'"):
+        load_dataset("fuast", options=options)
+
+
+def test_loader_options_defaults_and_checks():
+    options = LoaderOptions(patch_configs={"r0": 2.0})
+    assert options.patch_configs == (PatchConfig(r0=2.0),) and LoaderOptions(patch_configs=[]).patch_configs is None
+    filled = LoaderOptions(n_val=3).with_defaults(n_val=8, strict=True, patch_configs=SYNTHETIC_CONFIGS)
+    assert (filled.n_val, filled.strict, filled.patch_configs) == (3, True, SYNTHETIC_CONFIGS)
+    assert LoaderOptions(strict=False).with_defaults(n_val=0.1, strict=True).strict is False
+    with pytest.raises(ValueError, match="with_defaults first"):
+        LoaderOptions().build_arguments()
+    with pytest.raises(DatasetError, match=r"unknown feature kind 'xyz\+colour'"):
+        LoaderOptions(feature_kind="xyz+colour")
+
+
+def test_shape_cache_paths_are_unchanged():
+    """Cache file names computed before the data package was restructured: existing caches stay valid."""
+    config = [PatchConfig(r0=4.0, n_samples=1000, patch_size=30, n_max=3)]
+
+    def source(seed, task, exponent):
+        key = json.dumps({"generator": 1, "seed": seed, "n": 300, "rotate": True, "task": task})
+        return ShapeSource(f"creature_{seed:03d}", partial(load_creature, seed, 300, True, task), key, exponent)
+
+    assert shape_cache_path(Path("c"), source(0, "segmentation", 0.0), 1000.0, config, False) == Path(
+        "c/shapes/creature_000-5cacefd9896c97d341da.npz")
+    assert shape_cache_path(Path("c"), source(1, "regression", -0.5), 1000.0, config, False) == Path(
+        "c/shapes/creature_001-5547069ddacd24b03c8e.npz")
+    assert shape_cache_path(Path("c"), ShapeSource("x", load_creature), 1000.0, config, False) is None
 
 
 def _sphere_source(seed):
@@ -102,8 +169,6 @@ def _broken_source():
 
 
 def test_failures_are_reported_by_name_and_others_go_on(tmp_path):
-    from functools import partial
-
     sources = [ShapeSource("a", partial(_sphere_source, 0)), ShapeSource("bad", _broken_source),
                ShapeSource("b", partial(_sphere_source, 1))]
     common = dict(patch_configs=CONFIGS, cache_dir=tmp_path, target_area=AREA, task="classification",
@@ -118,8 +183,6 @@ def test_failures_are_reported_by_name_and_others_go_on(tmp_path):
 
 
 def test_parallel_workers_match_in_process(tmp_path):
-    from functools import partial
-
     sources = [ShapeSource(f"s{i}", partial(_sphere_source, i), key=f"sphere-{i}") for i in range(3)]
     common = dict(patch_configs=CONFIGS, target_area=AREA, task="classification", num_classes=2,
                   split_names={"train": ["s0", "s1"], "test": ["s2"]}, progress=False)
@@ -147,8 +210,9 @@ def fake_faust(tmp_path):
 
 def test_faust_layout_splits_and_targets(fake_faust):
     root, folder = fake_faust
-    kwargs = dict(patch_configs=CONFIGS, cache_dir=root / "cache", area=AREA, train_indices=range(4),
-                  test_indices=[4, 5], n_val=1, n_vertices=None, workers=0, progress=False)
+    kwargs = dict(area=AREA, train_indices=range(4), test_indices=[4, 5], n_vertices=None,
+                  options=LoaderOptions(patch_configs=CONFIGS, cache_dir=root / "cache", n_val=1, workers=0,
+                                        progress=False))
     dataset = load_faust(root, **kwargs)
     assert dataset.correspondence and dataset.num_classes == 162 and len(dataset) == 6
     assert [dataset.names[i] for i in dataset.splits["test"]] == ["tr_reg_004", "tr_reg_005"]
@@ -161,8 +225,8 @@ def test_faust_layout_splits_and_targets(fake_faust):
 
 def test_faust_errors_name_the_problem(fake_faust, tmp_path):
     root, folder = fake_faust
-    kwargs = dict(patch_configs=CONFIGS, cache_dir=root / "cache", area=AREA, train_indices=range(4),
-                  test_indices=[4, 5], workers=0, progress=False)
+    kwargs = dict(area=AREA, train_indices=range(4), test_indices=[4, 5],
+                  options=LoaderOptions(patch_configs=CONFIGS, cache_dir=root / "cache", workers=0, progress=False))
     with pytest.raises(DatasetError, match="does not exist"):
         load_faust(tmp_path / "nowhere", **kwargs)
     (tmp_path / "empty").mkdir()
@@ -197,9 +261,9 @@ def test_segmentation_shared_one_based_face_labels(tmp_path):
         _write_ply(tmp_path / "meshes" / f"body{i}.ply", _sphere(i)[0], faces)
     face_labels = np.where(vertices[faces].mean(axis=1)[:, 2] > 0, 2, 1)  # 1-based: upper half part 2
     np.savetxt(tmp_path / "faust_seg.txt", face_labels, fmt="%d")
-    dataset = load_segmentation(tmp_path / "meshes", tmp_path / "faust_seg.txt", patch_configs=CONFIGS,
-                                cache_dir=tmp_path / "cache", area=AREA, num_classes=2, test=["body3"], n_val=1,
-                                workers=0, progress=False)
+    options = LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "cache", n_val=1, workers=0, progress=False)
+    dataset = load_segmentation(tmp_path / "meshes", tmp_path / "faust_seg.txt", area=AREA, num_classes=2,
+                                test=["body3"], options=options)
     assert dataset.info["label_base"] == 1 and dataset.num_classes == 2
     target = dataset[dataset.index("body0")].target
     upper = vertices[:, 2] > 0.3
@@ -211,8 +275,9 @@ def test_segmentation_label_count_mismatch_names_both_files(tmp_path):
     _write_ply(tmp_path / "m" / "a.ply", vertices, faces)
     np.savetxt(tmp_path / "m" / "a.txt", np.zeros(100), fmt="%d")
     with pytest.raises(PreprocessError, match=r"a\.txt: has 100 labels but .*a\.ply has 162 vertices and 320"):
-        load_segmentation(tmp_path / "m", patch_configs=CONFIGS, cache_dir=tmp_path / "c", area=AREA,
-                          num_classes=2, test=["a"], workers=0, progress=False)
+        load_segmentation(tmp_path / "m", area=AREA, num_classes=2, test=["a"],
+                          options=LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0,
+                                                progress=False))
 
 
 # -------------------------------------------------------------------------------------------- regression
@@ -226,7 +291,7 @@ def test_aneurysm_mat_layout_area_exponent_and_leave_one_out(tmp_path):
         scipy.io.savemat(tmp_path / f"TP_Ia{i}I.mat", {"X": vertices, "F": (faces + 1).astype(np.uint16),
                                                       "J2m": stress})
         names.append(f"TP_Ia{i}I")
-    common = dict(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0, progress=False)
+    common = dict(options=LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0, progress=False))
     dataset = load_aneurysm(tmp_path, **common)
     assert dataset.task == "regression" and sorted(dataset.names) == names
     record = dataset[0]
@@ -248,8 +313,9 @@ def test_aneurysm_recipe_features_through_the_pipeline(tmp_path):
         vertices = vertices * np.sqrt(100.0 / Surface(vertices, faces).area)
         scipy.io.savemat(tmp_path / f"TP_Ia{i}I.mat", {"X": vertices, "F": (faces + 1).astype(np.uint16),
                                                       "J2m": np.full((len(vertices), 1), 0.1)})
-    dataset = load_aneurysm(tmp_path, patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0, progress=False,
-                            feature_kind="shape+curvature+membrane", test=["TP_Ia1I"], n_val=0)
+    options = LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0, progress=False,
+                            feature_kind="shape+curvature+membrane", n_val=0)
+    dataset = load_aneurysm(tmp_path, test=["TP_Ia1I"], options=options)
     record = dataset[0]
     assert record.features.shape == (record.n_vertices, dataset.in_channels)
     assert dataset.in_channels == feature_channels("shape+curvature+membrane", [c.n_max for c in CONFIGS])
@@ -268,7 +334,8 @@ def test_generic_regression_and_value_count_mismatch(tmp_path):
     np.save(tmp_path / "a.npy", vertices[:, 0])
     _write_ply(tmp_path / "b.ply", vertices, faces)
     np.savetxt(tmp_path / "b.txt", vertices[:, 1])
-    common = dict(patch_configs=CONFIGS, cache_dir=tmp_path / "c", area=AREA, workers=0, progress=False)
+    common = dict(area=AREA, options=LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0,
+                                                   progress=False))
     dataset = load_regression(tmp_path, test=["b"], **common)
     assert dataset.names == ["a", "b"] and dataset.splits["test"] == [1]
     np.savetxt(tmp_path / "b.txt", vertices[:10, 1])
