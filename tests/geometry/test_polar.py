@@ -4,36 +4,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from zernet.polar import compute_polar, tangent_frames, transport_angles
-from zernet.surface import Surface, sample_surface
+from meshes import cylinder_mesh, grid_mesh
+from zernet.geometry import Surface, compute_polar, sample_surface, tangent_frames, transport_angles
+from zernet.geometry.polar import wrap_angle as wrap
 
 
-# ---------------------------------------------------------------------- small meshes built here
-def grid_mesh(nx, ny, spacing=1.0, jitter=0.0, seed=0):
-    """Triangulated grid in the z = 0 plane centred at the origin; (V, F)."""
-    x, y = np.meshgrid((np.arange(nx) - (nx - 1) / 2) * spacing, (np.arange(ny) - (ny - 1) / 2) * spacing)
-    vertices = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
-    if jitter:
-        vertices[:, :2] += np.random.default_rng(seed).uniform(-jitter, jitter, (len(vertices), 2)) * spacing
-    index = np.arange(nx * ny).reshape(ny, nx)
-    a, b, c, d = index[:-1, :-1].ravel(), index[:-1, 1:].ravel(), index[1:, :-1].ravel(), index[1:, 1:].ravel()
-    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
-    return vertices, faces
-
-
-def cylinder_mesh(radius, height, around, along):
-    """Open cylinder around the z axis (boundary loops at both ends); (V, F)."""
-    phi = 2 * np.pi * np.arange(around) / around
-    z = np.linspace(-height / 2, height / 2, along)
-    P, Z = np.meshgrid(phi, z)
-    vertices = np.stack([radius * np.cos(P).ravel(), radius * np.sin(P).ravel(), Z.ravel()], axis=1)
-    index = np.arange(around * along).reshape(along, around)
-    nxt = np.roll(index, -1, axis=1)
-    a, b, c, d = index[:-1].ravel(), nxt[:-1].ravel(), index[1:].ravel(), nxt[1:].ravel()
-    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
-    return vertices, faces
-
-
+# ---------------------------------------------------------------------- a mesh only these tests need
 def hairpin_mesh(length=12.0, gap=1.0, width=4.0, spacing=0.5):
     """A strip folded back on itself: two parallel sheets ``gap`` apart joined by a half cylinder."""
     bend = np.pi * gap / 2
@@ -50,10 +26,6 @@ def hairpin_mesh(length=12.0, gap=1.0, width=4.0, spacing=0.5):
     a, b, c, d = index[:-1, :-1].ravel(), index[:-1, 1:].ravel(), index[1:, :-1].ravel(), index[1:, 1:].ravel()
     faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
     return vertices, faces, S.reshape(-1)
-
-
-def wrap(angle):
-    return np.mod(angle + np.pi, 2 * np.pi) - np.pi
 
 
 # ---------------------------------------------------------------------- frames

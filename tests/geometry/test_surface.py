@@ -1,6 +1,7 @@
-"""Tests for zernet.surface: reading, validation and repair, area normalisation, normals and sampling.
+"""Tests for zernet.geometry: reading, validation and repair, area normalisation, normals, curvature and
+sampling of surfaces.
 
-Every test builds its own small surfaces; nothing here needs /work/shared/data.
+Every test builds its own small surfaces (tests/meshes.py); nothing here needs a data set.
 """
 
 import warnings
@@ -10,8 +11,8 @@ import pytest
 import scipy.io
 import trimesh
 
-from test_polar import cylinder_mesh
-from zernet.surface import (
+from meshes import grid, icosphere, open_cylinder, random_sphere_points
+from zernet.geometry import (
     Surface,
     SurfaceError,
     SurfaceWarning,
@@ -23,11 +24,6 @@ from zernet.surface import (
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-def icosphere(subdivisions: int = 2) -> Surface:
-    mesh = trimesh.creation.icosphere(subdivisions=subdivisions)
-    return Surface(np.asarray(mesh.vertices), np.asarray(mesh.faces), name="sphere")
-
-
 def shuffled_mesh(seed: int = 0) -> trimesh.Trimesh:
     """An icosphere with its vertices in a random order, so that preserved order is a real check."""
     mesh = trimesh.creation.icosphere(subdivisions=1)
@@ -35,23 +31,6 @@ def shuffled_mesh(seed: int = 0) -> trimesh.Trimesh:
     permutation = rng.permutation(len(mesh.vertices))
     inverse = np.argsort(permutation)
     return trimesh.Trimesh(mesh.vertices[permutation], inverse[mesh.faces], process=False)
-
-
-def grid(n: int = 4) -> Surface:
-    """A flat n x n vertex grid in the xy plane, two triangles per cell (an open disk-like surface)."""
-    x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
-    vertices = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
-            faces += [[a, b, c], [a, c, d]]
-    return Surface(vertices, np.array(faces), name="grid")
-
-
-def random_sphere_points(n: int, seed: int = 0) -> np.ndarray:
-    points = np.random.default_rng(seed).normal(size=(n, 3))
-    return points / np.linalg.norm(points, axis=1, keepdims=True)
 
 
 TWO_TRIANGLES = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], dtype=float)
@@ -284,8 +263,8 @@ def test_icosphere_area_normals_and_closedness():
     assert np.all(edges[:, 0] < edges[:, 1])
 
 
-def test_grid_boundary_edges_and_area():
-    surface = grid(4)
+def test_grid_boundary_edges_and_area(grid_surface):
+    surface = grid_surface
     expected = np.zeros((4, 4), dtype=bool)
     expected[[0, -1], :] = expected[:, [0, -1]] = True
     np.testing.assert_array_equal(surface.boundary_vertices(), expected.ravel())
@@ -382,8 +361,8 @@ def test_normalize_area_point_cloud_and_errors():
 
 
 # ---------------------------------------------------------------------------------------------- sampling
-def test_sampling_is_reproducible_and_seed_dependent():
-    sphere = icosphere(2)
+def test_sampling_is_reproducible_and_seed_dependent(sphere_surface):
+    sphere = sphere_surface
     a = sample_surface(sphere, 2000, seed=7)
     b = sample_surface(sphere, 2000, seed=7)
     c = sample_surface(sphere, 2000, seed=8)
@@ -440,8 +419,8 @@ def test_samples_are_uniform_inside_a_triangle():
     np.testing.assert_allclose(samples.points.mean(axis=0), [1.0, 1.0 / 3.0, 0.0], atol=0.02)
 
 
-def test_interpolation_reproduces_linear_functions():
-    sphere = icosphere(2)
+def test_interpolation_reproduces_linear_functions(sphere_surface):
+    sphere = sphere_surface
     samples = sample_surface(sphere, 3000, seed=1)
     matrix = samples.interpolation
     assert matrix.shape == (3000, sphere.n_vertices)
@@ -470,23 +449,13 @@ def test_sampling_rejects_bad_counts():
         sample_surface(icosphere(1), 0)
 
 
-def test_no_warning_for_clean_meshes():
+def test_no_warning_for_clean_meshes(sphere_surface):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        validate_surface(icosphere(2))
+        validate_surface(sphere_surface)
 
 
 # ---------------------------------------------------------------------------------------------- curvature
-def open_cylinder(radius=1.5, height=6.0, around=64, along=25) -> Surface:
-    """test_polar's open cylinder, oriented with outward normals."""
-    vertices, faces = cylinder_mesh(radius, height, around, along)
-    surface = Surface(vertices, faces, name="cylinder")
-    radial = vertices * [1.0, 1.0, 0.0]
-    if np.einsum("ij,ij->i", surface.vertex_normals(), radial).mean() < 0:
-        surface = Surface(vertices, faces[:, ::-1], name="cylinder")
-    return surface
-
-
 def test_mean_curvature_sphere_mesh_and_cloud():
     radius = 2.0
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=radius)
@@ -500,8 +469,8 @@ def test_mean_curvature_sphere_mesh_and_cloud():
     np.testing.assert_allclose(flipped.mean_curvature(), -Surface(mesh.vertices, mesh.faces).mean_curvature())
 
 
-def test_mean_curvature_cylinder_and_plane():
-    cylinder = open_cylinder(radius=1.5)
+def test_mean_curvature_cylinder_and_plane(cylinder_surface):
+    cylinder = cylinder_surface  # radius 1.5
     inside = np.abs(cylinder.vertices[:, 2]) < 2.5  # away from the cut ends
     np.testing.assert_allclose(cylinder.mean_curvature()[inside], 1.0 / (2 * 1.5), rtol=0.02)
     plane = grid(6)

@@ -1,4 +1,4 @@
-"""Membrane stress under inner pressure (zernet.membrane): Laplace's law on spheres and cylinders, invariances,
+"""Membrane stress under inner pressure (zernet.geometry.membrane): Laplace's law on spheres and cylinders, invariances,
 errors, cache; and the "membrane" feature part built on it."""
 
 import numpy as np
@@ -6,17 +6,15 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from test_surface import open_cylinder, grid
+from meshes import grid, icosphere, open_cylinder
 from zernet.data.base import DatasetError, compute_features, feature_channels, feature_parts
-from zernet.membrane import membrane_stress
-from zernet.surface import Surface, SurfaceError
+from zernet.geometry import Surface, SurfaceError, membrane_stress
 
 NU = 0.45
 
 
 def _sphere(radius=2.0, subdivisions=3):
-    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-    return Surface(mesh.vertices, mesh.faces, name="sphere")
+    return icosphere(subdivisions, radius)
 
 
 @pytest.mark.parametrize("prestress", [0.0, 0.1])

@@ -16,12 +16,13 @@ import scipy.io
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from meshes import tetrahedron
 from zernet.data.base import DatasetError
 from zernet.data.preprocess import prepare_record
 from zernet.data.regression import _load_mat_field, read_values
 from zernet.data.segmentation import _load_labelled_mesh, read_labels
+from zernet.geometry import Surface, SurfaceError, load_surface
 from zernet.patches import PatchConfig
-from zernet.surface import Surface, SurfaceError, load_surface
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -137,9 +138,9 @@ def test_garbage_bytes_fail_clearly_for_every_format(tmp_path_factory, extension
 
 
 def _tetrahedron():
-    vertices = [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)]
-    faces = [(0, 2, 1), (0, 1, 3), (0, 3, 2), (1, 2, 3)]
-    return vertices, faces
+    """The shared tetrahedron as plain Python lists, for the file writers above."""
+    surface = tetrahedron()
+    return surface.vertices.tolist(), surface.faces.tolist()
 
 
 @SWEEP

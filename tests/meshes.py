@@ -1,0 +1,83 @@
+"""Small analytic meshes shared by the tests: builders that return a :class:`Surface` (or vertex and face
+arrays where a test needs them before a surface exists).
+
+Importable from any test module as ``from meshes import ...`` (tests/conftest.py puts this folder on
+``sys.path``); tests/conftest.py also offers the common cases as fixtures.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from zernet.geometry import Surface
+
+
+def icosphere(subdivisions: int = 2, radius: float = 1.0, noise: float = 0.0, seed: int = 0,
+              name: str = "sphere") -> Surface:
+    """trimesh's icosphere with outward normals; ``noise`` > 0 scales each vertex radially by
+    ``1 + noise * N(0, 1)`` (seeded), which removes exact distance ties between vertices."""
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    if noise:
+        vertices = vertices * (1 + noise * np.random.default_rng(seed).standard_normal((len(vertices), 1)))
+    return Surface(vertices, np.asarray(mesh.faces, dtype=np.int64), name=name)
+
+
+def grid_mesh(nx: int, ny: int | None = None, spacing: float = 1.0, jitter: float = 0.0, seed: int = 0):
+    """Triangulated nx × ny vertex grid in the z = 0 plane centred at the origin, normals +z; (V, F).
+
+    ``jitter`` moves every vertex by a uniform in-plane offset of up to ``jitter * spacing`` (seeded).
+    """
+    ny = nx if ny is None else ny
+    x, y = np.meshgrid((np.arange(nx) - (nx - 1) / 2) * spacing, (np.arange(ny) - (ny - 1) / 2) * spacing)
+    vertices = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    if jitter:
+        vertices[:, :2] += np.random.default_rng(seed).uniform(-jitter, jitter, (len(vertices), 2)) * spacing
+    index = np.arange(nx * ny).reshape(ny, nx)
+    a, b, c, d = index[:-1, :-1].ravel(), index[:-1, 1:].ravel(), index[1:, :-1].ravel(), index[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    return vertices, faces
+
+
+def grid(n: int = 4, spacing: float = 1.0, name: str = "grid") -> Surface:
+    """A flat n × n vertex grid (an open disk-like surface of area ((n - 1) spacing)²), see :func:`grid_mesh`."""
+    vertices, faces = grid_mesh(n, n, spacing)
+    return Surface(vertices, faces, name=name)
+
+
+def cylinder_mesh(radius: float, height: float, around: int, along: int):
+    """Open cylinder around the z axis (boundary loops at z = ±height/2); (V, F)."""
+    phi = 2 * np.pi * np.arange(around) / around
+    z = np.linspace(-height / 2, height / 2, along)
+    P, Z = np.meshgrid(phi, z)
+    vertices = np.stack([radius * np.cos(P).ravel(), radius * np.sin(P).ravel(), Z.ravel()], axis=1)
+    index = np.arange(around * along).reshape(along, around)
+    nxt = np.roll(index, -1, axis=1)
+    a, b, c, d = index[:-1].ravel(), nxt[:-1].ravel(), index[1:].ravel(), nxt[1:].ravel()
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    return vertices, faces
+
+
+def open_cylinder(radius: float = 1.5, height: float = 6.0, around: int = 64, along: int = 25,
+                  name: str = "cylinder") -> Surface:
+    """:func:`cylinder_mesh` as a surface oriented with outward normals."""
+    vertices, faces = cylinder_mesh(radius, height, around, along)
+    surface = Surface(vertices, faces, name=name)
+    radial = vertices * [1.0, 1.0, 0.0]
+    if np.einsum("ij,ij->i", surface.vertex_normals(), radial).mean() < 0:
+        surface = Surface(vertices, faces[:, ::-1], name=name)
+    return surface
+
+
+def tetrahedron(name: str = "tetrahedron") -> Surface:
+    """The unit corner tetrahedron (0, e_x, e_y, e_z) with outward normals: 4 vertices, 4 faces."""
+    vertices = [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)]
+    faces = [(0, 2, 1), (0, 1, 3), (0, 3, 2), (1, 2, 3)]
+    return Surface(np.array(vertices), np.array(faces), name=name)
+
+
+def random_sphere_points(n: int, seed: int = 0) -> np.ndarray:
+    """(n, 3) points uniformly distributed on the unit sphere (seeded)."""
+    points = np.random.default_rng(seed).normal(size=(n, 3))
+    return points / np.linalg.norm(points, axis=1, keepdims=True)

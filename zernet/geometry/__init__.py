@@ -1,0 +1,39 @@
+"""Surface geometry in float64 numpy/scipy (no torch): the :class:`Surface` data class, file reading,
+validation and repair, area normalisation and sampling, point-cloud estimators, geodesic polar coordinates
+and tangent frames, and the membrane-stress physics prior.
+
+Modules, each with one job:
+
+- :mod:`~zernet.geometry.surface` — :class:`Surface`, :class:`SurfaceError`, :class:`SurfaceWarning`.
+- :mod:`~zernet.geometry.pointcloud` — array estimators for clouds (PCA normals, cell areas, curvature).
+- :mod:`~zernet.geometry.io` — :func:`load_surface` and the file readers.
+- :mod:`~zernet.geometry.validate` — :func:`validate_surface` and its checks and repairs.
+- :mod:`~zernet.geometry.sampling` — :func:`normalize_area`, :class:`SurfaceSamples`, :func:`sample_surface`.
+- :mod:`~zernet.geometry.polar` — :func:`compute_polar`, :func:`tangent_frames`, :func:`transport_angles`,
+  with the backends in :mod:`~zernet.geometry.polar_fast` and :mod:`~zernet.geometry.polar_accurate`.
+- :mod:`~zernet.geometry.membrane` — :func:`membrane_stress`.
+"""
+
+from zernet.geometry.io import load_surface
+from zernet.geometry.membrane import membrane_stress
+from zernet.geometry.polar import BACKENDS, PolarCoordinates, compute_polar, tangent_frames, transport_angles
+from zernet.geometry.sampling import SurfaceSamples, normalize_area, sample_surface
+from zernet.geometry.surface import Surface, SurfaceError, SurfaceWarning
+from zernet.geometry.validate import validate_surface
+
+__all__ = [
+    "Surface",
+    "SurfaceError",
+    "SurfaceWarning",
+    "load_surface",
+    "validate_surface",
+    "normalize_area",
+    "SurfaceSamples",
+    "sample_surface",
+    "BACKENDS",
+    "PolarCoordinates",
+    "compute_polar",
+    "tangent_frames",
+    "transport_angles",
+    "membrane_stress",
+]
