@@ -17,7 +17,7 @@ In one process, on the same inputs and with the same thread count, it measures
 3. **Peak memory** of a training step: one child process per model (``--probe-memory``) loads the same
    saved operator and edges, runs two steps and reports its peak resident set size (``ru_maxrss``) and
    the part of it added by the model (peak minus the resident size before the model was built).
-4. **Short fixed-budget training runs** through :func:`zernet.train.train` (the training command's own loop,
+4. **Short fixed-budget training runs** through :func:`zernet.training.train` (the training command's own loop,
    data, splits and metrics): same epochs, same seed for every model, on the built-in synthetic data
    (segmentation, and curvature regression, both with the recipe of ``configs/demo.yaml``) and, when the aneurysm data exist
    (``--aneurysm-root``, default ``../shared/data/aneurysm``), on leave-one-out aneurysm cases.
@@ -346,7 +346,7 @@ def _aneurysm_recipe_summary() -> str:
 
 
 def run_training(tasks: list[dict], models: list[dict], out: Path, threads: int, cache_dir: str) -> dict:
-    from zernet.train import load_checkpoint, train
+    from zernet.training import load_checkpoint, train
 
     results = {}
     for task in tasks:
@@ -547,7 +547,7 @@ def write_report(out: Path, results: dict, args) -> Path:
         lines += [
             "## Fixed-budget training runs",
             "",
-            f"`zernet.train.train` (the training command's loop, data, splits and metrics); every model with the same "
+            f"`zernet.training.train` (the training command's loop, data, splits and metrics); every model with the same "
             f"epochs, seed 0, no early stopping; the test metric of the epoch chosen on validation. Synthetic "
             f"tasks ({args.epochs} epochs): the recipe of configs/demo.yaml for every model, s = {args.train_s} for "
             f"zernet and paper-zernet. Aneurysm ({args.aneurysm_epochs} epochs): zernet runs the shipped recipe "
@@ -680,7 +680,7 @@ def main(argv=None) -> int:
         args.aneurysm_cases = "TP_Ia105I" if args.quick else "TP_Ia105I,TP_Ia166I"
     skip = {part.strip() for part in args.skip.split(",") if part.strip()}
     torch.set_num_threads(args.threads)
-    from zernet.train import keep_freed_memory
+    from zernet.training import keep_freed_memory
 
     keep_freed_memory()  # as the zernet command does, for every model alike
     out = Path(args.out)
