@@ -76,6 +76,7 @@ def demo_config() -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``zernet`` parser: one subcommand per public entry point, each with its own ``--help``."""
     common = argparse.ArgumentParser(add_help=False)
     # SUPPRESS: a subcommand's --debug must not reset a --debug given before the subcommand.
     common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
@@ -96,7 +97,17 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
-    p = sub.add_parser("preprocess", parents=[common, overrides],
+    _add_preprocess_command(sub, [common, overrides])
+    _add_train_command(sub, [common, overrides])
+    _add_evaluate_command(sub, [common])
+    _add_predict_command(sub, [common])
+    _add_demo_command(sub, [common, overrides])
+    return parser
+
+
+def _add_preprocess_command(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """The ``zernet preprocess`` subcommand."""
+    p = sub.add_parser("preprocess", parents=parents,
                        help="build and cache the patch operators of a data set",
                        description="Preprocess every shape of the data set described by CONFIG (area "
                                    "normalisation, sampling, geodesic polar coordinates, patch operators) in "
@@ -107,7 +118,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes (default: the data module's choice, one per core)")
     p.set_defaults(func=_cmd_preprocess)
 
-    p = sub.add_parser("train", parents=[common, overrides], help="train a model from a YAML configuration",
+
+def _add_train_command(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """The ``zernet train`` subcommand."""
+    p = sub.add_parser("train", parents=parents, help="train a model from a YAML configuration",
                        description="Train a model, select the best epoch on the validation split, evaluate it on "
                                    "the test split and write the run folder: config.yaml, last.pt, best.pt, "
                                    "train.log, metrics.json and plots/.")
@@ -123,7 +137,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bars (log lines only)")
     p.set_defaults(func=_cmd_train)
 
-    p = sub.add_parser("evaluate", parents=[common], help="evaluate a trained run (or an ensemble) on a split",
+
+def _add_evaluate_command(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """The ``zernet evaluate`` subcommand."""
+    p = sub.add_parser("evaluate", parents=parents, help="evaluate a trained run (or an ensemble) on a split",
                        description="Evaluate the validation-selected model (best.pt) of RUN_DIR on a split of its "
                                    "data set, print the metrics and write them to RUN_DIR/metrics-SPLIT.json "
                                    "(metrics.json for the test split). Several RUN_DIRs (the same recipe trained "
@@ -139,7 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser("predict", parents=[common], help="predict per-vertex values on a new surface",
+
+def _add_predict_command(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """The ``zernet predict`` subcommand."""
+    p = sub.add_parser("predict", parents=parents, help="predict per-vertex values on a new surface",
                        description="Run the model of RUN_DIR on MESH (a .ply/.obj/.off/.stl mesh, a .mat surface "
                                    "or a point cloud). Writes PREFIX.npy (per-vertex class index or value) and "
                                    "PREFIX.ply (the surface coloured by the prediction); with --probabilities "
@@ -154,7 +174,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default=None, help="override the run's device (cpu, cuda, ...)")
     p.set_defaults(func=_cmd_predict)
 
-    p = sub.add_parser("demo", parents=[common, overrides],
+
+def _add_demo_command(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """The ``zernet demo`` subcommand."""
+    p = sub.add_parser("demo", parents=parents,
                        help="train and evaluate on the built-in synthetic data (a few minutes)",
                        description="Train and evaluate a small ZerNet on the built-in synthetic data set (no "
                                    "download), then print the test metrics and the paths of the pictures. Takes a "
@@ -164,7 +187,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=None, metavar="N", help="preprocessing worker processes")
     p.add_argument("--no-progress", action="store_true", help="no progress bars (log lines only)")
     p.set_defaults(func=_cmd_demo)
-    return parser
 
 
 # --------------------------------------------------------------------------------------------------------
