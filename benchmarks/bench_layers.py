@@ -17,7 +17,7 @@ configuration runs its workload twice and reports the growth of its peak residen
 the resident set after setup (inputs, operator, parameters), so the number is what the computation itself
 adds. With ``--real`` the operator is the real ``PatchOperator`` of the 6,880-vertex mannequin of
 ``bench_operator.py``, otherwise a random sparse stand-in with 57 non-zeros per row (the measured density of
-the real one, ../shared/GUIDE.md section 5).
+the real one).
 
 Usage::
 
@@ -156,7 +156,7 @@ def model_workload(op, s: int, impl: str):
     import torch
 
     from zernet.nn import Geometry, RotatedKernelConv, build_model
-    from zernet.train import precision_autocast
+    from zernet.training import precision_autocast
 
     n = op.n_vertices
     model = build_model("zernet", 3, n, widths=(64, 128, 256, 512), angular_resolution=s)
@@ -187,7 +187,7 @@ def _setup(real: bool):
 
     import torch
 
-    from zernet.train import keep_freed_memory
+    from zernet.training import keep_freed_memory
 
     warnings.filterwarnings("ignore")
     keep_freed_memory()  # as the zernet command does

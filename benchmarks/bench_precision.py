@@ -36,7 +36,7 @@ from zernet.data.synthetic import make_creature
 from zernet.io_utils import atomic_write_bytes
 from zernet.nn import Geometry, build_model
 from zernet.patches import PatchConfig, build_patch_operator
-from zernet.train import keep_freed_memory, precision_autocast
+from zernet.training import keep_freed_memory, precision_autocast
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_precision.json"
 PATCH = PatchConfig(r0=2.5, n_samples=4000, patch_size=50, n_max=5)

@@ -39,7 +39,7 @@ sys.path.insert(0, str(REPO))
 from zernet.data.preprocess import ShapeSource, preprocess_shapes  # noqa: E402
 from zernet.data.synthetic import SYNTHETIC_AREA, _load_creature  # noqa: E402
 from zernet.patches import PatchConfig  # noqa: E402
-from zernet.train import load_checkpoint  # noqa: E402
+from zernet.training import build_dataset, load_checkpoint, resolve_config  # noqa: E402
 
 
 def creature_sources(n_shapes: int, n_vertices: int) -> list[ShapeSource]:
@@ -134,8 +134,6 @@ def main(argv=None) -> int:
         folder = Path(folder)
         train_config["cache_dir"] = str(folder / "cache")
         # Fill the cache once, here, so every torchrun measures training only.
-        from zernet.train import build_dataset, resolve_config
-
         build_dataset(resolve_config(train_config), progress=False, workers=max(args.workers))
         for ranks in args.ranks:
             row = bench_ddp(train_config, args.shapes - n_test, ranks, folder)

@@ -17,7 +17,7 @@ In one process, on the same inputs and with the same thread count, it measures
 3. **Peak memory** of a training step: one child process per model (``--probe-memory``) loads the same
    saved operator and edges, runs two steps and reports its peak resident set size (``ru_maxrss``) and
    the part of it added by the model (peak minus the resident size before the model was built).
-4. **Short fixed-budget training runs** through :func:`zernet.train.train` (the training command's own loop,
+4. **Short fixed-budget training runs** through :func:`zernet.training.train` (the training command's own loop,
    data, splits and metrics): same epochs, same seed for every model, on the built-in synthetic data
    (segmentation, and curvature regression, both with the recipe of ``configs/demo.yaml``) and, when the aneurysm data exist
    (``--aneurysm-root``, default ``../shared/data/aneurysm``), on leave-one-out aneurysm cases.
@@ -44,12 +44,21 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch_geometric
+import yaml
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.ticker  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
+
+from zernet.data.preprocess import mesh_edge_index  # noqa: E402
+from zernet.data.synthetic import make_creature  # noqa: E402
+from zernet.nn.geometry import Geometry  # noqa: E402
+from zernet.nn.models import build_model  # noqa: E402
+from zernet.patches import PatchConfig, PatchOperator, build_patch_operator  # noqa: E402
+from zernet.training import keep_freed_memory, load_checkpoint, train  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 N_VERTICES = 6890
@@ -107,8 +116,6 @@ def training_models(angular_resolution: int) -> list[dict]:
 
 def body_surface():
     """The 6,890-vertex body-like test surface at area 15000 (a closed procedural creature)."""
-    from zernet.data.synthetic import make_creature
-
     surface, _, _ = make_creature(seed=6890, n_vertices=N_VERTICES, rotate=False, area=BODY_AREA)
     surface.name = f"creature-{N_VERTICES}"
     return surface
@@ -116,10 +123,6 @@ def body_surface():
 
 def build_inputs(workdir: Path) -> tuple[dict, dict]:
     """Surface, operator and edges for the timing runs; returns (inputs, build timings)."""
-    from zernet.data.preprocess import mesh_edge_index
-    from zernet.nn.geometry import Geometry
-    from zernet.patches import PatchConfig, build_patch_operator
-
     surface = body_surface()
     started = time.perf_counter()
     operator = build_patch_operator(surface, PatchConfig(**BODY_PATCH), cache_dir=None)
@@ -161,8 +164,6 @@ def build_inputs(workdir: Path) -> tuple[dict, dict]:
 
 
 def _make(spec: dict, n_out: int, seed: int = 0):
-    from zernet.nn.models import build_model
-
     torch.manual_seed(seed)
     model = build_model(spec["name"], 3, n_out, **spec["options"])
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
@@ -251,9 +252,6 @@ def probe_memory(spec_json: str, operator_path: str, edges_path: str, threads: i
     ``/proc/self/clear_refs``) and the reported peak covers building the model and its training steps only.
     Where that is unsupported the process-lifetime ``ru_maxrss`` is reported instead (``"scope"`` says which).
     """
-    from zernet.nn.geometry import Geometry
-    from zernet.patches import PatchOperator
-
     torch.set_num_threads(threads)
     spec = json.loads(spec_json)
     operator = PatchOperator.load(operator_path)
@@ -294,8 +292,6 @@ def measure_memory(specs: list[dict], inputs: dict, threads: int) -> dict:
 
 def training_tasks(args) -> list[dict]:
     """The data sets of the training runs, as (partial) training configurations."""
-    import yaml
-
     epochs = args.epochs
     # The built-in tasks use the demo's recipe (configs/demo.yaml: 30 creatures, xyz + normals, its patch,
     # widths and learning rate) for every model, so each model meets a task it can learn in a few epochs.
@@ -338,16 +334,12 @@ def training_tasks(args) -> list[dict]:
 
 def _aneurysm_recipe_summary() -> str:
     """One line naming the shipped aneurysm recipe's model, for the report's text."""
-    import yaml
-
     model = yaml.safe_load((ROOT / "configs" / "aneurysm_regression.yaml").read_text())["model"]
     options = ", ".join(f"{key} {value}" for key, value in model.items() if key != "name")
     return f"{model['name']}, {options}"
 
 
 def run_training(tasks: list[dict], models: list[dict], out: Path, threads: int, cache_dir: str) -> dict:
-    from zernet.train import load_checkpoint, train
-
     results = {}
     for task in tasks:
         results[task["slug"]] = {}
@@ -547,7 +539,7 @@ def write_report(out: Path, results: dict, args) -> Path:
         lines += [
             "## Fixed-budget training runs",
             "",
-            f"`zernet.train.train` (the training command's loop, data, splits and metrics); every model with the same "
+            f"`zernet.training.train` (the training command's loop, data, splits and metrics); every model with the same "
             f"epochs, seed 0, no early stopping; the test metric of the epoch chosen on validation. Synthetic "
             f"tasks ({args.epochs} epochs): the recipe of configs/demo.yaml for every model, s = {args.train_s} for "
             f"zernet and paper-zernet. Aneurysm ({args.aneurysm_epochs} epochs): zernet runs the shipped recipe "
@@ -618,8 +610,6 @@ def environment(threads: int) -> dict:
                                 cwd=ROOT).stdout.strip() or "unknown"
     except OSError:
         commit = "unknown"
-    import torch_geometric
-
     return {"date": datetime.datetime.now().isoformat(timespec="seconds"), "commit": commit,
             "torch": torch.__version__, "torch_geometric": torch_geometric.__version__, "threads": threads,
             "machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),
@@ -680,8 +670,6 @@ def main(argv=None) -> int:
         args.aneurysm_cases = "TP_Ia105I" if args.quick else "TP_Ia105I,TP_Ia166I"
     skip = {part.strip() for part in args.skip.split(",") if part.strip()}
     torch.set_num_threads(args.threads)
-    from zernet.train import keep_freed_memory
-
     keep_freed_memory()  # as the zernet command does, for every model alike
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

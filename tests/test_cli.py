@@ -12,23 +12,14 @@ import pytest
 import trimesh
 import yaml
 
+from training.tiny_configs import cli_config
+
 from zernet.cli import DEMO_CONFIG, main
+from zernet.data.synthetic import make_creature
+from zernet.training import load_config, resolve_config
 
 REPO = Path(__file__).resolve().parent.parent
 SUBCOMMANDS = ("preprocess", "train", "evaluate", "predict", "demo")
-
-
-def tiny_config(cache_dir) -> dict:
-    """Six 200-vertex creatures and a small model: a full train/evaluate/predict cycle in seconds."""
-    return {
-        "data": {"kind": "synthetic", "task": "segmentation", "n_shapes": 6, "n_vertices": 200,
-                 "test_fraction": 0.34, "val_count": 1, "seed": 0},
-        "patch": {"scales": [{"r0": 5.0, "n_samples": 800, "patch_size": 20, "n_max": 3}]},
-        "model": {"name": "zernet", "widths": [8, 8, 16], "angular_resolution": 2, "dropout": 0.1},
-        "train": {"epochs": 1, "seed": 0, "threads": 1, "lr": 1e-2},
-        "eval": {"renders": 0, "plots": False},
-        "cache_dir": str(cache_dir),
-    }
 
 
 def write_config(path: Path, config: dict) -> Path:
@@ -65,14 +56,14 @@ def test_missing_config_file_exits_2(tmp_path, capsys):
 
 
 def test_bad_config_key_exits_2(tmp_path, capsys):
-    config = tiny_config(tmp_path / "cache")
+    config = cli_config(tmp_path / "cache")
     config["train"]["epoch"] = 3  # typo for epochs
     assert main(["train", str(write_config(tmp_path / "bad.yaml", config))]) == 2
     assert "unknown key train.epoch" in one_line_error(capsys)
 
 
 def test_unknown_model_exits_2(tmp_path, capsys):
-    config = tiny_config(tmp_path / "cache")
+    config = cli_config(tmp_path / "cache")
     path = write_config(tmp_path / "c.yaml", config)
     assert main(["train", str(path), "--set", "model.name=nosuchnet"]) == 2
     err = one_line_error(capsys)
@@ -80,7 +71,7 @@ def test_unknown_model_exits_2(tmp_path, capsys):
 
 
 def test_bad_override_exits_2(tmp_path, capsys):
-    path = write_config(tmp_path / "c.yaml", tiny_config(tmp_path / "cache"))
+    path = write_config(tmp_path / "c.yaml", cli_config(tmp_path / "cache"))
     assert main(["train", str(path), "--set", "train.epochs"]) == 2
     assert "section.key=value" in one_line_error(capsys)
 
@@ -91,7 +82,7 @@ def test_missing_run_folder_exits_2(tmp_path, capsys):
 
 
 def test_train_evaluate_predict(tmp_path, capsys):
-    path = write_config(tmp_path / "c.yaml", tiny_config(tmp_path / "cache"))
+    path = write_config(tmp_path / "c.yaml", cli_config(tmp_path / "cache"))
     run_dir = tmp_path / "run"
     assert main(["train", str(path), "--run-dir", str(run_dir), "--no-progress", "--workers", "0"]) == 0
     assert (run_dir / "metrics.json").is_file()
@@ -107,8 +98,6 @@ def test_train_evaluate_predict(tmp_path, capsys):
     assert main(["evaluate", str(run_dir), str(run_dir), "--no-progress", "--out", str(tmp_path / "ens.json")]) == 0
     assert "ensemble of 2" in capsys.readouterr().out
     assert json.loads((tmp_path / "ens.json").read_text())["checkpoint"] == [str(run_dir / "best.pt")] * 2
-
-    from zernet.data.synthetic import make_creature
 
     surface, _, _ = make_creature(77, n_vertices=150)
     mesh_path = tmp_path / "shape.ply"
@@ -132,7 +121,5 @@ def test_demo_yaml_matches_the_built_in_demo():
 
 
 def test_shipped_configs_are_valid():
-    from zernet.train import load_config, resolve_config
-
     for path in sorted((REPO / "configs").glob("*.yaml")):
         resolve_config(load_config(path))

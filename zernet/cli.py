@@ -14,6 +14,31 @@ import sys
 import time
 from pathlib import Path
 
+import matplotlib
+import numpy as np
+import trimesh
+
+from zernet.data import DatasetError
+from zernet.distributed import is_main
+from zernet.io_utils import atomic_write_bytes, write_json
+from zernet.surface import SurfaceError, load_surface
+from zernet.training import (
+    ConfigError,
+    RunConfig,
+    apply_overrides,
+    build_dataset,
+    checkpoint_path,
+    evaluate,
+    keep_freed_memory,
+    load_checkpoint,
+    load_config,
+    parse_config,
+    predict,
+    read_config,
+    summary_line,
+    train,
+)
+
 __all__ = ["main", "build_parser", "DEMO_CONFIG", "demo_config"]
 
 # The built-in demo, used when the repository's configs/demo.yaml is not available (e.g. an installed wheel).
@@ -39,8 +64,6 @@ class _UsageError(Exception):
 
 def demo_config() -> dict:
     """The demo configuration: ``configs/demo.yaml`` of a source checkout, else :data:`DEMO_CONFIG`."""
-    from zernet.train import load_config
-
     repo_file = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
     if repo_file.is_file():
         return load_config(repo_file)
@@ -53,6 +76,7 @@ def demo_config() -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``zernet`` parser: one subcommand per public entry point, each with its own ``--help``."""
     common = argparse.ArgumentParser(add_help=False)
     # SUPPRESS: a subcommand's --debug must not reset a --debug given before the subcommand.
     common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
@@ -73,7 +97,17 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
-    p = sub.add_parser("preprocess", parents=[common, overrides],
+    _add_preprocess_command(sub, [common, overrides])
+    _add_train_command(sub, [common, overrides])
+    _add_evaluate_command(sub, [common])
+    _add_predict_command(sub, [common])
+    _add_demo_command(sub, [common, overrides])
+    return parser
+
+
+def _add_preprocess_command(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """The ``zernet preprocess`` subcommand."""
+    p = sub.add_parser("preprocess", parents=parents,
                        help="build and cache the patch operators of a data set",
                        description="Preprocess every shape of the data set described by CONFIG (area "
                                    "normalisation, sampling, geodesic polar coordinates, patch operators) in "
@@ -84,7 +118,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes (default: the data module's choice, one per core)")
     p.set_defaults(func=_cmd_preprocess)
 
-    p = sub.add_parser("train", parents=[common, overrides], help="train a model from a YAML configuration",
+
+def _add_train_command(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """The ``zernet train`` subcommand."""
+    p = sub.add_parser("train", parents=parents, help="train a model from a YAML configuration",
                        description="Train a model, select the best epoch on the validation split, evaluate it on "
                                    "the test split and write the run folder: config.yaml, last.pt, best.pt, "
                                    "train.log, metrics.json and plots/.")
@@ -100,7 +137,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bars (log lines only)")
     p.set_defaults(func=_cmd_train)
 
-    p = sub.add_parser("evaluate", parents=[common], help="evaluate a trained run (or an ensemble) on a split",
+
+def _add_evaluate_command(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """The ``zernet evaluate`` subcommand."""
+    p = sub.add_parser("evaluate", parents=parents, help="evaluate a trained run (or an ensemble) on a split",
                        description="Evaluate the validation-selected model (best.pt) of RUN_DIR on a split of its "
                                    "data set, print the metrics and write them to RUN_DIR/metrics-SPLIT.json "
                                    "(metrics.json for the test split). Several RUN_DIRs (the same recipe trained "
@@ -116,7 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser("predict", parents=[common], help="predict per-vertex values on a new surface",
+
+def _add_predict_command(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """The ``zernet predict`` subcommand."""
+    p = sub.add_parser("predict", parents=parents, help="predict per-vertex values on a new surface",
                        description="Run the model of RUN_DIR on MESH (a .ply/.obj/.off/.stl mesh, a .mat surface "
                                    "or a point cloud). Writes PREFIX.npy (per-vertex class index or value) and "
                                    "PREFIX.ply (the surface coloured by the prediction); with --probabilities "
@@ -131,7 +174,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default=None, help="override the run's device (cpu, cuda, ...)")
     p.set_defaults(func=_cmd_predict)
 
-    p = sub.add_parser("demo", parents=[common, overrides],
+
+def _add_demo_command(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """The ``zernet demo`` subcommand."""
+    p = sub.add_parser("demo", parents=parents,
                        help="train and evaluate on the built-in synthetic data (a few minutes)",
                        description="Train and evaluate a small ZerNet on the built-in synthetic data set (no "
                                    "download), then print the test metrics and the paths of the pictures. Takes a "
@@ -141,7 +187,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=None, metavar="N", help="preprocessing worker processes")
     p.add_argument("--no-progress", action="store_true", help="no progress bars (log lines only)")
     p.set_defaults(func=_cmd_demo)
-    return parser
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -149,23 +194,13 @@ def build_parser() -> argparse.ArgumentParser:
 # --------------------------------------------------------------------------------------------------------
 
 
-def _read_config(path: Path | None, overrides: list[str]) -> dict:
-    from zernet.train import apply_overrides, load_config, resolve_config
-
-    config = load_config(path)
-    config = apply_overrides(config, overrides)
-    return resolve_config(config)  # fail on a bad key now, before any work
-
-
 def _cmd_preprocess(args) -> int:
-    from zernet.train import build_dataset
-
-    config = _read_config(args.config, args.overrides)
+    config = read_config(args.config, args.overrides)  # fails on a bad key now, before any work
     started = time.perf_counter()
     dataset = build_dataset(config, progress=True, workers=args.workers)
     seconds = time.perf_counter() - started
     print(f"preprocessed {dataset.summary() if hasattr(dataset, 'summary') else len(dataset)} "
-          f"in {seconds:.1f} s; cache: {config['cache_dir']}")
+          f"in {seconds:.1f} s; cache: {config.cache_dir}")
     failures = getattr(dataset, "failures", {})
     for name, reason in failures.items():
         print(f"  failed: {name}: {reason}", file=sys.stderr)
@@ -173,34 +208,28 @@ def _cmd_preprocess(args) -> int:
 
 
 def _cmd_train(args) -> int:
-    from zernet.train import train
-
     if args.config is None and not args.resume:
         raise _UsageError("train needs a CONFIG file (or --resume with --run-dir of an existing run)")
     if args.resume and args.run_dir is None:
         raise _UsageError("--resume needs --run-dir: the run folder to continue")
     if args.resume and args.overwrite:
         raise _UsageError("--resume and --overwrite contradict each other")
-    config = _read_config(args.config, args.overrides) if args.config is not None else None
+    config = read_config(args.config, args.overrides) if args.config is not None else None
     if config is None and args.overrides:
         raise _UsageError("--set needs a CONFIG file; on resume only train.epochs and train.patience may change")
     run_dir = args.run_dir or Path("runs") / args.config.stem
     metrics = train(config, run_dir, resume=args.resume, progress=not args.no_progress,
                     overwrite=args.overwrite, workers=args.workers)
-    from zernet.distributed import is_main
-
     if is_main():  # under torchrun, rank 0 alone evaluated the model and reports
         _print_metrics(metrics, run_dir)
     return 0
 
 
 def _cmd_evaluate(args) -> int:
-    from zernet.train import _summary_line, _write_json, evaluate
-
     runs = args.run_dir if len(args.run_dir) > 1 else args.run_dir[0]
     metrics = evaluate(runs, split=args.split, progress=not args.no_progress, device=args.device)
     what = f"ensemble of {len(args.run_dir)}, " if len(args.run_dir) > 1 else ""
-    print(f"{args.split} ({what}{metrics['n_shapes']} shapes): {_summary_line(metrics)}")
+    print(f"{args.split} ({what}{metrics['n_shapes']} shapes): {summary_line(metrics)}")
     out = args.out
     if out is None and len(args.run_dir) == 1 and args.run_dir[0].is_dir():
         run_dir = args.run_dir[0]
@@ -211,23 +240,18 @@ def _cmd_evaluate(args) -> int:
             previous.update(metrics)
             metrics = previous
     if out is not None:
-        _write_json(out, metrics)
+        write_json(out, metrics)
         print(f"wrote {out}")
     return 0
 
 
 def _cmd_predict(args) -> int:
-    import numpy as np
-
-    from zernet.surface import load_surface
-    from zernet.train import _checkpoint_path, load_checkpoint, predict
-
     if not args.mesh.is_file():
         raise FileNotFoundError(f"mesh not found: {args.mesh}")
-    checkpoint_path = _checkpoint_path(args.run_dir)
-    checkpoint = load_checkpoint(checkpoint_path)
+    path = checkpoint_path(args.run_dir)
+    checkpoint = load_checkpoint(path)
     surface = load_surface(args.mesh)
-    result = predict(checkpoint_path, surface, probabilities=args.probabilities, device=args.device)
+    result = predict(path, surface, probabilities=args.probabilities, device=args.device)
     prediction, probabilities = result if args.probabilities else (result, None)
 
     prefix = Path(args.out)
@@ -255,10 +279,6 @@ def _cmd_predict(args) -> int:
 
 def _write_coloured_ply(path: Path, surface, prediction, checkpoint: dict, colormap: str | None) -> None:
     """Write the surface (mesh or point cloud, original coordinates) with vertex colours from ``prediction``."""
-    import matplotlib
-    import numpy as np
-    import trimesh
-
     if checkpoint["task"] == "classification":
         n_classes = int(checkpoint["num_classes"])
         name = colormap or ("tab10" if n_classes <= 10 else "tab20" if n_classes <= 20 else "hsv")
@@ -276,15 +296,11 @@ def _write_coloured_ply(path: Path, surface, prediction, checkpoint: dict, color
         geometry = trimesh.Trimesh(surface.vertices, surface.faces, vertex_colors=colours, process=False)
     else:
         geometry = trimesh.PointCloud(surface.vertices, colors=colours)
-    from zernet.io_utils import atomic_write_bytes
-
     atomic_write_bytes(path, geometry.export(file_type="ply"))
 
 
 def _cmd_demo(args) -> int:
-    from zernet.train import apply_overrides, resolve_config, train
-
-    config = resolve_config(apply_overrides(demo_config(), args.overrides))
+    config: RunConfig = parse_config(apply_overrides(demo_config(), args.overrides))
     started = time.perf_counter()
     metrics = train(config, args.run_dir, progress=not args.no_progress, overwrite=True, workers=args.workers)
     print(f"demo finished in {time.perf_counter() - started:.0f} s")
@@ -293,10 +309,8 @@ def _cmd_demo(args) -> int:
 
 
 def _print_metrics(metrics: dict, run_dir: Path) -> None:
-    from zernet.train import _summary_line
-
     print(f"test metrics ({metrics.get('n_shapes', '?')} shapes, model of epoch {metrics.get('best_epoch')} "
-          f"chosen on validation): {_summary_line(metrics)}")
+          f"chosen on validation): {summary_line(metrics)}")
     print(f"run folder: {run_dir}")
     print(f"  metrics:  {run_dir / 'metrics.json'}")
     for plot in metrics.get("plots", []):
@@ -310,19 +324,8 @@ def _print_metrics(metrics: dict, run_dir: Path) -> None:
 
 def _user_errors() -> tuple[type[BaseException], ...]:
     """Exceptions that describe a problem the user can fix: reported as one line, exit code 2."""
-    from zernet.surface import SurfaceError
-    from zernet.train import ConfigError
-
-    errors: list[type[BaseException]] = [_UsageError, ConfigError, SurfaceError, FileNotFoundError,
-                                         NotADirectoryError, IsADirectoryError, PermissionError, ValueError,
-                                         KeyError]
-    try:
-        from zernet.data.base import DatasetError
-
-        errors.append(DatasetError)
-    except ImportError:
-        pass
-    return tuple(errors)
+    return (_UsageError, ConfigError, SurfaceError, DatasetError, FileNotFoundError, NotADirectoryError,
+            IsADirectoryError, PermissionError, ValueError, KeyError)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -330,8 +333,6 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     debug = bool(getattr(args, "debug", False))
-    from zernet.train import keep_freed_memory
-
     keep_freed_memory()
     try:
         return int(args.func(args) or 0)

@@ -11,7 +11,7 @@ What each rank does:
 - **Backend** from the training device: NCCL when the model runs on CUDA (rank ``r`` takes GPU
   ``LOCAL_RANK``), gloo on the CPU. ``ZERNET_DIST_BACKEND`` overrides the choice.
 - **Shapes**: every rank computes the same seeded permutation of the training shapes for the epoch
-  (:func:`zernet.train.epoch_order`) and takes the slice ``order[rank::world_size]`` (:func:`shard_indices`).
+  (:func:`zernet.training.schedule.epoch_order`) and takes the slice ``order[rank::world_size]`` (:func:`shard_indices`).
   The per-rank counts must be equal, or the ranks would run different numbers of optimiser steps and the
   gradient all-reduce would deadlock; so the permutation is **padded by repeating its first shapes** up to a
   multiple of ``world_size`` (every shape is seen at least once per epoch; at most ``world_size - 1`` shapes
@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
 
 __all__ = [
     "DistributedContext",
@@ -197,8 +198,6 @@ class DistributedContext:
         """
         if not self.distributed:
             return model
-        from torch.nn.parallel import DistributedDataParallel
-
         return DistributedDataParallel(model, device_ids=None)
 
     @staticmethod

@@ -1,14 +1,18 @@
-"""Atomic file writes: a reader never sees a half-written cache or checkpoint."""
+"""Atomic file writes (a reader never sees a half-written cache, checkpoint or metrics file) and plain values."""
 
 from __future__ import annotations
 
 import io
+import json
 import os
 import shutil
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import torch
+
+__all__ = ["atomic_write_bytes", "snapshot_file", "atomic_save_torch", "write_json", "plain"]
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
@@ -72,3 +76,33 @@ def atomic_save_torch(obj, path: str | os.PathLike) -> Path:
     buffer = io.BytesIO()
     torch.save(obj, buffer)
     return atomic_write_bytes(path, buffer.getvalue())
+
+
+def write_json(path: str | os.PathLike, data: dict) -> Path:
+    """Write ``data`` as indented JSON, atomically; numpy scalars and arrays become numbers and lists."""
+    def default(value):
+        if isinstance(value, (np.integer,)):
+            return int(value)
+        if isinstance(value, (np.floating,)):
+            return float(value)
+        if isinstance(value, np.ndarray):
+            return value.tolist()
+        raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+    text = json.dumps(data, indent=2, default=default, allow_nan=True)
+    return atomic_write_bytes(path, (text + "\n").encode("utf-8"))
+
+
+def plain(value):
+    """``value`` with plain YAML/JSON types only: tuples become lists, paths strings, numpy scalars numbers."""
+    if isinstance(value, dict):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.floating,)):
+        return float(value)
+    return value

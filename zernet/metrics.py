@@ -10,6 +10,9 @@ from __future__ import annotations
 from typing import Mapping, Sequence
 
 import numpy as np
+import potpourri3d as pp3d
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 __all__ = [
     "accuracy",
@@ -129,14 +132,12 @@ class _Geodesics:
     in triangle meshes by just flipping edges") starts from the Dijkstra edge path and straightens it by
     intrinsic edge flips into a locally shortest geodesic, whose polyline length we sum. Starting from the
     globally shortest edge path, this is the true geodesic distance in practice, without the zig-zag
-    overestimate of Dijkstra on edges (see GUIDE section 4) or the smoothing bias of the heat method.
+    overestimate of Dijkstra on edges or the smoothing bias of the heat method.
     ``from_source`` uses the heat method (one cheap back-substitution per source) and serves only to find
     far-apart vertices; lengths we report always come from ``pair``.
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        import potpourri3d as pp3d
-
         self.vertices, self.faces = vertices, faces
         self._flip = pp3d.EdgeFlipGeodesicSolver(vertices, faces)
         self._heat = None
@@ -147,8 +148,6 @@ class _Geodesics:
         return _path_length(self._flip.find_geodesic_path(int(a), int(b)))
 
     def from_source(self, source: int) -> np.ndarray:
-        import potpourri3d as pp3d
-
         if self._heat is None:
             self._heat = pp3d.MeshHeatMethodDistanceSolver(self.vertices, self.faces)
         return np.asarray(self._heat.compute_distance(int(source)))
@@ -156,9 +155,6 @@ class _Geodesics:
 
 def _component_labels(faces: np.ndarray, n: int) -> np.ndarray:
     """(n,) connected-component id of every vertex (through mesh edges)."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-
     rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
     cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
     graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)).tocsr()

@@ -18,38 +18,18 @@ import pytest
 import torch
 import yaml
 
+from tiny_configs import ddp_config
+
 from zernet.distributed import DistributedContext, shard_indices
-from zernet.train import (
-    _Batch,
-    _build_model,
-    _loss,
-    _model_spec,
-    _seed_everything,
-    build_dataset,
-    epoch_order,
-    load_checkpoint,
-    resolve_config,
-    step_groups,
-)
+from zernet.training import build_dataset, epoch_order, load_checkpoint, parse_config, step_groups
+from zernet.training.batch import Batch
+from zernet.training.build import build_model_from_spec, model_spec
+from zernet.training.losses import compute_loss
+from zernet.training.schedule import seed_everything
 
 pytestmark = pytest.mark.timeout(300)
 
-REPO = Path(__file__).resolve().parent.parent
-
-
-def ddp_config(cache_dir) -> dict:
-    """Six 200-vertex creatures: 3 train (so 2 ranks need padding), 1 val, 2 test; no dropout."""
-    return {
-        "data": {"kind": "synthetic", "task": "segmentation", "n_shapes": 6, "n_vertices": 200,
-                 "test_fraction": 0.34, "val_count": 1, "seed": 0},
-        "patch": {"scales": [{"r0": 5.0, "n_samples": 800, "patch_size": 20, "n_max": 3}]},
-        "model": {"name": "zernet", "widths": [8, 8, 16], "angular_resolution": 2, "dropout": 0.0},
-        # weight decay: Adam alone is nearly invariant to the gradient's scale, so without it a sum instead
-        # of a mean over the ranks would go unnoticed
-        "train": {"epochs": 2, "seed": 3, "threads": 1, "lr": 1e-2, "weight_decay": 0.05, "patience": None},
-        "eval": {"renders": 0, "plots": False},
-        "cache_dir": str(cache_dir),
-    }
+REPO = Path(__file__).resolve().parents[2]
 
 
 # ------------------------------------------------------------------------------------------- sharding
@@ -91,25 +71,25 @@ def test_single_process_context_is_the_identity():
 # ------------------------------------------------------------------------------- DDP == one process
 def _reference_weights(config: dict, world_size: int) -> dict:
     """Replay the distributed run's steps in one process: mean of the ranks' losses per step."""
-    config = resolve_config(config)
-    tcfg = config["train"]
+    config = parse_config(config)
+    tcfg = config.train
     dataset = build_dataset(config, progress=False, workers=0)
     train_idx = list(dataset.splits["train"])
-    spec = _model_spec(config, dataset.in_channels, dataset.num_classes, dataset.patch_configs)
-    _seed_everything(tcfg["seed"])
-    model = _build_model(spec)
-    optimizer = torch.optim.Adam(model.parameters(), lr=tcfg["lr"], weight_decay=tcfg["weight_decay"])
+    spec = model_spec(config.model, dataset.in_channels, dataset.num_classes, dataset.patch_configs)
+    seed_everything(tcfg.seed)
+    model = build_model_from_spec(spec)
+    optimizer = torch.optim.Adam(model.parameters(), lr=tcfg.lr, weight_decay=tcfg.weight_decay)
     model.train()
-    for epoch in range(1, tcfg["epochs"] + 1):
-        order = [train_idx[i] for i in epoch_order(tcfg["seed"], epoch, len(train_idx))]
-        per_rank = [step_groups(shard_indices(order, r, world_size), tcfg["shapes_per_step"])
+    for epoch in range(1, tcfg.epochs + 1):
+        order = [train_idx[i] for i in epoch_order(tcfg.seed, epoch, len(train_idx))]
+        per_rank = [step_groups(shard_indices(order, r, world_size), tcfg.shapes_per_step)
                     for r in range(world_size)]
         for step_groups_of_ranks in zip(*per_rank):
             optimizer.zero_grad(set_to_none=True)
             losses = []
             for group in step_groups_of_ranks:
-                batch = _Batch([dataset[i] for i in group], torch.device("cpu"), None)
-                losses.append(_loss("cross_entropy", model(batch.features, batch.geometry), batch.target))
+                batch = Batch([dataset[i] for i in group], torch.device("cpu"), None)
+                losses.append(compute_loss("cross_entropy", model(batch.features, batch.geometry), batch.target))
             torch.stack(losses).mean().backward()
             optimizer.step()
     return {k: v.detach().clone() for k, v in model.state_dict().items()}
@@ -152,6 +132,6 @@ def test_two_gloo_ranks_match_one_process_with_averaged_losses(tmp_path):
     for key, value in reference.items():
         torch.testing.assert_close(checkpoint["model"][key], value, rtol=1e-5, atol=1e-6, msg=key)
     # ...and the weights really moved away from the initialisation during those 4 steps.
-    _seed_everything(config["train"]["seed"])
-    initial = _build_model(checkpoint["model_spec"]).state_dict()
+    seed_everything(config["train"]["seed"])
+    initial = build_model_from_spec(checkpoint["model_spec"]).state_dict()
     assert any(not torch.allclose(initial[k], reference[k]) for k in reference)

@@ -25,37 +25,27 @@ import torch
 import trimesh
 import yaml
 
+from tiny_configs import faults_config
+
 from zernet import io_utils
+from zernet.cli import main
 from zernet.data import PreprocessError, ShapeSource, build_dataset
 from zernet.data.preprocess import WORKER_DIED, file_key, preprocess_shapes
 from zernet.io_utils import atomic_save_torch, atomic_write_bytes
 from zernet.patches import PatchConfig
 from zernet.surface import load_surface
-from zernet.train import load_checkpoint, train
+from zernet.training import load_checkpoint, train
 
 pytestmark = pytest.mark.timeout(240)
 
-REPO = Path(__file__).resolve().parent.parent
-
-
-def tiny_config(cache_dir, epochs: int = 3) -> dict:
-    """3 train / 1 val / 2 test creatures of 200 vertices; dropout on, so RNG states matter for resume."""
-    return {
-        "data": {"kind": "synthetic", "task": "segmentation", "n_shapes": 6, "n_vertices": 200,
-                 "test_fraction": 0.34, "val_count": 1, "seed": 0},
-        "patch": {"scales": [{"r0": 5.0, "n_samples": 800, "patch_size": 20, "n_max": 3}]},
-        "model": {"name": "zernet", "widths": [8, 8, 16], "angular_resolution": 2, "dropout": 0.2},
-        "train": {"epochs": epochs, "seed": 1, "threads": 1, "lr": 1e-2, "patience": None},
-        "eval": {"renders": 0, "plots": False},
-        "cache_dir": str(cache_dir),
-    }
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
     """A complete 3-epoch run (also fills the shared cache): the reference for every resume below."""
     root = tmp_path_factory.mktemp("faults")
-    config = tiny_config(root / "cache")
+    config = faults_config(root / "cache")
     train(config, root / "full", progress=False, workers=0)
     return root, config, load_checkpoint(root / "full" / "last.pt")
 
@@ -116,7 +106,6 @@ def test_sigkill_mid_epoch_then_resume_equals_uninterrupted(uninterrupted, tmp_p
     assert load_checkpoint(run_dir / "last.pt")["state"]["epoch"] == 1  # epoch 2 never finished
     assert not list(run_dir.glob(".*.tmp"))
 
-    from zernet.cli import main
 
     assert main(["train", "--resume", "--run-dir", str(run_dir), "--no-progress", "--workers", "0"]) == 0
     assert_same_weights(load_checkpoint(run_dir / "last.pt"), reference)

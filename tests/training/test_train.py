@@ -8,45 +8,38 @@ from __future__ import annotations
 
 import copy
 import json
+import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
+from tiny_configs import tiny_config
+
+import zernet.training.loop as loop
+from zernet.data.synthetic import make_creature
+from zernet.metrics import regression_scores
 from zernet.surface import Surface
-from zernet.train import (
+from zernet.training import (
     ConfigError,
-    _predict_record,
     apply_overrides,
     build_dataset,
+    epoch_learning_rate,
     epoch_order,
     evaluate,
     load_checkpoint,
+    parse_config,
     predict,
     resolve_config,
     step_groups,
     train,
 )
-
-
-def tiny_config(cache_dir, **train_options) -> dict:
-    """Six 200-vertex creatures (4 train, 1 val, 1 test... see test_fraction), one small patch scale."""
-    config = {
-        "data": {"kind": "synthetic", "task": "segmentation", "n_shapes": 6, "n_vertices": 200,
-                 "test_fraction": 0.34, "val_count": 1, "seed": 0},
-        "patch": {"scales": [{"r0": 5.0, "n_samples": 800, "patch_size": 20, "n_max": 3}]},
-        "model": {"name": "zernet", "widths": [8, 8, 16], "angular_resolution": 2, "dropout": 0.1},
-        "train": {"epochs": 2, "seed": 0, "threads": 1, "lr": 1e-2},
-        "eval": {"renders": 1, "plots": False},
-        "cache_dir": str(cache_dir),
-    }
-    config["train"].update(train_options)
-    return config
-
-
-@pytest.fixture(scope="session")
-def cache_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("zernet-cache")
+from zernet.training.batch import Batch
+from zernet.training.config import TrainSection
+from zernet.training.losses import compute_loss
+from zernet.training.predict import predict_record
+from zernet.training.targets import feature_stats, standardise, target_stats, unstandardise
 
 
 @pytest.fixture(scope="session")
@@ -88,8 +81,6 @@ def test_evaluate_and_predict_agree_with_training(finished_run, cache_dir):
     again = evaluate(run_dir, progress=False)
     assert again["summary"]["accuracy"] == pytest.approx(metrics["summary"]["accuracy"])
 
-    from zernet.data.synthetic import make_creature
-
     surface, labels, _ = make_creature(123, n_vertices=200)
     prediction, probabilities = predict(run_dir, surface, probabilities=True)
     assert prediction.shape == (200,) and prediction.dtype == np.int64
@@ -130,10 +121,10 @@ def test_regression_ensemble_of_log_targets_is_a_geometric_mean(finished_run):
 
     stats = {"mean": 1.0, "std": 2.0, "transform": "log"}
     members = [(Constant(v), {"task": "regression", "target_stats": stats}) for v in (0.0, 1.0)]
-    values, _ = _predict_record(members, record, torch.device("cpu"))
+    values, _ = predict_record(members, record, torch.device("cpu"))
     # Members predict exp(1) and exp(3): the ensemble exp(2) (their geometric mean, not their mean).
     np.testing.assert_allclose(values, np.exp(2.0), rtol=1e-6)
-    single, _ = _predict_record(members[1:], record, torch.device("cpu"))
+    single, _ = predict_record(members[1:], record, torch.device("cpu"))
     np.testing.assert_allclose(single, np.exp(3.0), rtol=1e-6)
 
 
@@ -241,36 +232,31 @@ class _Targets:
 
 
 def test_log_target_transform_round_trips_and_is_standardised():
-    from zernet.train import _standardise, _target_stats, _unstandardise
-
     rng = np.random.default_rng(0)
     data = _Targets([rng.uniform(0.004, 0.3, size=n) for n in (50, 80)])
-    stats = _target_stats(data, [0, 1], transform="log")
+    stats = target_stats(data, [0, 1], transform="log")
     assert stats["transform"] == "log"
     logs = np.log(np.concatenate(data.targets))
     assert stats["mean"] == pytest.approx(logs.mean()) and stats["std"] == pytest.approx(logs.std())
     target = torch.from_numpy(data.targets[1])
-    trained = _standardise(target, stats)
+    trained = standardise(target, stats)
     torch.testing.assert_close(trained.double(), torch.from_numpy((np.log(data.targets[1]) - logs.mean()) / logs.std()),
                                rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(_unstandardise(trained, stats).double(), target, rtol=1e-5, atol=0)
+    torch.testing.assert_close(unstandardise(trained, stats).double(), target, rtol=1e-5, atol=0)
     # Without standardisation the network is trained on log y itself.
-    plain = _target_stats(data, [0, 1], transform="log", standardize=False)
-    torch.testing.assert_close(_standardise(target, plain).double(), torch.log(target), rtol=1e-6, atol=1e-6)
+    plain = target_stats(data, [0, 1], transform="log", standardize=False)
+    torch.testing.assert_close(standardise(target, plain).double(), torch.log(target), rtol=1e-6, atol=1e-6)
 
 
 @pytest.mark.parametrize("transform", ["log", "none"])
 def test_relative_l1_loss_is_the_mape_of_the_predictions(transform):
-    from zernet.metrics import regression_scores
-    from zernet.train import _loss, _standardise, _target_stats, _unstandardise
-
     rng = np.random.default_rng(1)
     data = _Targets([rng.uniform(0.004, 0.3, size=n) for n in (50, 80)])
-    stats = _target_stats(data, [0, 1], transform=transform)
-    target = _standardise(torch.from_numpy(data.targets[1]), stats).double()
+    stats = target_stats(data, [0, 1], transform=transform)
+    target = standardise(torch.from_numpy(data.targets[1]), stats).double()
     output = (target + 0.3 * torch.randn(80, dtype=torch.float64)).reshape(80, 1).requires_grad_()
-    loss = _loss("relative_l1", output, target, stats)
-    prediction = _unstandardise(output.detach().reshape(-1), stats).numpy()
+    loss = compute_loss("relative_l1", output, target, stats)
+    prediction = unstandardise(output.detach().reshape(-1), stats).numpy()
     assert loss.item() == pytest.approx(regression_scores(prediction, data.targets[1])["MAPE"], rel=1e-6)
     # Its gradient pushes every prediction towards its target.
     loss.backward()
@@ -278,9 +264,7 @@ def test_relative_l1_loss_is_the_mape_of_the_predictions(transform):
 
 
 def test_relative_l1_loss_refuses_zero_targets(tmp_path, cache_dir, monkeypatch):
-    import zernet.train as zt
-
-    build = zt.build_dataset
+    build = loop.load_data
 
     def with_a_zero(*args, **kwargs):  # the first training shape gets a zero target at vertex 3
         dataset = build(*args, **kwargs)
@@ -295,7 +279,7 @@ def test_relative_l1_loss_refuses_zero_targets(tmp_path, cache_dir, monkeypatch)
         dataset.target = patched
         return dataset
 
-    monkeypatch.setattr(zt, "build_dataset", with_a_zero)
+    monkeypatch.setattr(loop, "load_data", with_a_zero)
     config = tiny_config(cache_dir, loss="relative_l1", epochs=1)
     config["data"]["task"] = "regression"
     with pytest.raises(ConfigError, match=r"relative_l1 divides by the target, but shape \S+ has 0 at vertex 3"):
@@ -313,8 +297,6 @@ def test_bfloat16_precision_trains_and_is_validated(tmp_path, cache_dir):
 
 
 def test_log_target_transform_trains_and_predicts_positive_values(tmp_path, cache_dir):
-    from zernet.data.synthetic import make_creature
-
     config = tiny_config(cache_dir, target_transform="log", loss="l1", epochs=2)
     config["data"]["task"] = "regression"  # mean curvature, positive on these blobby creatures
     metrics = train(config, tmp_path / "run", progress=False, workers=0)
@@ -329,29 +311,23 @@ def test_log_target_transform_trains_and_predicts_positive_values(tmp_path, cach
 
 
 def test_log_target_transform_rejects_non_positive_targets(cache_dir):
-    from zernet.train import _target_stats
-
     with pytest.raises(ConfigError, match=r"shape1 has -0\.5 at vertex 2"):
-        _target_stats(_Targets([np.ones(3), np.array([1.0, 2.0, -0.5])]), [0, 1], transform="log")
+        target_stats(_Targets([np.ones(3), np.array([1.0, 2.0, -0.5])]), [0, 1], transform="log")
     with pytest.raises(ConfigError, match="train.target_transform"):
         resolve_config(tiny_config(cache_dir, target_transform="sqrt"))
 
 
 def test_cosine_schedule_and_resume_from_mid_schedule(tmp_path, cache_dir):
-    import shutil
-
-    from zernet.train import epoch_learning_rate
-
-    tcfg = {"lr": 0.1, "lr_schedule": "cosine", "epochs": 4}
+    tcfg = TrainSection(lr=0.1, lr_schedule="cosine", epochs=4)
     rates = [epoch_learning_rate(tcfg, e) for e in range(1, 5)]
     assert rates[0] == pytest.approx(0.1) and rates[2] == pytest.approx(0.05)
     assert all(a > b > 0 for a, b in zip(rates, rates[1:]))
-    assert epoch_learning_rate({"lr": 0.1, "epochs": 4}, 3) == 0.1  # constant by default
+    assert epoch_learning_rate(TrainSection(lr=0.1, epochs=4), 3) == 0.1  # constant by default
 
     config = tiny_config(cache_dir, epochs=4, patience=None, lr_schedule="cosine")
     train(config, tmp_path / "full", progress=False, workers=0)
     saved = load_checkpoint(tmp_path / "full" / "last.pt")["optimizer"]["param_groups"][0]["lr"]
-    assert saved == pytest.approx(epoch_learning_rate(config["train"], 4))  # the last epoch's lr
+    assert saved == pytest.approx(epoch_learning_rate(parse_config(config).train, 4))  # the last epoch's lr
     # The checkpoint of epoch 3 (previous.pt), resumed with the same config, must land on the same weights.
     shutil.copytree(tmp_path / "full", tmp_path / "cut")
     (tmp_path / "cut" / "metrics.json").unlink()
@@ -365,15 +341,10 @@ def test_cosine_schedule_and_resume_from_mid_schedule(tmp_path, cache_dir):
 
 
 def test_feature_standardisation_is_stored_and_used_by_predict(tmp_path, cache_dir):
-    from types import SimpleNamespace
-
-    from zernet.data.synthetic import make_creature
-    from zernet.train import _Batch, _feature_stats
-
     # Statistics over every training vertex, per channel; a constant channel keeps std 1.
     records = [SimpleNamespace(features=np.c_[np.arange(4.0), np.full(4, 3.0)]),
                SimpleNamespace(features=np.c_[np.arange(4.0, 8.0), np.full(4, 3.0)])]
-    stats = _feature_stats(records, [0, 1])
+    stats = feature_stats(records, [0, 1])
     np.testing.assert_allclose(stats["mean"], [3.5, 3.0])
     np.testing.assert_allclose(stats["std"], [np.arange(8.0).std(), 1.0])
 
@@ -387,6 +358,6 @@ def test_feature_standardisation_is_stored_and_used_by_predict(tmp_path, cache_d
     # What every batch (training, validation, predict) feeds the model: (x - mean) / std per channel.
     raw = np.asarray(surface.vertices, np.float32)
     record = SimpleNamespace(features=raw, name="x", target=None, geometry=SimpleNamespace(to=lambda device: None))
-    batch = _Batch([record], torch.device("cpu"), None, checkpoint["feature_stats"])
+    batch = Batch([record], torch.device("cpu"), None, checkpoint["feature_stats"])
     expected = (raw - np.array(checkpoint["feature_stats"]["mean"])) / np.array(checkpoint["feature_stats"]["std"])
     np.testing.assert_allclose(batch.features.numpy(), expected, rtol=1e-5, atol=1e-5)

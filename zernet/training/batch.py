@@ -1,0 +1,36 @@
+"""One forward pass's input: the features, targets and geometry of one or more concatenated surfaces."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from zernet.nn.geometry import Geometry
+from zernet.training.targets import standardise, standardise_features
+
+__all__ = ["Batch"]
+
+
+class Batch:
+    """Features (standardised with ``feature_stats`` if given), targets (in trained units with
+    ``target_stats`` if given) and geometry of ``records``, on ``device``."""
+
+    def __init__(self, records: Sequence, device: torch.device, target_stats: dict | None = None,
+                 feature_stats: dict | None = None):
+        self.names = [r.name for r in records]
+        self.sizes = [len(r.features) for r in records]
+        self.features = torch.from_numpy(np.concatenate([np.asarray(r.features, np.float32) for r in records]))
+        self.features = self.features.to(device)
+        if feature_stats is not None:
+            self.features = standardise_features(self.features, feature_stats)
+        geometries = [r.geometry for r in records]
+        geometry = geometries[0] if len(geometries) == 1 else Geometry.concatenate(geometries)
+        self.geometry = geometry.to(device)
+        self.target = None
+        if records[0].target is not None:
+            target = np.concatenate([np.asarray(r.target) for r in records])
+            self.target = torch.from_numpy(target).to(device)
+            if target_stats is not None:  # regression on (log-)standardised targets
+                self.target = standardise(self.target, target_stats)

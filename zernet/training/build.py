@@ -1,0 +1,103 @@
+"""What a run is made of: the data set, the model specification and the model.
+
+:func:`build_dataset` takes a whole run configuration (what a user holds) and hands its ``data``,
+``patch`` and ``cache_dir`` parts to :func:`load_data`; the model is built from a *spec* (name, channel
+counts, options) that the checkpoint stores, so :func:`build_model_from_spec` rebuilds it anywhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import torch
+
+from zernet.data import load_dataset
+from zernet.io_utils import plain
+from zernet.nn.models import MODEL_REGISTRY, available_models, build_model
+from zernet.training.config import ConfigError, DataSection, ModelSection, PatchSection, RunConfig, parse_config
+from zernet.zernike import num_bases
+
+__all__ = ["build_dataset", "load_data", "model_spec", "build_model_from_spec", "is_correspondence",
+           "preprocess_spec"]
+
+
+def build_dataset(config: Mapping[str, Any] | RunConfig, progress: bool = True, workers: int | None = None):
+    """The :class:`~zernet.data.ShapeDataset` a run configuration describes (preprocessed and cached)."""
+    config = parse_config(config)
+    return load_data(config.data, config.patch, config.cache_dir, progress=progress, workers=workers)
+
+
+def load_data(data: DataSection, patch: PatchSection, cache_dir: str | None, progress: bool = True,
+              workers: int | None = None):
+    """Hand ``data.kind`` to :func:`zernet.data.load_dataset` with the patch scales, ``patch.area``,
+    ``cache_dir``, ``data.seed``, ``data.val_fraction``/``data.val_count`` (unless null: the loader's
+    default) and ``data.features`` (as ``feature_kind``); every other ``data`` key is a loader option
+    passed by name (``root``, ``test``, ...)."""
+    options: dict[str, Any] = {"seed": data.seed}
+    for key in ("val_fraction", "val_count"):
+        if getattr(data, key) is not None:
+            options[key] = getattr(data, key)
+    options.update(data.options)
+    if "features" in options:
+        options["feature_kind"] = options.pop("features")
+    try:
+        return load_dataset(data.kind, patch_configs=patch.patch_configs(), area=patch.area, cache_dir=cache_dir,
+                            progress=progress, workers=workers, **options)
+    except TypeError as error:
+        # An option the loader does not take: a configuration problem under data.
+        raise ConfigError(f"data (kind {data.kind}): {error}") from None
+
+
+def is_correspondence(dataset, data_kind: str) -> bool:
+    """Correspondence = classification whose class is the vertex index of a shared template."""
+    flag = getattr(dataset, "correspondence", None)
+    if flag is not None:
+        return bool(flag)
+    return data_kind == "faust"
+
+
+def preprocess_spec(dataset) -> dict:
+    """What :func:`zernet.training.predict.predict` needs to preprocess a new surface like the training shapes."""
+    return {
+        "patch_configs": [plain(dataclasses.asdict(c)) for c in dataset.patch_configs],
+        "area": None if dataset.target_area is None else float(dataset.target_area),
+        "feature_kind": str(dataset.feature_kind),
+        "class_names": plain(dataset.info.get("class_names")),
+    }
+
+
+def model_spec(model: ModelSection, in_channels: int, out_channels: int, patch_configs: Sequence) -> dict:
+    """Name, channel counts and options of the model; the Zernike degree follows the patch operators.
+
+    A model's ``n_max`` (or ``k``, the number of bases) must match the operators', so unless the config
+    sets it explicitly it is taken from the patch settings — changing ``patch.scales.*.n_max`` alone then
+    just works instead of failing with a shape mismatch.
+    """
+    options = dict(model.options)
+    degrees = {int(c.n_max) for c in patch_configs}
+    if len(degrees) == 1 and "n_max" not in options and "k" not in options:
+        available_models()  # registers the plug-in models
+        try:
+            accepted = inspect.signature(MODEL_REGISTRY[model.name]).parameters
+        except (KeyError, TypeError, ValueError):
+            accepted = {}
+        n_max = degrees.pop()
+        if "n_max" in accepted:
+            options["n_max"] = n_max
+        elif "k" in accepted:
+            options["k"] = num_bases(n_max)
+    return {"name": model.name, "in_channels": int(in_channels), "out_channels": int(out_channels),
+            "options": options}
+
+
+def build_model_from_spec(spec: Mapping[str, Any]) -> torch.nn.Module:
+    """The model a :func:`model_spec` (e.g. a checkpoint's ``model_spec``) describes, freshly initialised."""
+    try:
+        return build_model(spec["name"], spec["in_channels"], spec["out_channels"], **spec["options"])
+    except TypeError as error:
+        raise ConfigError(f"model {spec['name']!r}: {error}") from None
+    except KeyError as error:
+        raise ConfigError(f"model.name: {error.args[0] if error.args else error}") from None

@@ -1,0 +1,159 @@
+"""Checkpoints: what they hold, how they are written (atomically) and read (safely).
+
+A checkpoint is a plain dictionary of tensors and plain containers (dicts, lists, strings, numbers), so it
+loads with ``torch.load(weights_only=True)``: a crafted checkpoint cannot run code. It is made in one
+place, :func:`make_checkpoint`, from the :class:`RunRecord` (what stays fixed through a run: the
+configuration, the model spec, the task, the target and feature scaling, the preprocessing), the model,
+the optimiser, the loop state and the RNG states.
+"""
+
+from __future__ import annotations
+
+import copy
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from zernet.io_utils import atomic_save_torch, plain, snapshot_file
+from zernet.training.schedule import rng_state
+
+__all__ = ["CHECKPOINT_FORMAT", "RunRecord", "make_checkpoint", "save_epoch_checkpoints", "load_checkpoint",
+           "load_resume_checkpoint", "checkpoint_path", "cpu_state_dict"]
+
+CHECKPOINT_FORMAT = "zernet-checkpoint-1"
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """The parts of every checkpoint of a run that do not change from epoch to epoch."""
+
+    config: dict                 # RunConfig.to_dict()
+    model_spec: dict             # see zernet.training.build.model_spec
+    task: str                    # classification | regression
+    num_classes: int | None
+    correspondence: bool
+    target_stats: dict | None    # see zernet.training.targets.target_stats
+    target_exponent: float       # area exponent of the regression target (predict returns a surface's own units)
+    feature_stats: dict | None
+    preprocess: dict             # see zernet.training.build.preprocess_spec
+
+
+def cpu_state_dict(module_or_optimizer) -> dict:
+    """A state dict with every tensor copied to the CPU, so the checkpoint loads on any machine."""
+    def to_cpu(value):
+        if isinstance(value, torch.Tensor):
+            return value.detach().to("cpu", copy=True)
+        if isinstance(value, dict):
+            return {k: to_cpu(v) for k, v in value.items()}
+        if isinstance(value, list):
+            return [to_cpu(v) for v in value]
+        if isinstance(value, tuple):
+            return tuple(to_cpu(v) for v in value)
+        return value
+
+    return to_cpu(module_or_optimizer.state_dict())
+
+
+def make_checkpoint(record: RunRecord, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+                    state: dict) -> dict:
+    """The checkpoint after an epoch: ``record``, the weights, the optimiser, the loop ``state``, RNG states."""
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "config": plain(record.config),
+        "model_spec": plain(record.model_spec),
+        "task": record.task,
+        "num_classes": record.num_classes,
+        "correspondence": record.correspondence,
+        "target_stats": record.target_stats,
+        "target_exponent": record.target_exponent,
+        "feature_stats": record.feature_stats,
+        "preprocess": record.preprocess,
+        "model": cpu_state_dict(model),
+        "optimizer": cpu_state_dict(optimizer),
+        "state": copy.deepcopy(state),
+        "rng": rng_state(),
+    }
+
+
+def save_epoch_checkpoints(checkpoint: dict, run_dir: Path, improved: bool) -> None:
+    """Write ``best.pt`` (if ``improved``), then keep ``last.pt`` as ``previous.pt`` and write ``last.pt``.
+
+    best.pt first: if the process dies between the writes, last.pt still points at the previous epoch,
+    and resuming repeats this epoch identically and rewrites best.pt. previous.pt keeps the last.pt of the
+    epoch before: should last.pt ever be unreadable, resume falls back to it (:func:`load_resume_checkpoint`).
+    """
+    if improved:
+        atomic_save_torch(checkpoint, run_dir / "best.pt")
+    snapshot_file(run_dir / "last.pt", run_dir / "previous.pt")
+    atomic_save_torch(checkpoint, run_dir / "last.pt")
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Load a zernet checkpoint safely (``weights_only=True``) onto the CPU, with a clear error if unusable."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    # torch.load does not check the zip CRCs, so flipped bytes in the stored tensors would load silently as
+    # wrong weights: check them first (torch writes them; it costs one read of the file).
+    if zipfile.is_zipfile(path):
+        try:
+            with zipfile.ZipFile(path) as archive:
+                damaged = archive.testzip()
+        except Exception as error:
+            damaged = f"? ({type(error).__name__}: {error})"
+        if damaged is not None:
+            raise ValueError(f"{path}: not a readable zernet checkpoint (stored record {damaged} fails its CRC "
+                             "check: the file is corrupt)")
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # truncated, corrupt, or holding objects weights_only refuses
+        raise ValueError(f"{path}: not a readable zernet checkpoint ({type(error).__name__}: {error})") from None
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: not a zernet checkpoint (expected format {CHECKPOINT_FORMAT})")
+    return checkpoint
+
+
+def checkpoint_path(run_dir_or_checkpoint: str | Path) -> Path:
+    """A run folder means its ``best.pt``; a file is taken as it is."""
+    path = Path(run_dir_or_checkpoint)
+    if path.is_dir():
+        best = path / "best.pt"
+        if not best.is_file():
+            raise FileNotFoundError(f"{path} holds no best.pt: is it a zernet run folder whose training has run?")
+        return best
+    return path
+
+
+def load_resume_checkpoint(run_dir: Path) -> tuple[dict, str | None]:
+    """The checkpoint to resume from, and a note when it is not ``last.pt``.
+
+    ``last.pt`` is used when it loads. If it is missing or unusable (truncated, corrupt, crafted), the newest
+    usable of ``previous.pt`` (the last.pt of the epoch before) and ``best.pt`` is taken instead: training
+    from any checkpoint is deterministic, so the final weights are the same, only an epoch is repeated.
+    """
+    last = run_dir / "last.pt"
+    problems: list[str] = []
+    try:
+        return load_checkpoint(last), None
+    except FileNotFoundError:
+        problems.append(f"{last} does not exist")
+    except ValueError as error:
+        problems.append(str(error))
+    candidates = []
+    for name in ("previous.pt", "best.pt"):
+        try:
+            candidates.append((load_checkpoint(run_dir / name), run_dir / name))
+        except FileNotFoundError:
+            pass
+        except ValueError as error:
+            problems.append(str(error))
+    if not candidates:
+        if len(problems) == 1 and not last.exists():
+            raise FileNotFoundError(f"cannot resume: {last} does not exist (no epoch has finished yet?)")
+        raise ValueError(f"cannot resume {run_dir}: no usable checkpoint: " + "; ".join(problems))
+    checkpoint, path = max(candidates, key=lambda item: item[0]["state"]["epoch"])
+    note = (f"{problems[0]}; resuming from {path} (after epoch {checkpoint['state']['epoch']}) instead, "
+            "repeating the epochs after it")
+    return checkpoint, note

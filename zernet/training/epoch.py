@@ -1,0 +1,105 @@
+"""One training epoch and one validation pass."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from zernet import metrics as zmetrics
+from zernet.distributed import DistributedContext
+from zernet.training.batch import Batch
+from zernet.training.config import TrainSection
+from zernet.training.losses import compute_loss
+from zernet.training.runtime import precision_autocast
+from zernet.training.schedule import epoch_learning_rate, epoch_order, step_groups
+from zernet.training.targets import unstandardise
+
+__all__ = ["Objective", "train_one_epoch", "validate"]
+
+
+@dataclass(frozen=True)
+class Objective:
+    """What the model learns and how its outputs are read: the task, the loss and the scaling statistics."""
+
+    task: str                      # classification | regression
+    loss: str                      # see zernet.training.losses.resolve_loss
+    target_stats: dict | None
+    feature_stats: dict | None
+
+
+def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.Optimizer, dataset,
+                    train_idx: Sequence[int], epoch: int, train: TrainSection, objective: Objective,
+                    ctx: DistributedContext, progress: bool) -> dict:
+    """Run the optimiser steps of ``epoch`` over the training shapes; returns its history entry so far
+    (``epoch``, ``train_loss`` and, for classification, ``train_accuracy``), summed over the ranks.
+
+    ``net`` is what the forward pass goes through (DistributedDataParallel in a distributed run),
+    ``model`` the module itself (its parameters are clipped).
+    """
+    device = ctx.device
+    net.train()
+    ctx.seed_epoch(train.seed, epoch)  # distributed only: per-rank dropout, exact resume
+    for group in optimizer.param_groups:  # a function of the epoch alone: resuming needs no state
+        group["lr"] = epoch_learning_rate(train, epoch)
+    # One process: the whole permutation. Rank r of W: its equal share order[r::W] (padded, see
+    # zernet.distributed.shard_indices), so every rank runs the same number of steps.
+    order = ctx.shard([train_idx[i] for i in epoch_order(train.seed, epoch, len(train_idx))])
+    groups = step_groups(order, train.shapes_per_step)
+    classification = objective.task == "classification"
+    loss_sum, hit_sum, vertex_sum = 0.0, 0.0, 0
+    bar = tqdm(groups, desc=f"epoch {epoch}/{train.epochs}", unit="step", leave=False, disable=not progress,
+               dynamic_ncols=True)
+    for step, group in enumerate(bar, start=1):
+        batch = Batch([dataset[i] for i in group], device, objective.target_stats, objective.feature_stats)
+        optimizer.zero_grad(set_to_none=True)
+        with precision_autocast(train.precision, device.type):
+            output = net(batch.features, batch.geometry)
+        output = output.float()  # the loss in float32
+        loss = compute_loss(objective.loss, output, batch.target, objective.target_stats)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(
+                f"the training loss became {loss.item()} at epoch {epoch}, step {step} (shapes "
+                f"{', '.join(batch.names)}); lower train.lr or check the targets for NaN/inf"
+            )
+        loss.backward()
+        if train.grad_clip:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), train.grad_clip)
+        optimizer.step()
+        n = int(batch.target.shape[0])
+        loss_sum += loss.item() * n
+        vertex_sum += n
+        postfix = {"loss": f"{loss_sum / vertex_sum:.4g}"}
+        if classification:
+            hit_sum += (output.detach().argmax(dim=1) == batch.target).sum().item()
+            postfix["acc"] = f"{hit_sum / vertex_sum:.3f}"
+        bar.set_postfix(postfix)
+    bar.close()
+    loss_sum, hit_sum, vertex_sum = ctx.sum_over_ranks(loss_sum, hit_sum, vertex_sum)
+    entry = {"epoch": epoch, "train_loss": loss_sum / vertex_sum}
+    if classification:
+        entry["train_accuracy"] = hit_sum / vertex_sum
+    return entry
+
+
+@torch.no_grad()
+def validate(model: torch.nn.Module, dataset, indices: Sequence[int], device: torch.device,
+             objective: Objective) -> dict:
+    """Mean validation loss and metric (accuracy, or MAPE for regression) over shapes, each counting once."""
+    model.eval()
+    losses, scores = [], []
+    for i in indices:
+        batch = Batch([dataset[i]], device, objective.target_stats, objective.feature_stats)
+        output = model(batch.features, batch.geometry)
+        losses.append(compute_loss(objective.loss, output, batch.target, objective.target_stats).item())
+        if objective.task == "classification":
+            scores.append(zmetrics.accuracy(output.argmax(dim=1), batch.target))
+        else:
+            pred = unstandardise(output.reshape(-1), objective.target_stats)
+            scores.append(zmetrics.regression_scores(pred, dataset[i].target)["MAPE"])
+    model.train()
+    key = "val_accuracy" if objective.task == "classification" else "val_MAPE"
+    return {"val_loss": float(np.mean(losses)), key: float(np.mean(scores))}

@@ -1,0 +1,317 @@
+"""The training loop: build the data and the model, fit, select the best epoch on validation, test it.
+
+:func:`train` trains a model described by a run configuration (normally read from a YAML file, see
+``configs/``), selects the best epoch on a validation split carved from the training shapes, evaluates that
+model on the test split and writes a complete run folder:
+
+``config.yaml``  the full configuration with defaults filled in;
+``last.pt``      checkpoint after the latest epoch (model, optimiser, RNG states, history, config);
+``previous.pt``  the ``last.pt`` of the epoch before: ``resume`` falls back to it if last.pt is damaged;
+``best.pt``      checkpoint of the epoch with the best validation metric;
+``train.log``    what happened, one line per event and per epoch;
+``metrics.json`` the validation-selected model evaluated on the test shapes;
+``plots/``       training curves, the geodesic error curve (correspondence), renders of test shapes.
+
+Every random choice is seeded from the configuration (see :mod:`zernet.training.schedule`), and the
+checkpoint written after every epoch holds the RNG states, the optimiser state and the early-stopping
+counters, so ``resume=True`` continues exactly where the last checkpoint left off: the final weights equal
+those of an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from zernet.distributed import DistributedContext, is_main, setup as setup_distributed
+from zernet.io_utils import plain
+from zernet.training.build import (
+    build_model_from_spec,
+    is_correspondence,
+    load_data,
+    model_spec,
+    preprocess_spec,
+)
+from zernet.training.checkpoint import (
+    RunRecord,
+    load_checkpoint,
+    load_resume_checkpoint,
+    make_checkpoint,
+    save_epoch_checkpoints,
+)
+from zernet.training.config import ConfigError, RunConfig, TrainSection, parse_config
+from zernet.training.epoch import Objective, train_one_epoch, validate
+from zernet.training.evaluation import evaluate_members, summary_line
+from zernet.training.losses import check_loss_targets, resolve_loss
+from zernet.training.run_dir import (
+    clear_run_files,
+    close_log,
+    epoch_line,
+    open_log,
+    write_config_yaml,
+    write_json,
+    write_plots,
+)
+from zernet.training.runtime import resolve_device
+from zernet.training.schedule import seed_everything, set_rng_state
+from zernet.training.stopping import BUDGET, Monitor, initial_state, record_epoch, reopen_if_budget_raised
+from zernet.training.targets import feature_stats, target_stats
+
+__all__ = ["train", "merge_resume_config"]
+
+
+@dataclass
+class _Splits:
+    train: list[int]
+    val: list[int]
+    test: list[int]
+
+
+def train(config: Mapping[str, Any] | RunConfig | None, run_dir: str | Path, resume: bool = False,
+          progress: bool = True, overwrite: bool = False, workers: int | None = None) -> dict:
+    """Train, select the best epoch on validation, evaluate it on the test split and fill ``run_dir``.
+
+    Args:
+        config: the run configuration (a :class:`~zernet.training.config.RunConfig` or a mapping as in
+            ``configs/*.yaml``). With ``resume`` it may be ``None`` (the run's own config is used);
+            otherwise only ``train.epochs``/``train.patience`` may differ from the run's.
+        run_dir: the run folder; created if needed.
+        resume: continue from ``run_dir/last.pt`` exactly where it stopped.
+        progress: show progress bars (preprocessing, steps of each epoch).
+        overwrite: start afresh even if ``run_dir`` already holds a checkpoint (otherwise an error, so that a
+            finished run is never clobbered by accident).
+        workers: processes for preprocessing (None: the data module's default).
+
+    Returns:
+        The test metrics (also written to ``run_dir/metrics.json``).
+    """
+    run_dir = Path(run_dir)
+    checkpoint, resume_note = None, None
+    if resume:
+        checkpoint, resume_note = load_resume_checkpoint(run_dir)
+    else:
+        config = _fresh_run_config(config, run_dir, overwrite)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    logger = open_log(run_dir, main=is_main())
+    ctx = None
+    try:
+        if resume_note:
+            logger.warning(resume_note)
+        if checkpoint is not None:
+            config = merge_resume_config(checkpoint["config"], config, logger)
+        # Joins the torchrun process group, if any (see zernet.distributed); a no-op for one process.
+        ctx = setup_distributed(resolve_device(config.train.device))
+        if ctx.is_main:
+            write_config_yaml(run_dir, config.to_dict())
+        return _run(config, run_dir, checkpoint, progress and ctx.is_main, logger, workers, ctx)
+    finally:
+        if ctx is not None:
+            ctx.close()
+        close_log(logger)
+
+
+def _fresh_run_config(config, run_dir: Path, overwrite: bool) -> RunConfig:
+    """The checked configuration of a new run; refuses to clobber a run unless ``overwrite``."""
+    if config is None:
+        raise ConfigError("train needs a configuration (or resume=True with an existing run folder)")
+    config = parse_config(config)
+    if (run_dir / "last.pt").exists() and not overwrite:
+        raise ConfigError(f"{run_dir} already holds a run (last.pt); resume it with --resume or choose "
+                          "another --run-dir")
+    if is_main():  # in a distributed run only rank 0 touches the run folder
+        clear_run_files(run_dir)
+    return config
+
+
+def merge_resume_config(stored: Mapping[str, Any], given, logger: logging.Logger) -> RunConfig:
+    """On resume the stored configuration wins, except that the epoch budget and patience may be raised."""
+    config = parse_config(stored)
+    if given is None:
+        return config
+    given = parse_config(given)
+    for key in ("epochs", "patience"):
+        old, new = getattr(config.train, key), getattr(given.train, key)
+        if new != old:
+            logger.info(f"resume: train.{key} changed from {old} to {new}")
+    budget = {"epochs": given.train.epochs, "patience": given.train.patience}
+    config = dataclasses.replace(config, train=dataclasses.replace(config.train, **budget))
+    if plain(given.to_dict()) != plain(config.to_dict()):
+        logger.warning("resume: the given configuration differs from the run's; continuing with the run's own "
+                       "config.yaml (only train.epochs and train.patience may change on resume)")
+    return config
+
+
+def _run(config: RunConfig, run_dir: Path, checkpoint: dict | None, progress: bool, logger: logging.Logger,
+         workers: int | None, ctx: DistributedContext) -> dict:
+    """Build, fit, select, test."""
+    if config.train.threads:
+        torch.set_num_threads(int(config.train.threads))
+    logger.info(("resuming" if checkpoint else "starting") + f" run in {run_dir} on {ctx.device} "
+                f"({torch.get_num_threads()} CPU threads"
+                + (f", {ctx.world_size} ranks, {ctx.backend})" if ctx.distributed else ")"))
+    dataset, splits, preprocess_seconds = _load_dataset(config, progress, workers, ctx, logger)
+    record, objective = _describe_run(config, dataset, splits, checkpoint, logger)
+    model, optimizer, state = _build_model(record.model_spec, config.train, checkpoint, ctx.device, logger)
+    logger.info(f"model {record.model_spec['name']} ({sum(p.numel() for p in model.parameters()):,} parameters), "
+                f"loss {objective.loss}, lr {config.train.lr} ({config.train.lr_schedule}), "
+                f"{config.train.shapes_per_step} shape(s) per step")
+    monitor = Monitor.for_task(objective.task)
+    _fit(model, optimizer, state, dataset, splits, record, objective, monitor, config.train, ctx, run_dir,
+         progress, logger)
+    if not ctx.is_main:
+        # Rank 0 alone evaluates the selected model on the test split and writes metrics.json.
+        return {"rank": ctx.rank, "epochs_trained": state["epoch"], "best_epoch": state["best_epoch"],
+                "stop_reason": state["stop_reason"]}
+    metrics, predictions = _test(model, state, dataset, splits, monitor, run_dir, ctx.device, progress, logger)
+    metrics["preprocess_seconds"] = preprocess_seconds
+    return _report(metrics, predictions, state["history"], dataset, config, run_dir, logger)
+
+
+def _load_dataset(config: RunConfig, progress: bool, workers, ctx: DistributedContext, logger):
+    """The data set and its splits (rank 0 fills the cache first; the other ranks then read it)."""
+    started = time.perf_counter()
+    with ctx.main_first():
+        dataset = load_data(config.data, config.patch, config.cache_dir, progress=progress, workers=workers)
+    seconds = time.perf_counter() - started
+    splits = _Splits(list(dataset.splits["train"]), list(dataset.splits.get("val", [])),
+                     list(dataset.splits.get("test", [])))
+    if not splits.train:
+        raise ConfigError("the data set has no training shapes")
+    logger.info(f"data: {config.data.kind}, {dataset.task}, {len(splits.train)} train / {len(splits.val)} val / "
+                f"{len(splits.test)} test shapes (loaded in {seconds:.1f} s)")
+    if not splits.val:
+        logger.warning("no validation shapes: the last epoch is kept as the model and early stopping is off")
+    return dataset, splits, seconds
+
+
+def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict | None, logger):
+    """The run's fixed record (model spec, scaling, preprocessing) and the training objective."""
+    task = dataset.task
+    loss_name = resolve_loss(config.train.loss, task)
+    first = dataset[splits.train[0]]
+    out_channels = int(dataset.num_classes) if task == "classification" else 1
+    spec = model_spec(config.model, first.features.shape[1], out_channels, dataset.patch_configs)
+    targets = _target_scaling(config.train, task, dataset, splits, checkpoint, logger)
+    check_loss_targets(loss_name, dataset, splits.train + splits.val)
+    features = _feature_scaling(config.train, dataset, splits, checkpoint, logger)
+    record = RunRecord(
+        config=config.to_dict(), model_spec=spec, task=task,
+        num_classes=None if dataset.num_classes is None else int(dataset.num_classes),
+        correspondence=is_correspondence(dataset, config.data.kind), target_stats=targets,
+        target_exponent=float(dataset.info.get("target_exponent") or 0.0), feature_stats=features,
+        preprocess=preprocess_spec(dataset))
+    return record, Objective(task, loss_name, targets, features)
+
+
+def _target_scaling(train: TrainSection, task: str, dataset, splits: _Splits, checkpoint, logger) -> dict | None:
+    if checkpoint is not None:
+        return checkpoint["target_stats"]
+    if task != "regression" or not (train.standardize_targets or train.target_transform != "none"):
+        return None
+    stats = target_stats(dataset, splits.train, train.target_transform, train.standardize_targets)
+    logger.info(f"targets: transform {stats['transform']}, standardised with training mean "
+                f"{stats['mean']:.6g}, std {stats['std']:.6g}")
+    return stats
+
+
+def _feature_scaling(train: TrainSection, dataset, splits: _Splits, checkpoint, logger) -> dict | None:
+    if checkpoint is not None:
+        return checkpoint.get("feature_stats")
+    if not train.standardize_features:
+        return None
+    stats = feature_stats(dataset, splits.train)
+    logger.info("input features standardised per channel with the training vertices' mean and std")
+    return stats
+
+
+def _build_model(spec: dict, train: TrainSection, checkpoint: dict | None, device, logger):
+    """The model, its Adam optimiser and the loop state: fresh from ``train.seed``, or as checkpointed."""
+    # Seed right before the model is built, so its initialisation depends only on train.seed.
+    seed_everything(train.seed)
+    model = build_model_from_spec(spec).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=train.lr, weight_decay=train.weight_decay)
+    state = initial_state()
+    if checkpoint is not None:
+        model.load_state_dict(checkpoint["model"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        state = checkpoint["state"]
+        set_rng_state(checkpoint["rng"])
+        logger.info(f"resumed after epoch {state['epoch']} (best {state['best_metric']} at epoch "
+                    f"{state['best_epoch']})")
+    return model, optimizer, state
+
+
+def _fit(model, optimizer, state: dict, dataset, splits: _Splits, record: RunRecord, objective: Objective,
+         monitor: Monitor, train: TrainSection, ctx: DistributedContext, run_dir: Path, progress: bool,
+         logger) -> None:
+    """Train epoch by epoch until early stopping or the budget; checkpoint after every epoch."""
+    # DistributedDataParallel in a distributed run (averages the gradients over the ranks), else the model
+    # itself. Only the training forward goes through it; validation, checkpoints and evaluation use `model`.
+    net = ctx.wrap(model)
+    reopen_if_budget_raised(state, train.epochs)
+    while not state["stopped"] and state["epoch"] < train.epochs:
+        epoch = state["epoch"] + 1
+        started = time.perf_counter()
+        entry = train_one_epoch(net, model, optimizer, dataset, splits.train, epoch, train, objective, ctx,
+                                progress)
+        if splits.val:
+            # Split over the ranks and recombined exactly: every rank sees the same metric and stops alike.
+            entry.update(ctx.mean_over_shards(
+                lambda part: validate(model, dataset, part, ctx.device, objective), splits.val))
+        entry["seconds"] = time.perf_counter() - started
+        improved = record_epoch(state, entry, monitor, train.epochs, train.patience, bool(splits.val))
+        checkpoint = make_checkpoint(record, model, optimizer, state)
+        if ctx.is_main:  # only rank 0 writes in a distributed run
+            save_epoch_checkpoints(checkpoint, run_dir, improved)
+        logger.info(epoch_line(entry, train.epochs, improved))
+        if state["stopped"] and state["stop_reason"] != BUDGET:
+            logger.info(f"stopping after epoch {epoch}: {state['stop_reason']}")
+    best_text = "n/a" if state["best_metric"] is None else f"{state['best_metric']:.4g}"
+    logger.info(f"training done: {state['epoch']} epochs in {state['train_seconds']:.1f} s; best epoch "
+                f"{state['best_epoch']} ({monitor.name} {best_text})")
+
+
+def _test(model, state: dict, dataset, splits: _Splits, monitor: Monitor, run_dir: Path, device,
+          progress: bool, logger) -> tuple[dict, list[dict]]:
+    """The selected model (best.pt) on the test split (the validation split if there is none)."""
+    best = load_checkpoint(run_dir / "best.pt")
+    model.load_state_dict(best["model"])
+    if splits.test:
+        split, indices = "test", splits.test
+    else:
+        logger.warning("the data set has no test shapes: metrics.json reports the validation split instead")
+        split, indices = "val", splits.val
+    metrics, predictions = evaluate_members([(model, best)], dataset, indices, device, progress)
+    metrics.update({
+        "split": split,
+        "checkpoint": "best.pt",
+        "best_epoch": state["best_epoch"],
+        "epochs_trained": state["epoch"],
+        "stop_reason": state["stop_reason"],
+        "selection": {"metric": monitor.name, "value": state["best_metric"]},
+        "train_seconds": state["train_seconds"],
+    })
+    return metrics, predictions
+
+
+def _report(metrics: dict, predictions: list[dict], history: list[dict], dataset, config: RunConfig,
+            run_dir: Path, logger) -> dict:
+    """Plots (if ``eval.plots``) and ``metrics.json``; returns the metrics."""
+    if config.eval.plots:
+        try:
+            metrics["plots"] = write_plots(run_dir, history, metrics, predictions,
+                                           getattr(dataset, "info", {}).get("class_names"), config.eval.renders)
+        except Exception as error:  # a plotting problem must not throw away a finished training run
+            logger.warning(f"plots failed: {type(error).__name__}: {error}")
+            metrics["plots"] = []
+    write_json(run_dir / "metrics.json", metrics)
+    logger.info(f"{metrics['split']} metrics: {summary_line(metrics)}")
+    logger.info(f"wrote {run_dir / 'metrics.json'}")
+    return metrics

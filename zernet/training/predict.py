@@ -1,0 +1,93 @@
+"""Predictions of a trained model (or an ensemble) on one record or on a new surface."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from zernet.data import prepare_record
+from zernet.patches import PatchConfig
+from zernet.surface import load_surface
+from zernet.training.batch import Batch
+from zernet.training.build import build_model_from_spec
+from zernet.training.checkpoint import checkpoint_path, load_checkpoint
+from zernet.training.runtime import resolve_device
+from zernet.training.targets import destandardise, untransform
+
+__all__ = ["predict_record", "model_from_checkpoint", "predict"]
+
+
+@torch.no_grad()
+def predict_record(members: Sequence[tuple], record, device) -> tuple[np.ndarray, np.ndarray | None]:
+    """(prediction, probabilities) for one record: class index and softmax per vertex, or the value.
+
+    ``members`` is a list of ``(model, checkpoint)``. With several (an ensemble) the prediction is made from
+    the mean of their softmax probabilities (classification), or of their outputs in the transformed target
+    units (regression; with ``target_transform: log`` a geometric mean of the values), which for one member
+    is that member's own prediction.
+    """
+    task = members[0][1]["task"]
+    outputs = []
+    for model, checkpoint in members:
+        model.eval()
+        batch = Batch([record], device, None, checkpoint.get("feature_stats"))
+        output = model(batch.features, batch.geometry).float()
+        if task == "classification":
+            outputs.append(torch.softmax(output, dim=1))
+        else:
+            outputs.append(destandardise(output.reshape(-1), checkpoint["target_stats"]))
+    mean = outputs[0] if len(outputs) == 1 else torch.stack(outputs).mean(dim=0)
+    if task == "classification":
+        return mean.argmax(dim=1).cpu().numpy(), mean.cpu().numpy()
+    return untransform(mean, members[0][1]["target_stats"]).cpu().numpy(), None
+
+
+def model_from_checkpoint(checkpoint: dict, device: torch.device) -> torch.nn.Module:
+    """The trained model of ``checkpoint`` on ``device``."""
+    model = build_model_from_spec(checkpoint["model_spec"]).to(device)
+    model.load_state_dict(checkpoint["model"])
+    return model
+
+
+def predict(checkpoint: str | Path, surface, probabilities: bool = False, device: str | None = None,
+            cache_dir: str | Path | None = None, progress: bool = False):
+    """Per-vertex predictions of a trained model on a new surface.
+
+    Args:
+        checkpoint: a run folder (its ``best.pt``) or a checkpoint file.
+        surface: a :class:`~zernet.surface.Surface` or a path to a mesh / point-cloud file. It is
+            preprocessed exactly like the training shapes (area normalisation, features, patch operators).
+        probabilities: classification only — also return the (N, C) softmax probabilities.
+
+    Returns:
+        (N,) int64 class indices or (N,) float32 values (regression: in the surface's own units — the model
+        predicts at the training area, and a target of area exponent e is divided by ``scale ** (2 e)``);
+        with ``probabilities=True`` a tuple (prediction, probabilities).
+    """
+    checkpoint = load_checkpoint(checkpoint_path(checkpoint))
+    config, spec = checkpoint["config"], checkpoint["preprocess"]
+    if not hasattr(surface, "vertices"):
+        surface = load_surface(surface)
+    record = prepare_record(
+        surface,
+        [PatchConfig(**c) for c in spec["patch_configs"]],
+        cache_dir=config["cache_dir"] if cache_dir is None else cache_dir,
+        target_area=spec["area"],
+        feature_kind=spec["feature_kind"],
+    )
+    device = resolve_device(device or config["train"]["device"])
+    model = model_from_checkpoint(checkpoint, device)
+    pred, probs = predict_record([(model, checkpoint)], record, device)
+    if checkpoint["task"] == "classification":
+        pred = pred.astype(np.int64)
+    else:
+        exponent = float(checkpoint.get("target_exponent", 0.0))  # older checkpoints: area-normalised
+        pred = (pred / record.scale ** (2 * exponent)).astype(np.float32)
+    if probabilities:
+        if probs is None:
+            raise ValueError("probabilities exist only for classification models")
+        return pred, probs.astype(np.float32)
+    return pred
