@@ -10,7 +10,22 @@ import torch
 from zernet.nn.geometry import Geometry
 from zernet.training.targets import standardise, standardise_features
 
-__all__ = ["Batch"]
+__all__ = ["Batch", "with_directional", "model_directional_order"]
+
+
+def model_directional_order(model: torch.nn.Module) -> int | None:
+    """Fourier order of the directional operators ``model`` reads (None: it needs none); sees through a
+    DistributedDataParallel wrapper."""
+    return getattr(getattr(model, "module", model), "directional_order", None)
+
+
+def with_directional(record, order: int | None) -> Geometry:
+    """The record's geometry with directional operators of ``order`` (built before the network, never in
+    its forward). Kept on the record, so a data set held in memory builds them once per shape."""
+    geometry = record.geometry.with_directional(order)
+    if geometry is not record.geometry:
+        record.geometry = geometry
+    return geometry
 
 
 class Batch:
@@ -18,14 +33,14 @@ class Batch:
     ``target_stats`` if given) and geometry of ``records``, on ``device``."""
 
     def __init__(self, records: Sequence, device: torch.device, target_stats: dict | None = None,
-                 feature_stats: dict | None = None):
+                 feature_stats: dict | None = None, directional_order: int | None = None):
         self.names = [r.name for r in records]
         self.sizes = [len(r.features) for r in records]
         self.features = torch.from_numpy(np.concatenate([np.asarray(r.features, np.float32) for r in records]))
         self.features = self.features.to(device)
         if feature_stats is not None:
             self.features = standardise_features(self.features, feature_stats)
-        geometries = [r.geometry for r in records]
+        geometries = [with_directional(r, directional_order) for r in records]
         geometry = geometries[0] if len(geometries) == 1 else Geometry.concatenate(geometries)
         self.geometry = geometry.to(device)
         self.target = None

@@ -11,7 +11,7 @@ from tqdm.auto import tqdm
 
 from zernet import metrics as zmetrics
 from zernet.distributed import DistributedContext
-from zernet.training.batch import Batch
+from zernet.training.batch import Batch, model_directional_order
 from zernet.training.config import TrainSection
 from zernet.training.losses import compute_loss
 from zernet.training.runtime import precision_autocast
@@ -54,7 +54,8 @@ def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: tor
     bar = tqdm(groups, desc=f"epoch {epoch}/{train.epochs}", unit="step", leave=False, disable=not progress,
                dynamic_ncols=True)
     for step, group in enumerate(bar, start=1):
-        batch = Batch([dataset[i] for i in group], device, objective.target_stats, objective.feature_stats)
+        batch = Batch([dataset[i] for i in group], device, objective.target_stats, objective.feature_stats,
+                      model_directional_order(net))
         optimizer.zero_grad(set_to_none=True)
         with precision_autocast(train.precision, device.type):
             output = net(batch.features, batch.geometry)
@@ -92,7 +93,8 @@ def validate(model: torch.nn.Module, dataset, indices: Sequence[int], device: to
     model.eval()
     losses, scores = [], []
     for i in indices:
-        batch = Batch([dataset[i]], device, objective.target_stats, objective.feature_stats)
+        batch = Batch([dataset[i]], device, objective.target_stats, objective.feature_stats,
+                      model_directional_order(model))
         output = model(batch.features, batch.geometry)
         losses.append(compute_loss(objective.loss, output, batch.target, objective.target_stats).item())
         if objective.task == "classification":
