@@ -19,7 +19,7 @@ from zernet.data.synthetic import make_creature
 from zernet.training import load_config, resolve_config
 
 REPO = Path(__file__).resolve().parent.parent
-SUBCOMMANDS = ("preprocess", "train", "evaluate", "predict", "demo")
+SUBCOMMANDS = ("preprocess", "train", "evaluate", "predict", "demo", "bodies")
 
 
 def write_config(path: Path, config: dict) -> Path:
@@ -123,3 +123,16 @@ def test_demo_yaml_matches_the_built_in_demo():
 def test_shipped_configs_are_valid():
     for path in sorted((REPO / "configs").glob("*.yaml")):
         resolve_config(load_config(path))
+
+
+def test_bodies_command_writes_the_loader_layouts(tmp_path, capsys):
+    pytest.importorskip("anny")
+    out = tmp_path / "bodies"
+    assert main(["bodies", str(out), "--count", "4", "--n-test", "1", "--topology", "coarse-369",
+                 "--poses", "rest", "--cache-dir", str(tmp_path / "cache")]) == 0
+    assert len(list((out / "segmentation" / "meshes" / "train").glob("*.ply"))) == 3
+    assert len(list((out / "segmentation" / "labels" / "test").glob("*.txt"))) == 1
+    assert len(list((out / "correspondence" / "training" / "registrations").glob("tr_reg_*.ply"))) == 4
+    capsys.readouterr()
+    assert main(["bodies", str(tmp_path / "bad"), "--count", "2", "--n-test", "2"]) == 2
+    assert "n_test" in one_line_error(capsys)

@@ -19,6 +19,9 @@ import numpy as np
 import trimesh
 
 from zernet.data import DatasetError
+from zernet.data.bodies import POSE_MODES as BODY_POSES
+from zernet.data.bodies import TOPOLOGIES as BODY_TOPOLOGIES
+from zernet.data.bodies import write_bodies
 from zernet.distributed import is_main
 from zernet.io_utils import atomic_write_bytes, write_json
 from zernet.surface import SurfaceError, load_surface
@@ -102,6 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_evaluate_command(sub, [common])
     _add_predict_command(sub, [common])
     _add_demo_command(sub, [common, overrides])
+    _add_bodies_command(sub, [common])
     return parser
 
 
@@ -189,9 +193,37 @@ def _add_demo_command(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=_cmd_demo)
 
 
+def _add_bodies_command(sub, parents: list[argparse.ArgumentParser]) -> None:
+    """The ``zernet bodies`` subcommand."""
+    p = sub.add_parser("bodies", parents=parents,
+                       help="generate human bodies with part labels and correspondence (needs zernet[bodies])",
+                       description="Generate posed human bodies of varied shape with one shared topology, 8-part "
+                                   "labels and template-index correspondence, written in the layouts the "
+                                   "segmentation and FAUST loaders read (see docs/BODIES.md).")
+    p.add_argument("out", type=Path, metavar="OUT", help="output folder")
+    p.add_argument("--count", type=int, default=100, help="number of bodies (default 100)")
+    p.add_argument("--n-test", type=int, default=20, help="of them, test bodies (default 20)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--topology", choices=sorted(BODY_TOPOLOGIES), default="faust",
+                   help="shared mesh: faust (6,890 vertices), full, or a coarse one (default faust)")
+    p.add_argument("--poses", choices=sorted(BODY_POSES), default="varied",
+                   help="rest, mild or varied joint rotations (default varied)")
+    p.add_argument("--cache-dir", type=Path, default=Path(".zernet-cache"), metavar="DIR",
+                   help="cache of the body model's topology and generated bodies (default .zernet-cache)")
+    p.set_defaults(func=_cmd_bodies)
+
+
 # --------------------------------------------------------------------------------------------------------
 # Commands
 # --------------------------------------------------------------------------------------------------------
+
+
+def _cmd_bodies(args) -> int:
+    layout = write_bodies(args.out, count=args.count, seed=args.seed, topology=args.topology, poses=args.poses,
+                          n_test=args.n_test, cache_dir=args.cache_dir, progress=True)
+    print(f"{args.count} bodies ({args.topology}, {args.poses} poses) written to {layout.root}; "
+          f"see {layout.readme}")
+    return 0
 
 
 def _cmd_preprocess(args) -> int:
