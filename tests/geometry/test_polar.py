@@ -89,7 +89,7 @@ def test_transport_angle_across_a_fold_is_the_minimal_rotation():
 
 
 # ---------------------------------------------------------------------- plane
-@pytest.mark.parametrize("backend", ["fast", "accurate"])
+@pytest.mark.parametrize("backend", ["fast", "accurate", "front"])
 def test_plane_radius_and_angle_exact(backend):
     vertices, faces = grid_mesh(21, 21, spacing=0.5, jitter=0.2)
     surface = Surface(vertices, faces)
@@ -103,6 +103,14 @@ def test_plane_radius_and_angle_exact(backend):
     if backend == "fast":  # exact up to rounding
         assert np.abs(polar.radius - expected_r).max() < 1e-9
         assert np.abs(wrap(polar.angle - expected_theta))[expected_r > 1e-6].max() < 1e-9
+    elif backend == "front":
+        # The triangle update is exact on a plane; where the line from the virtual source misses the
+        # unfolded edge (next to the boundary, around obtuse corners) the front passes through a vertex,
+        # a few pairs in a thousand off by up to 2 % of r0.
+        error_r = np.abs(polar.radius - expected_r)
+        assert np.percentile(error_r, 95) < 1e-9 and error_r.max() < 0.03 * r0
+        error_theta = np.abs(wrap(polar.angle - expected_theta))[expected_r > 0.1 * r0]
+        assert np.percentile(error_theta, 95) < 1e-9
     else:
         # potpourri's heat-method log map is accurate away from the boundary (it degrades next to it).
         inside = np.abs(vertices[polar.center, :2]).max(axis=1) < 5.0 - r0
@@ -113,7 +121,7 @@ def test_plane_radius_and_angle_exact(backend):
     # Every sample within r0 of an interior vertex is found (the plane is one sheet).
     interior = np.flatnonzero(np.abs(vertices[:, :2]).max(axis=1) < 5.0 - r0)
     truth = (np.linalg.norm(samples.points[None, :, :] - vertices[interior, None, :], axis=2) <= r0).sum(axis=1)
-    if backend == "fast":
+    if backend in ("fast", "front"):
         assert np.all(polar.counts()[interior] == truth)
     else:  # radius errors move samples at the rim across r0
         assert np.all(np.abs(polar.counts()[interior] - truth) <= 0.03 * truth)
@@ -125,7 +133,8 @@ def test_plane_radius_and_angle_exact(backend):
 
 
 # ---------------------------------------------------------------------- sphere
-@pytest.mark.parametrize("backend, r0, tol", [("fast", 1.5, 0.002), ("accurate", 3.0, 0.01)])
+@pytest.mark.parametrize("backend, r0, tol", [("fast", 1.5, 0.002), ("accurate", 3.0, 0.01),
+                                               ("front", 3.0, 0.003)])
 def test_sphere_geodesic_radius(backend, r0, tol):
     radius = 10.0
     mesh = trimesh.creation.icosphere(3, radius=radius)
@@ -148,7 +157,8 @@ def cylinder_unrolled(vertices_p, points, radius):
     return radius * dphi, points[:, 2] - vertices_p[:, 2]
 
 
-@pytest.mark.parametrize("backend, tol_r, tol_theta", [("fast", 0.005, 0.01), ("accurate", 0.01, 0.03)])
+@pytest.mark.parametrize("backend, tol_r, tol_theta", [("fast", 0.005, 0.01), ("accurate", 0.01, 0.03),
+                                                           ("front", 0.005, 0.01)])
 def test_cylinder_radius_and_angle(backend, tol_r, tol_theta):
     radius, r0 = 2.0, 1.8
     vertices, faces = cylinder_mesh(radius, 9.0, 40, 25)

@@ -5,7 +5,7 @@ coordinates ``(r, θ)`` of ``j`` in ``p``'s tangent plane (a discrete logarithmi
 distance and ``θ`` the angle of the initial direction of the geodesic, measured from ``p``'s reference
 direction ``e1`` towards ``e2 = n × e1`` (so ``(e1, e2, n)`` is right-handed).
 
-Two backends (their speed and accuracy are measured by ``benchmarks/bench_operator.py``):
+Three backends (their speed and accuracy are measured by ``benchmarks/bench_operator.py``):
 
 ``"fast"`` (default, :mod:`zernet.geometry.polar_fast`)
     One k-d tree ball query of the samples around all vertices, then closed-form corrections, all
@@ -35,7 +35,13 @@ Two backends (their speed and accuracy are measured by ``benchmarks/bench_operat
     lengths instead (distance is continuous across the cut) and only the angle from the vectors.
     Samples on other connected components (potpourri returns NaN there) are dropped.
 
-Both backends consider only samples within Euclidean distance ``r0`` (geodesic distance is never
+``"front"`` (:mod:`zernet.geometry.front`, meshes only)
+    Local front propagation from every vertex over the triangles, bounded by ``r0`` (the geodesic polar
+    coordinates update of Melvær and Reimers 2012), compiled with numba: distances are surface distances,
+    so the far side of a fold (between fingers, across an armpit or the crotch) is never reached through
+    the air, and a thin tube is measured the shorter way round. The angle is carried along the front.
+
+All backends consider only samples within Euclidean distance ``r0`` (geodesic distance is never
 shorter) and keep those with radius ``<= r0``.
 
 Public API: :data:`BACKENDS`, :class:`PolarCoordinates`, :func:`tangent_frames`, :func:`transport_angles`,
@@ -50,6 +56,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from zernet.geometry.front import front_polar
 from zernet.geometry.polar_accurate import accurate_polar
 from zernet.geometry.polar_fast import fast_polar
 from zernet.geometry.sampling import SurfaceSamples
@@ -57,7 +64,7 @@ from zernet.geometry.surface import Surface
 
 __all__ = ["PolarCoordinates", "tangent_frames", "compute_polar", "transport_angles", "wrap_angle", "BACKENDS"]
 
-BACKENDS = ("fast", "accurate")
+BACKENDS = ("fast", "accurate", "front")
 
 # A neighbour defines e1 only if its offset is mostly tangential (|tangent part| / |offset| above this).
 _FRAME_MIN_TANGENTIAL = 0.5
@@ -202,7 +209,7 @@ def compute_polar(
         surface: mesh or point cloud, N vertices.
         samples: M samples on it (:func:`zernet.geometry.sample_surface`).
         r0: patch radius (absolute units), > 0.
-        backend: ``"fast"`` or ``"accurate"`` (see the module docstring).
+        backend: ``"fast"``, ``"accurate"`` or ``"front"`` (see the module docstring).
         n_jobs: worker processes for ``"accurate"`` (``None``: all available cores; ``1``: in this
             process). Ignored by ``"fast"``.
 
@@ -222,6 +229,8 @@ def compute_polar(
     frames = tangent_frames(surface)
     if backend == "fast":
         center, sample, radius, angle = fast_polar(surface, samples, frames, r0)
+    elif backend == "front":
+        center, sample, radius, angle = front_polar(surface, samples, frames, r0)
     else:
         center, sample, radius, angle = accurate_polar(surface, samples, frames, r0, n_jobs)
     # Sort by (vertex, radius): one float key (radius < 2 r0, so the vertex term dominates).

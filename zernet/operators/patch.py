@@ -79,7 +79,7 @@ class PatchConfig:
         inner_radius: samples closer than this (absolute units) are left out.
         subtract_center: fit ``f(sample) - f(p)`` instead of ``f(sample)``.
         ridge: regularisation relative to a full patch's typical eigenvalue (module docstring).
-        backend: polar-coordinate backend, ``"fast"`` or ``"accurate"``.
+        backend: polar-coordinate backend, ``"fast"``, ``"accurate"`` or ``"front"`` (surface distances; meshes).
         seed: seed of the surface sampling.
     """
 

@@ -22,6 +22,8 @@ def model_directional_order(model: torch.nn.Module) -> int | None:
 def with_directional(record, order: int | None) -> Geometry:
     """The record's geometry with directional operators of ``order`` (built before the network, never in
     its forward). Kept on the record, so a data set held in memory builds them once per shape."""
+    if order is None:
+        return record.geometry
     geometry = record.geometry.with_directional(order)
     if geometry is not record.geometry:
         record.geometry = geometry

@@ -1,0 +1,385 @@
+"""Geodesic polar coordinates by local front propagation over the mesh (compiled with numba).
+
+From every vertex ``p`` a front is propagated over the triangles, in order of increasing distance (like
+Dijkstra's algorithm), until it passes ``r0``: the geodesic polar coordinates update of Melvær and
+Reimers (2012, "Geodesic polar coordinates on polygonal meshes"), a close relative of the discrete
+exponential map of Schmidt, Grimm and Wyvill (2006). Each vertex carries a distance ``U`` and an angle
+``θ``:
+
+* the one-ring of ``p`` is exact: ``U`` is the edge length and ``θ`` the angle of the edge projected to
+  ``p``'s tangent plane, from ``frames[p, 0]`` towards ``frames[p, 1]``;
+* a triangle ``(i, j, k)`` with ``i, j`` final updates ``k``: it is unfolded into the plane, the virtual
+  source ``s`` is the point at distances ``U_i, U_j`` from ``i, j`` on the far side of edge ``ij``, and if
+  the straight line from ``s`` to ``k`` crosses the edge, ``U_k = |k - s|`` and ``θ_k`` is interpolated
+  between ``θ_i`` and ``θ_j`` by the angle the line makes at ``s`` (exact on a plane). Otherwise the
+  geodesic passes through a vertex: ``U_k = U_i + |ik|`` with ``θ_k = θ_i`` (or through ``j``);
+* ``U_k`` keeps the smallest value offered, so a thin tube is measured the shorter way round.
+
+Then every sample in a triangle whose corners the front reached gets its ``(r, θ)`` the same way from
+the virtual source of each edge (the smallest distance wins), or exactly (the straight segment) when
+``p`` is a corner of its triangle. Because the front only moves across shared edges, it never jumps to
+the far side of a fold, to a touching limb or to another connected component, and it stops at open
+boundaries. The front is run until it passes ``r0`` plus the longest edge met, so every triangle holding
+a point within ``r0`` has all its corners final.
+
+The kernel is compiled on first use and cached on disk (``numba.njit(cache=True)``), so later processes
+load it instead of compiling. Sources are split over threads (the kernel releases the GIL).
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
+import numpy as np
+
+from zernet.geometry.sampling import SurfaceSamples
+from zernet.geometry.surface import Surface, SurfaceError
+
+__all__ = ["front_polar"]
+
+# Relative tolerance of the test that the line from the virtual source crosses the unfolded edge.
+_CROSSING_TOLERANCE = 1e-9
+
+
+def front_polar(
+    surface: Surface,
+    samples: SurfaceSamples,
+    frames: np.ndarray,
+    r0: float,
+    n_threads: int | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Geodesic polar coordinates of the samples within ``r0`` of every vertex, by front propagation.
+
+    Args:
+        surface: triangle mesh with N vertices.
+        samples: M samples on it (:func:`zernet.geometry.sample_surface`).
+        frames: (N, 3, 3) per-vertex frames, rows ``(e1, e2, n)`` (:func:`zernet.geometry.tangent_frames`).
+        r0: patch radius (absolute units), > 0.
+        n_threads: threads (``None``: the cores available to this process).
+
+    Returns:
+        ``(center, sample, radius, angle)``: (P,) int64, int64, float64, float64 pairs with
+        ``radius <= r0``, sorted by centre then radius; ``angle`` in ``[-π, π)`` from ``frames[p, 0]``
+        towards ``frames[p, 1]``.
+
+    Raises:
+        SurfaceError: for a point cloud (the front needs triangles), or mismatched frames.
+    """
+    if surface.is_point_cloud:
+        raise SurfaceError(f"{surface.name}: the front backend needs a triangle mesh, got a point cloud")
+    if not r0 > 0:
+        raise ValueError(f"r0 must be positive, got {r0}")
+    n = surface.n_vertices
+    if frames.shape != (n, 3, 3):
+        raise SurfaceError(f"{surface.name}: frames have shape {frames.shape}, expected ({n}, 3, 3)")
+    points = np.ascontiguousarray(surface.vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(surface.faces, dtype=np.int64)
+    vertex_face_start, vertex_faces = _vertex_faces(faces, n)
+    face_sample_start, face_samples = _face_samples(samples.face_index, len(faces))
+    corners = points[faces]
+    face_longest = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
+    arguments = (
+        points,
+        faces,
+        vertex_face_start,
+        vertex_faces,
+        face_sample_start,
+        face_samples,
+        np.ascontiguousarray(samples.points, dtype=np.float64),
+        np.ascontiguousarray(frames, dtype=np.float64),
+        face_longest,
+        float(r0),
+    )
+    if n_threads is None:
+        n_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    chunks = [c for c in np.array_split(np.arange(n, dtype=np.int64), max(1, 4 * n_threads)) if len(c)]
+    if n_threads <= 1 or len(chunks) <= 1:
+        results = [_front_chunk(chunk, *arguments) for chunk in chunks]
+    else:
+        with ThreadPoolExecutor(max_workers=n_threads) as pool:
+            results = list(pool.map(lambda chunk: _front_chunk(chunk, *arguments), chunks))
+    if not results:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    center, sample, radius, angle = (np.concatenate(parts) for parts in zip(*results))
+    order = np.lexsort((radius, center))  # chunks are in vertex order; sort by radius within a vertex
+    angle = np.mod(angle[order] + np.pi, 2 * np.pi) - np.pi
+    return center[order], sample[order], radius[order], angle
+
+
+def _vertex_faces(faces: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR of the faces around each vertex: ``faces_of_v = vertex_faces[start[v]:start[v + 1]]``."""
+    vertex = faces.ravel()
+    order = np.argsort(vertex, kind="stable")
+    start = np.searchsorted(vertex[order], np.arange(n + 1)).astype(np.int64)
+    return start, (order // 3).astype(np.int64)
+
+
+def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR of the samples in each face."""
+    order = np.argsort(face_index, kind="stable").astype(np.int64)
+    start = np.searchsorted(face_index[order], np.arange(n_faces + 1)).astype(np.int64)
+    return start, order
+
+
+# ====================================================================== compiled kernel
+@numba.njit(cache=True, nogil=True)
+def _front_chunk(
+    sources, points, faces, vertex_face_start, vertex_faces, face_sample_start, face_samples,
+    sample_points, frames, face_longest, r0,
+):  # fmt: skip
+    """Front propagation from each of ``sources``; returns the (center, sample, radius, angle) pairs."""
+    n = points.shape[0]
+    distance = np.full(n, np.inf)
+    angle = np.zeros(n)
+    final = np.zeros(n, dtype=np.bool_)
+    exact = np.zeros(n, dtype=np.bool_)  # the source and its one-ring: never overwritten
+    touched = np.empty(n, dtype=np.int64)
+    face_stamp = np.full(faces.shape[0], -1, dtype=np.int64)
+    heap_key = np.empty(64)
+    heap_vertex = np.empty(64, dtype=np.int64)
+    capacity = max(1024, 64 * len(sources))
+    out_center = np.empty(capacity, dtype=np.int64)
+    out_sample = np.empty(capacity, dtype=np.int64)
+    out_radius = np.empty(capacity)
+    out_angle = np.empty(capacity)
+    count = 0
+    for p in sources:
+        n_touched, heap_key, heap_vertex = _propagate(
+            p, points, faces, vertex_face_start, vertex_faces, frames, face_longest, r0,
+            distance, angle, final, exact, touched, heap_key, heap_vertex,
+        )  # fmt: skip
+        for t in range(n_touched):
+            v = touched[t]
+            if not final[v]:
+                continue
+            for slot in range(vertex_face_start[v], vertex_face_start[v + 1]):
+                f = vertex_faces[slot]
+                if face_stamp[f] == p:
+                    continue
+                face_stamp[f] = p
+                if not (final[faces[f, 0]] and final[faces[f, 1]] and final[faces[f, 2]]):
+                    continue
+                for b in range(face_sample_start[f], face_sample_start[f + 1]):
+                    s = face_samples[b]
+                    r, theta = _sample_polar(p, f, sample_points[s, 0], sample_points[s, 1], sample_points[s, 2], points, faces, frames, distance, angle)
+                    if r > r0:
+                        continue
+                    if count == out_center.shape[0]:
+                        out_center, out_sample, out_radius, out_angle = _grow(out_center, out_sample, out_radius, out_angle)
+                    out_center[count] = p
+                    out_sample[count] = s
+                    out_radius[count] = r
+                    out_angle[count] = theta
+                    count += 1
+        for t in range(n_touched):  # reset only what this source touched
+            v = touched[t]
+            distance[v] = np.inf
+            final[v] = False
+            exact[v] = False
+    return out_center[:count].copy(), out_sample[:count].copy(), out_radius[:count].copy(), out_angle[:count].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _propagate(
+    p, points, faces, vertex_face_start, vertex_faces, frames, face_longest, r0,
+    distance, angle, final, exact, touched, heap_key, heap_vertex,
+):  # fmt: skip
+    """Run the front from vertex ``p`` past ``r0`` (plus the longest edge met); fills ``distance``,
+    ``angle``, ``final`` for the touched vertices and returns their count and the (maybe grown) heap.
+
+    Label-correcting: a final vertex offered a shorter distance (in an obtuse triangle a vertex can be
+    reached before the corners of the triangle its geodesic crosses) is reopened and propagated again.
+    """
+    n_touched = 1
+    touched[0] = p
+    distance[p] = 0.0
+    angle[p] = 0.0
+    exact[p] = True
+    final[p] = True
+    heap_size = 0
+    for slot in range(vertex_face_start[p], vertex_face_start[p + 1]):
+        f = vertex_faces[slot]
+        for c in range(3):
+            q = faces[f, c]
+            if exact[q]:
+                continue
+            if not np.isfinite(distance[q]):
+                touched[n_touched] = q
+                n_touched += 1
+            distance[q] = _distance(points, p, points[q, 0], points[q, 1], points[q, 2])
+            angle[q] = _tangent_angle(points, frames, p, points[q, 0], points[q, 1], points[q, 2])
+            exact[q] = True
+            heap_size, heap_key, heap_vertex = _heap_push(heap_key, heap_vertex, heap_size, distance[q], q)
+    bound = r0
+    while heap_size > 0:
+        key, i, heap_size = _heap_pop(heap_key, heap_vertex, heap_size)
+        if key > distance[i] or final[i]:
+            continue  # a stale entry
+        if key > bound:
+            break
+        final[i] = True
+        for slot in range(vertex_face_start[i], vertex_face_start[i + 1]):
+            f = vertex_faces[slot]
+            if key <= r0:
+                bound = max(bound, r0 + face_longest[f])
+            c = 0 if faces[f, 0] == i else (1 if faces[f, 1] == i else 2)
+            a, b = faces[f, (c + 1) % 3], faces[f, (c + 2) % 3]
+            for target, other in ((b, a), (a, b)):
+                if exact[target]:
+                    continue
+                x, y, z = points[target, 0], points[target, 1], points[target, 2]
+                via = distance[i] + _distance(points, i, x, y, z)
+                u, theta = via, angle[i]
+                if final[other]:  # otherwise the path through i is an upper bound until other is final
+                    u, theta = _virtual_source_polar(points, i, other, x, y, z, distance, angle)
+                    via_other = distance[other] + _distance(points, other, x, y, z)
+                    if via < u and via <= via_other:
+                        u, theta = via, angle[i]
+                    elif via_other < u:
+                        u, theta = via_other, angle[other]
+                if u < distance[target] * (1.0 - 1e-12):
+                    if not np.isfinite(distance[target]):
+                        touched[n_touched] = target
+                        n_touched += 1
+                    distance[target] = u
+                    angle[target] = theta
+                    final[target] = False
+                    heap_size, heap_key, heap_vertex = _heap_push(heap_key, heap_vertex, heap_size, u, target)
+    return n_touched, heap_key, heap_vertex
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _distance(points, i, x, y, z):
+    """|x - points[i]|."""
+    dx, dy, dz = x - points[i, 0], y - points[i, 1], z - points[i, 2]
+    return np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _tangent_angle(points, frames, p, x, y, z):
+    """Angle of ``x - points[p]`` projected to p's tangent plane, from ``frames[p, 0]`` to ``frames[p, 1]``."""
+    dx, dy, dz = x - points[p, 0], y - points[p, 1], z - points[p, 2]
+    along_e1 = dx * frames[p, 0, 0] + dy * frames[p, 0, 1] + dz * frames[p, 0, 2]
+    along_e2 = dx * frames[p, 1, 0] + dy * frames[p, 1, 1] + dz * frames[p, 1, 2]
+    return np.arctan2(along_e2, along_e1)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _wrap(angle):
+    """Angle mapped to ``[-π, π)``."""
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+@numba.njit(cache=True, nogil=True)
+def _virtual_source_polar(points, i, j, x, y, z, distance, angle):
+    """Distance and angle at the point ``(x, y, z)`` from the virtual source of edge ``ij``.
+
+    The triangle of the edge and the point is unfolded with ``i`` at the origin, ``j`` on the positive
+    x axis and the point at y >= 0; the source is at distances ``distance[i], distance[j]`` from ``i, j``
+    at y <= 0. Returns ``inf`` when the straight line from the source to the point misses the edge or the
+    distances do not fit the edge.
+    """
+    ex, ey, ez = points[j, 0] - points[i, 0], points[j, 1] - points[i, 1], points[j, 2] - points[i, 2]
+    length = np.sqrt(ex * ex + ey * ey + ez * ez)
+    if length <= 0.0:
+        return np.inf, 0.0
+    ox, oy, oz = x - points[i, 0], y - points[i, 1], z - points[i, 2]
+    kx = (ox * ex + oy * ey + oz * ez) / length
+    ky = np.sqrt(max(ox * ox + oy * oy + oz * oz - kx * kx, 0.0))
+    ui, uj = distance[i], distance[j]
+    sx = (ui * ui - uj * uj + length * length) / (2.0 * length)
+    height2 = ui * ui - sx * sx
+    if height2 < 0.0:
+        return np.inf, 0.0
+    sy = -np.sqrt(height2)
+    dx, dy = kx - sx, ky - sy
+    if dy <= 0.0:
+        return np.inf, 0.0
+    crossing = sx - sy * dx / dy  # where the line from the source to the point meets the edge's line
+    tolerance = _CROSSING_TOLERANCE * length
+    if crossing < -tolerance or crossing > length + tolerance:
+        return np.inf, 0.0
+    # θ interpolated by the angle at the source (exact when the unfolded front comes from one point).
+    to_i = np.arctan2(-sy, -sx)
+    to_j = np.arctan2(-sy, length - sx)
+    to_x = np.arctan2(dy, dx)
+    span = to_i - to_j
+    ratio = (to_i - to_x) / span if abs(span) > 1e-12 else 0.0
+    ratio = min(max(ratio, 0.0), 1.0)
+    return np.sqrt(dx * dx + dy * dy), angle[i] + ratio * _wrap(angle[j] - angle[i])
+
+
+@numba.njit(cache=True, nogil=True)
+def _sample_polar(p, f, x, y, z, points, faces, frames, distance, angle):
+    """(r, θ) of the point ``(x, y, z)`` in face ``f``, whose corners are final."""
+    if faces[f, 0] == p or faces[f, 1] == p or faces[f, 2] == p:  # straight from the source
+        return _distance(points, p, x, y, z), _tangent_angle(points, frames, p, x, y, z)
+    best, best_angle = np.inf, 0.0
+    for c in range(3):
+        a, b = faces[f, c], faces[f, (c + 1) % 3]
+        r, theta = _virtual_source_polar(points, a, b, x, y, z, distance, angle)
+        if r < best:
+            best, best_angle = r, theta
+        via = distance[a] + _distance(points, a, x, y, z)
+        if via < best:
+            best, best_angle = via, angle[a]
+    return best, best_angle
+
+
+@numba.njit(cache=True, nogil=True)
+def _grow(center, sample, radius, angle):
+    """The output arrays with twice the room."""
+    size = center.shape[0]
+    bigger = (np.empty(2 * size, np.int64), np.empty(2 * size, np.int64), np.empty(2 * size), np.empty(2 * size))
+    bigger[0][:size] = center
+    bigger[1][:size] = sample
+    bigger[2][:size] = radius
+    bigger[3][:size] = angle
+    return bigger
+
+
+@numba.njit(cache=True, nogil=True)
+def _heap_push(keys, values, size, key, value):
+    """Push onto a binary min-heap kept in (keys, values); grows the arrays when full."""
+    if size == keys.shape[0]:
+        grown_keys = np.empty(2 * size)
+        grown_values = np.empty(2 * size, dtype=np.int64)
+        grown_keys[:size] = keys
+        grown_values[:size] = values
+        keys, values = grown_keys, grown_values
+    position = size
+    while position > 0:
+        parent = (position - 1) // 2
+        if keys[parent] <= key:
+            break
+        keys[position] = keys[parent]
+        values[position] = values[parent]
+        position = parent
+    keys[position] = key
+    values[position] = value
+    return size + 1, keys, values
+
+
+@numba.njit(cache=True, nogil=True)
+def _heap_pop(keys, values, size):
+    """Pop the smallest (key, value) of the heap; returns them and the new size."""
+    key, value = keys[0], values[0]
+    size -= 1
+    last_key, last_value = keys[size], values[size]
+    position = 0
+    while True:
+        child = 2 * position + 1
+        if child >= size:
+            break
+        if child + 1 < size and keys[child + 1] < keys[child]:
+            child += 1
+        if keys[child] >= last_key:
+            break
+        keys[position] = keys[child]
+        values[position] = values[child]
+        position = child
+    keys[position] = last_key
+    values[position] = last_value
+    return key, value, size
