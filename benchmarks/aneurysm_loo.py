@@ -10,7 +10,7 @@ law fitted on the other cases, no network), and writes ``benchmarks/results/aneu
     .venv/bin/python benchmarks/aneurysm_loo.py --set train.epochs=30 --cases TP_Ia105I TP_Ia33I
     .venv/bin/python benchmarks/aneurysm_loo.py --seeds 3    # each fold an ensemble of three seeds
 
-Needs the data folder (default ``../shared/data/aneurysm``); every fold's run folder is kept under
+Needs the data folder (``--data``, default ``data/aneurysm``: your copy of the aneurysm cases); every fold's run folder is kept under
 ``--runs`` (default ``runs/aneurysm_loo``), so a fold that already has ``metrics.json`` is not retrained
 (``--retrain`` forces it) and an interrupted fold resumes from its last checkpoint. A fold folder trained
 with another recipe (its ``config.yaml`` differs from this call's configuration in anything but the data
@@ -117,7 +117,7 @@ def train_fold(config: dict, run_dir: Path, retrain: bool) -> dict | None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default=str(ROOT / "configs" / "aneurysm_regression.yaml"))
-    parser.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "aneurysm"))
+    parser.add_argument("--data", default="data/aneurysm", help="folder of the aneurysm .mat files")
     parser.add_argument("--cases", nargs="+", default=list(PAPER))
     parser.add_argument("--runs", default=str(ROOT / "runs" / "aneurysm_loo"))
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides")

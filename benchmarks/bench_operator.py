@@ -7,7 +7,7 @@ Surfaces:
   arms, legs and four thin fingers as capsules, 10 closed components a few units apart, ~6,900 vertices,
   well-shaped triangles. It has thin parts (fingers, circumference ≈ r0) and sheets of other parts
   within r0 (legs 3.5 units apart, fingers 0.4 apart), but no limb-torso junctions.
-* the aneurysm meshes of ``../shared/data/aneurysm`` when that folder exists (area 100, r0 = 0.6 as in
+* the aneurysm meshes of ``--aneurysms DIR`` (default ``data/aneurysm``) when that folder exists (area 100, r0 = 0.6 as in
   the paper's regression experiment, 12,000 samples).
 
 Accuracy of a backend is measured against the accurate backend (potpourri3d log map, AffineLocal) on the
@@ -39,7 +39,7 @@ from zernet.polar import compute_polar
 from zernet.surface import Surface, load_surface, sample_surface
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_operator.json"
-ANEURYSMS = Path(__file__).resolve().parents[2] / "shared" / "data" / "aneurysm"
+ANEURYSMS = Path("data/aneurysm")  # your copy of the aneurysm data set
 
 
 # ====================================================================== the procedural body

@@ -20,7 +20,7 @@ In one process, on the same inputs and with the same thread count, it measures
 4. **Short fixed-budget training runs** through :func:`zernet.training.train` (the training command's own loop,
    data, splits and metrics): same epochs, same seed for every model, on the built-in synthetic data
    (segmentation, and curvature regression, both with the recipe of ``configs/demo.yaml``) and, when the aneurysm data exist
-   (``--aneurysm-root``, default ``../shared/data/aneurysm``), on leave-one-out aneurysm cases.
+   (``--aneurysm-root``, default ``data/aneurysm``: your copy of the aneurysm data set), on leave-one-out aneurysm cases.
 
 It writes ``<out>/report.md`` (tables, ratios to FeaStNet, the issue's targets), ``<out>/report.json``,
 plots ``<out>/report-*.png`` and the training run folders ``<out>/report-runs/<task>/<model>/``
@@ -644,7 +644,7 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     parser.add_argument("--rounds", type=int, default=None, help="timing rounds (default 5, quick 2)")
     parser.add_argument("--epochs", type=int, default=None, help="synthetic training epochs (default 15, quick 2)")
-    parser.add_argument("--aneurysm-root", default="../shared/data/aneurysm",
+    parser.add_argument("--aneurysm-root", default="data/aneurysm",
                         help="folder of the aneurysm .mat files (skipped when missing)")
     parser.add_argument("--aneurysm-cases", default=None,
                         help="comma-separated held-out cases (default TP_Ia105I,TP_Ia166I; quick TP_Ia105I; "
