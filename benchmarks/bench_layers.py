@@ -63,7 +63,7 @@ def _operator(real: bool):
     import torch  # noqa: F401
 
     if real:
-        from zernet.patches import PatchConfig, build_patch_operator
+        from zernet.operators import PatchConfig, build_patch_operator
 
         sys.path.insert(0, str(Path(__file__).resolve().parent))
         from bench_operator import mannequin  # the 6,880-vertex body stand-in at area 15000

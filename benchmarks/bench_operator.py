@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from zernet.patches import PatchConfig, assemble_operator, build_patch_operator
-from zernet.polar import compute_polar
-from zernet.surface import Surface, load_surface, sample_surface
+from zernet.operators import PatchConfig, assemble_operator, build_patch_operator
+from zernet.geometry import compute_polar
+from zernet.geometry import Surface, load_surface, sample_surface
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_operator.json"
 ANEURYSMS = Path("data/aneurysm")  # your copy of the aneurysm data set

@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from zernet.data.base import compute_features
+from zernet.data.features import compute_features
 from zernet.data.synthetic import make_creature
 from zernet.io_utils import atomic_write_bytes
 from zernet.nn import Geometry, build_model
-from zernet.patches import PatchConfig, build_patch_operator
+from zernet.operators import PatchConfig, build_patch_operator
 from zernet.training import keep_freed_memory, precision_autocast
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_precision.json"

@@ -37,13 +37,13 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from zernet.data.preprocess import ShapeSource, preprocess_shapes  # noqa: E402
-from zernet.data.synthetic import SYNTHETIC_AREA, _load_creature  # noqa: E402
-from zernet.patches import PatchConfig  # noqa: E402
+from zernet.data.synthetic import SYNTHETIC_AREA, load_creature  # noqa: E402
+from zernet.operators import PatchConfig  # noqa: E402
 from zernet.training import build_dataset, load_checkpoint, resolve_config  # noqa: E402
 
 
 def creature_sources(n_shapes: int, n_vertices: int) -> list[ShapeSource]:
-    return [ShapeSource(f"creature_{i:03d}", partial(_load_creature, i, n_vertices, True, "segmentation"),
+    return [ShapeSource(f"creature_{i:03d}", partial(load_creature, i, n_vertices, True, "segmentation"),
                         key=f"bench-{i}-{n_vertices}") for i in range(n_shapes)]
 
 
@@ -58,10 +58,10 @@ def warm_up_workers() -> float:
     """
     from concurrent.futures import ProcessPoolExecutor
 
-    from zernet.data.preprocess import _pool_context, _worker_init
+    from zernet.data.pool import pool_context, worker_init
 
     started = time.perf_counter()
-    with ProcessPoolExecutor(1, mp_context=_pool_context(), initializer=_worker_init) as pool:
+    with ProcessPoolExecutor(1, mp_context=pool_context(), initializer=worker_init) as pool:
         pool.submit(_noop).result()
     return time.perf_counter() - started
 

@@ -55,9 +55,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from zernet.data.preprocess import mesh_edge_index  # noqa: E402
 from zernet.data.synthetic import make_creature  # noqa: E402
-from zernet.nn.geometry import Geometry  # noqa: E402
+from zernet.operators import Geometry  # noqa: E402
 from zernet.nn.models import build_model  # noqa: E402
-from zernet.patches import PatchConfig, PatchOperator, build_patch_operator  # noqa: E402
+from zernet.operators import PatchConfig, PatchOperator, build_patch_operator  # noqa: E402
 from zernet.training import keep_freed_memory, load_checkpoint, train  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

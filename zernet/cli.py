@@ -24,7 +24,7 @@ from zernet.data.bodies import TOPOLOGIES as BODY_TOPOLOGIES
 from zernet.data.bodies import write_bodies
 from zernet.distributed import is_main
 from zernet.io_utils import atomic_write_bytes, write_json
-from zernet.surface import SurfaceError, load_surface
+from zernet.geometry import SurfaceError, load_surface
 from zernet.training import (
     ConfigError,
     RunConfig,

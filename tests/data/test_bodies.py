@@ -22,7 +22,7 @@ from zernet.data.faust import load_faust  # noqa: E402
 from zernet.data.options import LoaderOptions  # noqa: E402
 from zernet.data.segmentation import HUMAN_PART_NAMES, load_segmentation, read_labels  # noqa: E402
 from zernet.operators import PatchConfig  # noqa: E402
-from zernet.surface import Surface, load_surface, validate_surface  # noqa: E402
+from zernet.geometry import Surface, load_surface, validate_surface  # noqa: E402
 
 COARSE = "coarse-369"
 CONFIGS = [PatchConfig(r0=20.0, n_samples=800, patch_size=20, n_max=2)]

@@ -17,12 +17,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from meshes import tetrahedron
-from zernet.data.base import DatasetError
+from zernet.data.dataset import DatasetError
 from zernet.data.preprocess import prepare_record
-from zernet.data.regression import _load_mat_field, read_values
-from zernet.data.segmentation import _load_labelled_mesh, read_labels
+from zernet.data.regression import load_mat_field, read_values
+from zernet.data.segmentation import load_labelled_mesh, read_labels
 from zernet.geometry import Surface, SurfaceError, load_surface
-from zernet.patches import PatchConfig
+from zernet.operators import PatchConfig
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -210,7 +210,7 @@ def test_random_mat_files_load_exactly_or_fail_clearly(tmp_path_factory, x, f, f
         def check_field(result):
             surface, target = result
             np.testing.assert_array_equal(target, content["J2m"])
-        _expect_clear_error_or(lambda p: _load_mat_field(str(p), "J2m"), path, check_field)
+        _expect_clear_error_or(lambda p: load_mat_field(str(p), "J2m"), path, check_field)
 
 
 # ------------------------------------------------------------------------- label and value files
@@ -269,10 +269,10 @@ def test_label_count_mismatch_names_both_files(tmp_path):
     labels = tmp_path / "tet.txt"
     labels.write_text("0\n1\n0\n")  # 3 labels: neither 4 vertices nor 4 faces
     with pytest.raises(DatasetError, match=r"tet\.txt: has 3 labels but .*tet\.off has 4 vertices"):
-        _load_labelled_mesh(str(mesh), str(labels), "auto", 0, 2, False)
+        load_labelled_mesh(str(mesh), str(labels), "auto", 0, 2, False)
     labels.write_text("0\n1\n0\n7\n")  # right count, label outside the classes
     with pytest.raises(DatasetError, match=r"tet\.txt: label 7 is outside the 2 classes"):
-        _load_labelled_mesh(str(mesh), str(labels), "auto", 0, 2, False)
+        load_labelled_mesh(str(mesh), str(labels), "auto", 0, 2, False)
 
 
 # ------------------------------------------------------------------------ preprocessing odd meshes

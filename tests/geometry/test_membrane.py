@@ -7,7 +7,8 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from meshes import grid, icosphere, open_cylinder
-from zernet.data.base import DatasetError, compute_features, feature_channels, feature_parts
+from zernet.data.dataset import DatasetError
+from zernet.data.features import compute_features, feature_channels, feature_parts
 from zernet.geometry import Surface, SurfaceError, membrane_stress
 
 NU = 0.45

@@ -16,7 +16,7 @@ from zernet.nn.models import FeaStNet, PaperZernikeConv, PaperZerNet, build_mode
 from zernet.nn.conv import ZernikeConv
 from zernet.nn.reference import MatrixOperator
 from zernet.operators import Geometry, PatchConfig, build_patch_operator
-from zernet.surface import Surface
+from zernet.geometry import Surface
 from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
 
 SMALL = dict(widths=(8, 12, 16))

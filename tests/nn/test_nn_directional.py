@@ -28,7 +28,7 @@ from zernet.nn.directional import DirectionalLifting, DirectionalPooling, Direct
 from zernet.nn.models import DirectionalZerNet
 from zernet.nn.reference import MatrixOperator
 from zernet.operators import Geometry, build_directional_operator
-from zernet.polar import transport_angles
+from zernet.geometry import transport_angles
 from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
 
 N_MAX = 3
@@ -415,8 +415,8 @@ def sphere_patches():
     """Polar coordinates and the patch operator of a 162-vertex icosphere (n_max = 3)."""
     trimesh = pytest.importorskip("trimesh")
     from zernet.operators import PatchConfig, assemble_operator
-    from zernet.polar import compute_polar
-    from zernet.surface import Surface, sample_surface
+    from zernet.geometry import compute_polar
+    from zernet.geometry import Surface, sample_surface
 
     mesh = trimesh.creation.icosphere(subdivisions=2)
     surface = Surface(vertices=np.asarray(mesh.vertices, dtype=np.float64), faces=np.asarray(mesh.faces, dtype=np.int64))

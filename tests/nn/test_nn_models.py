@@ -173,7 +173,7 @@ def ellipsoid_geometry():
 
     from zernet.data.preprocess import mesh_edge_index
     from zernet.operators import PatchConfig, build_patch_operator
-    from zernet.surface import Surface
+    from zernet.geometry import Surface
 
     mesh = trimesh.creation.icosphere(subdivisions=2)
     surface = Surface(vertices=np.asarray(mesh.vertices) * [1.3, 1.0, 0.8], faces=np.asarray(mesh.faces), name="ellipsoid")

@@ -32,8 +32,8 @@ from zernet.cli import main
 from zernet.data import PreprocessError, ShapeSource, build_dataset
 from zernet.data.preprocess import WORKER_DIED, file_key, preprocess_shapes
 from zernet.io_utils import atomic_save_torch, atomic_write_bytes
-from zernet.patches import PatchConfig
-from zernet.surface import load_surface
+from zernet.operators import PatchConfig
+from zernet.geometry import load_surface
 from zernet.training import load_checkpoint, train
 
 pytestmark = pytest.mark.timeout(240)

@@ -20,7 +20,7 @@ from tiny_configs import tiny_config
 import zernet.training.loop as loop
 from zernet.data.synthetic import make_creature
 from zernet.metrics import regression_scores
-from zernet.surface import Surface
+from zernet.geometry import Surface
 from zernet.training import (
     ConfigError,
     apply_overrides,

@@ -7,7 +7,7 @@ import trimesh
 
 from zernet import viz
 from zernet.metrics import error_curve
-from zernet.surface import Surface
+from zernet.geometry import Surface
 
 
 @pytest.fixture(scope="module")

@@ -91,10 +91,10 @@ import trimesh
 from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
-from zernet.data.base import DatasetError
+from zernet.data.dataset import DatasetError
 from zernet.data.segmentation import HUMAN_PART_NAMES
 from zernet.io_utils import atomic_write_bytes
-from zernet.surface import Surface, validate_surface
+from zernet.geometry import Surface, validate_surface
 
 __all__ = [
     "GENERATOR_VERSION",

@@ -24,8 +24,8 @@ import numpy as np
 from zernet.data.dataset import DatasetError
 from zernet.data.source import ShapeSource
 from zernet.io_utils import atomic_write_bytes
-from zernet.patches import PatchConfig
-from zernet.surface import Surface
+from zernet.operators import PatchConfig
+from zernet.geometry import Surface
 
 __all__ = [
     "CACHE_FORMAT",

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from zernet.nn.geometry import Geometry
-from zernet.surface import Surface
+from zernet.operators import Geometry
+from zernet.geometry import Surface
 
 __all__ = ["TASKS", "DatasetError", "ShapeRecord", "ShapeDataset", "carve_validation", "as_target"]
 

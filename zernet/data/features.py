@@ -14,8 +14,8 @@ import scipy.sparse
 from scipy.spatial import cKDTree
 
 from zernet.data.dataset import DatasetError
-from zernet.membrane import membrane_stress
-from zernet.surface import Surface
+from zernet.geometry import membrane_stress
+from zernet.geometry import Surface
 from zernet.zernike import harmonic_pairs, index_to_nm, orders
 
 __all__ = [

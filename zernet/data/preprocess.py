@@ -46,9 +46,9 @@ from zernet.data.dataset import DatasetError, ShapeDataset, ShapeRecord, as_targ
 from zernet.data.features import compute_features, feature_channels, feature_parts
 from zernet.data.pool import WORKER_DIED, pool_context, run_jobs, worker_init
 from zernet.data.source import ShapeSource, file_key
-from zernet.nn.geometry import Geometry
-from zernet.patches import PatchConfig, build_patch_operator
-from zernet.surface import Surface, normalize_area, validate_surface
+from zernet.operators import Geometry
+from zernet.operators import PatchConfig, build_patch_operator
+from zernet.geometry import Surface, normalize_area, validate_surface
 
 __all__ = [
     "ShapeSource",
@@ -63,9 +63,6 @@ __all__ = [
     "WORKER_DIED",
 ]
 
-# Old private spellings of the pool's public names, kept for the benchmarks until they import zernet.data.pool.
-_pool_context = pool_context
-_worker_init = worker_init
 
 logger = logging.getLogger(__name__)
 

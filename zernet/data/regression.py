@@ -29,8 +29,8 @@ from zernet.data.options import LoaderOptions
 from zernet.data.preprocess import build_dataset
 from zernet.data.segmentation import MESH_EXTENSIONS, draw_test_names, find_meshes
 from zernet.data.source import ShapeSource, file_key
-from zernet.patches import PatchConfig
-from zernet.surface import Surface, load_surface
+from zernet.operators import PatchConfig
+from zernet.geometry import Surface, load_surface
 
 __all__ = [
     "ANEURYSM_AREA",
@@ -102,8 +102,6 @@ def load_mat_field(path: str, field: str) -> tuple[Surface, np.ndarray]:
     return Surface(surface.vertices, surface.faces, surface.normals, fields, surface.name), target
 
 
-# Old private spelling, kept importable for the tests until they use the public name.
-_load_mat_field = load_mat_field
 
 
 def load_mesh_values(mesh_path: str, value_path: str) -> tuple[Surface, np.ndarray]:

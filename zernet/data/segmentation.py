@@ -45,7 +45,7 @@ from zernet.data.dataset import DatasetError, ShapeDataset
 from zernet.data.options import LoaderOptions
 from zernet.data.preprocess import build_dataset
 from zernet.data.source import ShapeSource, file_key
-from zernet.surface import Surface, load_surface, validate_surface
+from zernet.geometry import Surface, load_surface, validate_surface
 
 __all__ = [
     "MESH_EXTENSIONS",
@@ -159,8 +159,6 @@ def load_labelled_mesh(mesh_path: str, label_path: str, label_kind: str, base: i
     return surface, labels
 
 
-# Old private spelling, kept importable for the tests until they use the public name.
-_load_labelled_mesh = load_labelled_mesh
 
 
 def _read_as_stored(mesh_path: str) -> Surface:

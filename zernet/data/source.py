@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from zernet.surface import Surface
+from zernet.geometry import Surface
 
 __all__ = ["ShapeSource", "file_key"]
 

@@ -41,8 +41,8 @@ from zernet.data.dataset import DatasetError, ShapeDataset
 from zernet.data.options import LoaderOptions
 from zernet.data.preprocess import build_dataset
 from zernet.data.source import ShapeSource
-from zernet.patches import PatchConfig
-from zernet.surface import Surface
+from zernet.operators import PatchConfig
+from zernet.geometry import Surface
 
 __all__ = [
     "SYNTHETIC_AREA",
@@ -169,8 +169,6 @@ def load_creature(seed: int, n_vertices: int, rotate: bool, task: str) -> tuple[
     return surface, labels if task == "segmentation" else curvature
 
 
-# Old private spelling, kept for the benchmarks until they use the public name.
-_load_creature = load_creature
 
 
 def demo_patch_configs(n_scales: int = 1, **overrides) -> list[PatchConfig]:

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from zernet.fourier import fourier_dim
-from zernet.polar import transport_angles
+from zernet.geometry import transport_angles
 from zernet.zernike import n_max_for
 
 from .sparse import SparseApply, to_torch_csr

@@ -40,8 +40,8 @@ import numpy as np
 import scipy.sparse
 import torch
 
-from zernet.polar import BACKENDS, compute_polar
-from zernet.surface import Surface, sample_surface
+from zernet.geometry import BACKENDS, compute_polar
+from zernet.geometry import Surface, sample_surface
 from zernet.zernike import num_bases, zernike_basis
 
 from .cache import (

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from zernet.nn.geometry import Geometry
+from zernet.operators import Geometry
 from zernet.training.targets import standardise, standardise_features
 
 __all__ = ["Batch", "with_directional", "model_directional_order"]

@@ -34,7 +34,7 @@ import yaml
 
 from zernet.data import DATASET_KINDS
 from zernet.nn.models import available_models
-from zernet.patches import PatchConfig
+from zernet.operators import PatchConfig
 
 __all__ = [
     "ConfigError",

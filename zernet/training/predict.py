@@ -9,8 +9,8 @@ import numpy as np
 import torch
 
 from zernet.data import prepare_record
-from zernet.patches import PatchConfig
-from zernet.surface import load_surface
+from zernet.operators import PatchConfig
+from zernet.geometry import load_surface
 from zernet.training.batch import Batch, model_directional_order
 from zernet.training.build import build_model_from_spec
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
