@@ -78,7 +78,7 @@ def recipe_differences(stored: dict, intended: dict) -> list[str]:
 
 def membrane_baseline(data: Path, cases: list[str], cache_dir: str) -> dict:
     """The physics prior alone: per held-out case, the membrane stress under unit pressure
-    (:func:`zernet.membrane.membrane_stress` at the recipe's middle prestress) mapped to the target by a power
+    (:func:`zernet.geometry.membrane.membrane_stress` at the recipe's middle prestress) mapped to the target by a power
     law ``y = b · σ^a`` fitted (least squares on logs) to every vertex of the other cases. Scores in the
     paper's units. Says how much of our result the network adds over the estimate it is given."""
     surfaces = {path.stem: load_surface(path, fields=["J2m"]) for path in sorted(Path(data).glob("*.mat"))}

@@ -193,7 +193,7 @@ class DistributedContext:
         """``DistributedDataParallel(model)`` in a distributed run, the model itself otherwise.
 
         ``device_ids`` stays None even on a GPU: the model is already on its device and the inputs are moved
-        by the caller; with device_ids DDP would try to move a :class:`~zernet.nn.geometry.Geometry`
+        by the caller; with device_ids DDP would try to move a :class:`~zernet.operators.batch.Geometry`
         argument (sparse operators inside) itself.
         """
         if not self.distributed:

@@ -211,7 +211,7 @@ def test_options_and_errors():
 
 def test_real_patch_operator_on_small_mesh():
     patches = pytest.importorskip("zernet.operators")
-    surface_mod = pytest.importorskip("zernet.surface")
+    surface_mod = pytest.importorskip("zernet.geometry")
     trimesh = pytest.importorskip("trimesh")
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
     surface = surface_mod.Surface(np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64))

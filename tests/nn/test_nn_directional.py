@@ -6,7 +6,7 @@ turning vertex p's frame by δ_p, i.e. ``e1 ← cos δ e1 + sin δ e2``, ``e2 �
 * changes p's polar angles to θ - δ_p, so the Zernike coefficients of every patch field at p become
   those of f(r, θ + δ_p): operator rows of p are ``rotate_coefficients(·, +δ_p)``;
 * changes a directional channel at q to h_q(ψ + δ_q): ``rotate_fourier(·, +δ_q)``;
-* changes the transport angles to γ_qp + δ_q - δ_p (computed by zernet.polar.transport_angles from the
+* changes the transport angles to γ_qp + δ_q - δ_p (computed by zernet.geometry.polar.transport_angles from the
   turned frames, not supplied by hand);
 * and must turn every output at p into o_p(φ + δ_p): ``rotate_fourier(·, +δ_p)`` on Fourier outputs, a
   cyclic shift by a on s samples when δ_p = 2π a / s, and no change at all after continuous pooling.

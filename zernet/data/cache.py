@@ -4,7 +4,7 @@ An entry holds the validated, area-normalised surface (vertices, faces, normals,
 and the normalisation's scale. Its file name is the shape's name plus a digest of everything that decides
 its content: the source's content key, the target area and exponent, the repair flag and every patch
 configuration (:func:`shape_cache_path`). An entry that exists is the marker that the shape is done; the
-patch operators keep their own cache (:mod:`zernet.patches`).
+patch operators keep their own cache (:mod:`zernet.operators.cache`).
 """
 
 from __future__ import annotations

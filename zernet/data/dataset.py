@@ -39,11 +39,11 @@ class ShapeRecord:
 
     Attributes:
         name: the shape's name (file stem or generated name), unique within its data set.
-        surface: the area-normalised :class:`~zernet.surface.Surface` (its ``name`` is the source file).
+        surface: the area-normalised :class:`~zernet.geometry.surface.Surface` (its ``name`` is the source file).
         features: (N, C_in) float32 model input, by default xyz centred at the area-weighted centroid.
         target: (N,) int64 class per vertex (classification), (N,) float32 value per vertex (regression, in
             area-normalised units), or None when there is no ground truth (prediction on a new surface).
-        geometry: :class:`~zernet.nn.geometry.Geometry` with one patch operator per configured scale and,
+        geometry: :class:`~zernet.operators.batch.Geometry` with one patch operator per configured scale and,
             for meshes, ``edge_index`` (2, E) of the mesh edges in both directions (for graph baselines).
         scale: linear factor applied to the positions by the area normalisation (new = centroid + scale·(old
             − centroid)). A regression target with area exponent e was multiplied by ``scale ** (2 e)``;
@@ -90,7 +90,7 @@ class ShapeDataset(Sequence[ShapeRecord]):
         num_classes: number of classes (classification) or None (regression).
         names: shape names, in index order.
         splits: {"train": [...], "val": [...], "test": [...]} index lists (more keys are allowed).
-        patch_configs: the :class:`~zernet.patches.PatchConfig` list (one per scale) of every record.
+        patch_configs: the :class:`~zernet.operators.patch.PatchConfig` list (one per scale) of every record.
         in_channels: number of input feature channels (C_in).
         feature_kind: the feature kind of the records (see :func:`~zernet.data.features.compute_features`).
         target_area: the area every surface was normalised to.

@@ -36,7 +36,7 @@ __all__ = [
 #: ``"shape+curvature+membrane"``; the channels follow in that order.
 FEATURE_PARTS = {"xyz": 3, "normals": 3, "ones": 1, "shape": None, "curvature": None, "membrane": 3}
 
-#: Pre-tensions of the :func:`~zernet.membrane.membrane_stress` channels of the "membrane" feature part.
+#: Pre-tensions of the :func:`~zernet.geometry.membrane.membrane_stress` channels of the "membrane" feature part.
 MEMBRANE_PRESTRESSES = (0.01, 0.02, 0.04)
 
 #: Distance to the boundary, in units of r0, beyond which the boundary feature saturates.
@@ -50,7 +50,7 @@ def default_features(surface: Surface) -> np.ndarray:
     :meth:`Surface.vertex_areas` (a third of the incident triangle areas; estimated cell areas for point
     clouds), i.e. the centroid of the surface as a thin shell, not of its vertex set: it does not move when
     one region is meshed more densely than another. It is the point about which
-    :func:`~zernet.surface.normalize_area` scales, so centring does not depend on the normalisation.
+    :func:`~zernet.geometry.sampling.normalize_area` scales, so centring does not depend on the normalisation.
     No rotation is removed: the features are as rotation-dependent as the surface's placement.
     """
     weights = surface.vertex_areas()
@@ -165,7 +165,7 @@ def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_
     - ``"shape"``: :func:`shape_descriptors` at every patch scale, then the boundary distance in units of the
       first scale's r0 (rotation- and translation-invariant);
     - ``"curvature"``: :func:`curvature_descriptors` at the patch scales' radii;
-    - ``"membrane"``: log of :func:`~zernet.membrane.membrane_stress` at each of
+    - ``"membrane"``: log of :func:`~zernet.geometry.membrane.membrane_stress` at each of
       :data:`MEMBRANE_PRESTRESSES` (meshes only; cached in ``cache_dir`` when given).
 
     ``operators``: the surface's patch operators, one per scale (needed by "shape" and "curvature").
@@ -193,7 +193,7 @@ def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_
 def membrane_descriptors(surface: Surface, cache_dir=None) -> np.ndarray:
     """log of the membrane stress under unit inner pressure at each :data:`MEMBRANE_PRESTRESSES`, (N, 3).
 
-    Why: for stress targets this solves the wall's equilibrium (see :mod:`zernet.membrane`) instead of asking
+    Why: for stress targets this solves the wall's equilibrium (see :mod:`zernet.geometry.membrane`) instead of asking
     the network to learn it from a few shapes. The log makes a scaled stress a shifted feature. A point
     cloud has no wall: DatasetError naming the shape.
     """

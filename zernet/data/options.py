@@ -27,7 +27,7 @@ class LoaderOptions:
     """How a data set is preprocessed, cached, featurised and split.
 
     Attributes:
-        patch_configs: :class:`~zernet.patches.PatchConfig` (or dicts), one per scale; None or empty: the
+        patch_configs: :class:`~zernet.operators.patch.PatchConfig` (or dicts), one per scale; None or empty: the
             data set's default (segmentation and generic regression have none and require it).
         cache_dir: folder of the preprocessing cache (shapes, patch operators, membrane stresses).
         feature_kind: model input, parts of :data:`~zernet.data.features.FEATURE_PARTS` joined by "+".

@@ -4,10 +4,10 @@ Every loader (FAUST, segmentation, regression, synthetic) describes its shapes a
 objects and hands them to :func:`build_dataset`, which
 
 1. loads each shape (``source.load()`` returns the surface and its per-vertex target),
-2. validates it (:func:`~zernet.surface.validate_surface`) and scales it to the data set's area
-   (:func:`~zernet.surface.normalize_area`; a regression target scales with ``area ** target_exponent``),
-3. builds one patch operator per :class:`~zernet.patches.PatchConfig` with
-   :func:`~zernet.patches.build_patch_operator` (which keeps its own on-disk cache under ``cache_dir``),
+2. validates it (:func:`~zernet.geometry.validate.validate_surface`) and scales it to the data set's area
+   (:func:`~zernet.geometry.sampling.normalize_area`; a regression target scales with ``area ** target_exponent``),
+3. builds one patch operator per :class:`~zernet.operators.patch.PatchConfig` with
+   :func:`~zernet.operators.patch.build_patch_operator` (which keeps its own on-disk cache under ``cache_dir``),
 4. writes the normalised surface and target to the shape cache (:mod:`zernet.data.cache`) — the marker that
    the shape is done.
 

@@ -140,7 +140,7 @@ def load_labelled_mesh(mesh_path: str, label_path: str, label_kind: str, base: i
                         repair: bool) -> tuple[Surface, np.ndarray]:
     """ShapeSource loader: the mesh and its per-vertex labels.
 
-    Without repair, the mesh is read and validated by :func:`~zernet.surface.load_surface`. With repair,
+    Without repair, the mesh is read and validated by :func:`~zernet.geometry.io.load_surface`. With repair,
     the labels are resolved on the mesh exactly as stored (a repair drops faces and merges vertices, which
     would break the order a label file refers to) and the repair is applied afterwards, the per-vertex
     labels following the merged vertices.

@@ -22,7 +22,7 @@ class ShapeSource:
         load: zero-argument callable returning ``(surface, target)``; ``target`` is an (N,) per-vertex array
             or None. It runs in a worker process, so it must be picklable: a module-level function or a
             ``functools.partial`` of one — never a lambda or a closure. It should raise
-            :class:`~zernet.surface.SurfaceError` / :class:`~zernet.data.dataset.DatasetError` with a clear
+            :class:`~zernet.geometry.surface.SurfaceError` / :class:`~zernet.data.dataset.DatasetError` with a clear
             message for a bad file.
         key: a string that changes whenever the shape's content would change (e.g. file paths with sizes
             and modification times, or generator parameters), used to skip already cached shapes without

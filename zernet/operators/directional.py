@@ -4,7 +4,7 @@ A *directional channel* at vertex ``q`` is a circle function ``h_q(ψ)`` in ``q`
 ``ψ`` from ``q``'s reference direction ``e1_q`` towards ``e2_q``), stored by its Fourier coefficients up
 to order ``L`` (:mod:`zernet.fourier`).
 
-**Transport.** ``γ_qp`` (:func:`zernet.polar.transport_angles`) is the angle, in ``p``'s frame, of ``q``'s
+**Transport.** ``γ_qp`` (:func:`zernet.geometry.polar.transport_angles`) is the angle, in ``p``'s frame, of ``q``'s
 reference direction after the minimal rotation taking ``n_q`` onto ``n_p``: a direction at angle ``ψ`` in
 ``q``'s frame has angle ``ψ + γ_qp`` in ``p``'s. So in ``p``'s frame the channel of ``q`` reads
 ``h_q(ψ - γ_qp)``, complex coefficient ``ĥ_q(ℓ) e^{-iℓγ_qp}``; in the real layout

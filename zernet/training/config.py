@@ -201,7 +201,7 @@ class DataSection(_Section):
 
 @dataclass(frozen=True)
 class PatchSection(_Section):
-    """Area normalisation and the patch settings, one :class:`~zernet.patches.PatchConfig` mapping per scale."""
+    """Area normalisation and the patch settings, one :class:`~zernet.operators.patch.PatchConfig` mapping per scale."""
 
     NAME: ClassVar[str] = "patch"
 
@@ -230,7 +230,7 @@ class PatchSection(_Section):
                 raise ConfigError(f"patch.scales.{i}: {error}") from None
 
     def patch_configs(self) -> list[PatchConfig]:
-        """One :class:`~zernet.patches.PatchConfig` per scale."""
+        """One :class:`~zernet.operators.patch.PatchConfig` per scale."""
         return [PatchConfig(**scale) for scale in self.scales]
 
 

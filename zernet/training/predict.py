@@ -58,7 +58,7 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
 
     Args:
         checkpoint: a run folder (its ``best.pt``) or a checkpoint file.
-        surface: a :class:`~zernet.surface.Surface` or a path to a mesh / point-cloud file. It is
+        surface: a :class:`~zernet.geometry.surface.Surface` or a path to a mesh / point-cloud file. It is
             preprocessed exactly like the training shapes (area normalisation, features, patch operators).
         probabilities: classification only — also return the (N, C) softmax probabilities.
 
