@@ -38,7 +38,7 @@ from collections.abc import Callable
 from zernet.data.dataset import DatasetError, ShapeDataset, ShapeRecord, carve_validation
 from zernet.data.faust import load_faust
 from zernet.data.features import FEATURE_PARTS, compute_features, default_features
-from zernet.data.options import SHARED_OPTIONS, LoaderOptions
+from zernet.data.options import ON_ERROR_CHOICES, SHARED_OPTIONS, LoaderOptions
 from zernet.data.preprocess import PreprocessError, SkippedShapesWarning, build_dataset, prepare_record
 from zernet.data.regression import load_aneurysm, load_regression
 from zernet.data.segmentation import load_segmentation
@@ -47,6 +47,8 @@ from zernet.data.synthetic import make_synthetic_dataset
 
 __all__ = [
     "DATASET_KINDS",
+    "ON_ERROR_CHOICES",
+    "data_option_names",
     "load_dataset",
     "LoaderOptions",
     "ShapeRecord",
@@ -105,6 +107,19 @@ def load_dataset(kind: str, options: LoaderOptions | None = None, **arguments) -
         raise TypeError(f"unknown option(s) {', '.join(unknown)} for data kind {kind!r} (it takes: "
                         f"{', '.join(takes)}; and the shared options {', '.join(SHARED_OPTIONS)})")
     return loader(**arguments, options=options)
+
+
+def data_option_names(kind: str) -> tuple[str, ...]:
+    """The keys a run configuration's ``data`` section may pass to the loader of ``kind``, besides the ones
+    the run sets itself (``seed``, ``val_fraction``, ``val_count``, ``on_error``): the loader's own arguments
+    (except ``area``, which is ``patch.area``), ``features``, ``repair`` and ``workers``. Empty for an
+    unknown kind."""
+    if kind not in LOADERS:
+        return ()
+    own = set(inspect.signature(LOADERS[kind]).parameters) - {"options", "area"}
+    if kind in _SYNTHETIC_TASKS:
+        own.discard("task")
+    return tuple(sorted(own | {"features", "repair", "workers"}))
 
 
 def _options_from_keywords(arguments: dict) -> tuple[LoaderOptions, dict]:
