@@ -302,8 +302,9 @@ def _check_resume_overrides(overrides: list[str]) -> None:
 
 def _cmd_evaluate(args) -> int:
     runs = args.run_dir if len(args.run_dir) > 1 else args.run_dir[0]
+    # The same policy as preprocess and train: a shape that fails stops the command unless --skip-bad.
     metrics = evaluate(runs, split=args.split, progress=not args.no_progress, device=args.device,
-                       on_error="skip" if args.skip_bad else None)
+                       on_error="skip" if args.skip_bad else "raise")
     what = f"ensemble of {len(args.run_dir)}, " if len(args.run_dir) > 1 else ""
     skipped = f"; {len(metrics['skipped'])} shapes skipped" if metrics.get("skipped") else ""
     print(f"{args.split} ({what}{metrics['n_shapes']} shapes{skipped}): {summary_line(metrics)}")

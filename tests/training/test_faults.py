@@ -302,7 +302,7 @@ def test_parallel_preprocessing_reports_a_broken_mesh_and_resumes_from_the_cache
     with pytest.warns(RuntimeWarning, match=rf"{damaged.name}: shape cache file is unreadable"):
         dataset = build_dataset(_sources(paths, log), CONFIGS, cache, AREA, task="classification", num_classes=2,
                                 split_names={"train": ["good0", "good1"], "test": ["good2"]}, workers=0,
-                                progress=False)
+                                progress=False, on_error="skip")
     assert _calls(log) == ["bad", "good1"]
     assert dataset.names == ["good0", "good1", "good2"] and set(dataset.failures) == {"bad"}
     assert np.isfinite(dataset[1].features).all()

@@ -78,7 +78,9 @@ def check_model_config(config: RunConfig, in_channels: int | None = None, out_ch
         with torch.device("meta"):
             build_model(spec["name"], spec["in_channels"], spec["out_channels"], **spec["options"])
     except Exception as error:  # any failure of the constructor is a problem of the model options
-        given = ", ".join(f"model.{key}={value!r}" for key, value in config.model.options.items()) or "defaults"
+        # The options the message is about, when it names them; else every option given.
+        named = {k: v for k, v in config.model.options.items() if k in str(error)} or config.model.options
+        given = ", ".join(f"model.{key}={value!r}" for key, value in named.items()) or "defaults"
         raise ConfigError(f"model {config.model.name!r} cannot be built from its options ({given}): "
                           f"{type(error).__name__}: {error}") from None
 
