@@ -14,7 +14,7 @@ import yaml
 
 from training.tiny_configs import cli_config
 
-from zernet.cli import DEMO_CONFIG, main
+from zernet.cli import _ADVICE, DEMO_CONFIG, build_parser, command_advice, main
 from zernet.data.synthetic import make_creature
 from zernet.training import load_config, resolve_config
 
@@ -136,3 +136,25 @@ def test_bodies_command_writes_the_loader_layouts(tmp_path, capsys):
     capsys.readouterr()
     assert main(["bodies", str(tmp_path / "bad"), "--count", "2", "--n-test", "2"]) == 2
     assert "n_test" in one_line_error(capsys)
+
+
+def test_bad_shape_and_repair_options_are_offered_where_they_apply(capsys):
+    for command, option in (("preprocess", "--skip-bad"), ("train", "--skip-bad"), ("evaluate", "--skip-bad"),
+                            ("predict", "--repair")):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        assert option in capsys.readouterr().out, (command, option)
+
+
+@pytest.mark.parametrize("command", ["preprocess", "train", "evaluate", "predict"])
+def test_advice_in_messages_names_only_options_the_command_has(command):
+    """Every rewritten piece of API advice names options of the command it is shown in."""
+    parser = build_parser()
+    subparser = parser._subparsers._group_actions[0].choices[command]
+    options = {option for action in subparser._actions for option in action.option_strings}
+    for api_text, _ in _ADVICE:
+        advice = command_advice(command, f"problem; {api_text}")
+        assert api_text not in advice or api_text.startswith("(")
+        for word in advice.replace("(", " ").replace(")", " ").split():
+            if word.startswith("--"):
+                assert word.split("=")[0] in options, (command, advice)

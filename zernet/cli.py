@@ -422,13 +422,17 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 #: Advice written for the Python API, and what it means in each command: (API text, {command: CLI text}).
 _ADVICE = (
     ("pass repair=True to", {"predict": "rerun with --repair to",
-                             "evaluate": "retrain with --set data.repair=true to",
+                             "evaluate": "rerun with --skip-bad to leave the shape out, or train with "
+                                         "data.repair: true to",
                              "*": "rerun with --set data.repair=true to"}),
     ("run validate_surface(repair=True) first", {"predict": "rerun with --repair",
+                                                 "evaluate": "rerun with --skip-bad to leave the shape out",
                                                  "*": "rerun with --set data.repair=true"}),
     ("(on_error='skip' leaves them out)", {"predict": "",
                                            "*": "rerun with --skip-bad to leave them out (data.on_error: skip)"}),
-    ("give patch_configs", {"*": "set patch.scales (e.g. --set 'patch.scales=[{r0: 5.5}]')"}),
+    ("give patch_configs", {"evaluate": "set patch.scales in the run's configuration",
+                            "predict": "set patch.scales in the run's configuration",
+                            "*": "set patch.scales (e.g. --set 'patch.scales=[{r0: 5.5}]')"}),
     ("use kind 'synthetic' with task=...", {"*": "use data.kind: synthetic with data.task"}),
 )
 

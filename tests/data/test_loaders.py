@@ -277,6 +277,48 @@ def test_segmentation_shared_one_based_face_labels(tmp_path):
     assert np.all(target[upper] == 1) and np.all(target[vertices[:, 2] < -0.3] == 0)
 
 
+def test_class_names_come_from_the_data_never_from_the_class_count(tmp_path):
+    """8 classes are not the human benchmark's parts unless the data says so: the names come from
+    class_names, else a class_names.txt beside the labels, else "part 1" .. "part N"."""
+    vertices, faces = _sphere(0)
+    for i in range(3):
+        _write_ply(tmp_path / "m" / f"s{i}.ply", _sphere(i)[0], faces)
+        np.savetxt(tmp_path / "m" / f"s{i}.txt", np.arange(len(vertices)) % 8, fmt="%d")
+    options = LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", n_val=1, workers=0, progress=False)
+
+    def names(**arguments):
+        return load_segmentation(tmp_path / "m", area=AREA, num_classes=8, test=["s2"], options=options,
+                                 **arguments).info["class_names"]
+
+    assert names() == [f"part {i}" for i in range(1, 9)]
+    scan_order = ["head", "hand", "forearm", "upper arm", "torso", "thigh", "shin", "foot"]
+    (tmp_path / "m" / "class_names.txt").write_text("\n".join(scan_order) + "\n")
+    assert names() == scan_order
+    assert names(class_names=list("abcdefgh")) == list("abcdefgh")  # given names win over the file
+    with pytest.raises(DatasetError, match=r"data.class_names: 2 class names for 8 classes"):
+        names(class_names=["a", "b"])
+    (tmp_path / "m" / "class_names.txt").write_text("head\ntorso\n")
+    with pytest.raises(DatasetError, match=r"class_names.txt: 2 class names for 8 classes"):
+        names()
+
+
+def test_an_unreadable_label_file_fails_its_own_shape_like_any_bad_shape(tmp_path):
+    vertices, faces = _sphere(0)
+    for i in range(3):
+        _write_ply(tmp_path / "m" / f"s{i}.ply", _sphere(i)[0], faces)
+        np.savetxt(tmp_path / "m" / f"s{i}.txt", (vertices[:, 2] > 0).astype(int), fmt="%d")
+    lines = (tmp_path / "m" / "s1.txt").read_text().splitlines()
+    lines[20] = "torso"
+    (tmp_path / "m" / "s1.txt").write_text("\n".join(lines) + "\n")
+    options = LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", n_val=0, workers=0, progress=False)
+    with pytest.raises(PreprocessError, match=r"1 of 3 shapes.*\n  s1: .*s1.txt: line 21: 'torso' is not a number"):
+        load_segmentation(tmp_path / "m", area=AREA, num_classes=2, test=["s2"], options=options)
+    with pytest.warns(SkippedShapesWarning, match="s1.txt: line 21"):
+        dataset = load_segmentation(tmp_path / "m", area=AREA, num_classes=2, test=["s2"],
+                                    options=replace(options, on_error="skip"))
+    assert dataset.names == ["s0", "s2"] and list(dataset.failures) == ["s1"]
+
+
 def test_segmentation_label_count_mismatch_names_both_files(tmp_path):
     vertices, faces = _sphere(0)
     _write_ply(tmp_path / "m" / "a.ply", vertices, faces)

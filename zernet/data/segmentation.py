@@ -98,7 +98,7 @@ def read_labels(path: str | os.PathLike) -> np.ndarray:
     if bad_mask.any():
         bad = int(np.flatnonzero(bad_mask)[0])
         where = f"line {lines[bad]}" if lines is not None else f"entry {bad}"
-        raise DatasetError(f"{path}: {where}: label {values[bad]!r} is not an integer class label")
+        raise DatasetError(f"{path}: {where}: label {float(values[bad])!r} is not an integer class label")
     return values.astype(np.int64)
 
 
