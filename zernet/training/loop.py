@@ -216,21 +216,27 @@ def _load_dataset(config: RunConfig, progress: bool, workers, ctx: DistributedCo
             _log_file_only(logger, f"stopped before training: {failure_listing(error.failures, error.total)}")
             raise
     seconds = time.perf_counter() - started
-    for name, reason in dataset.failures.items():
-        logger.warning(f"skipped shape {name} (data.on_error: skip): {reason}")
     splits = _Splits(list(dataset.splits["train"]), list(dataset.splits.get("val", [])),
                      list(dataset.splits.get("test", [])))
     if not splits.train:
         raise ConfigError("the data set has no training shapes")
     logger.info(f"data: {config.data.kind}, {dataset.task}, {len(splits.train)} train / {len(splits.val)} val / "
                 f"{len(splits.test)} test shapes (loaded in {seconds:.1f} s)")
+    if ctx.is_main:  # reported once, not by every rank of a distributed run
+        _report_data(dataset, splits, config.data.kind, logger)
+    return dataset, splits, seconds
+
+
+def _report_data(dataset, splits: _Splits, kind: str, logger) -> None:
+    """Warnings about the data set: skipped shapes (each with its reason), missing splits, unused classes."""
+    for name, reason in dataset.failures.items():
+        logger.warning(f"skipped shape {name} (data.on_error: skip): {reason}")
     if not splits.val:
         logger.warning("no validation shapes: the last epoch is kept as the model and early stopping is off")
     if not splits.test:
         logger.warning("no test shapes: the final scores are of the validation split, on which the model is "
                        "chosen, and are labelled val")
-    _check_class_count(dataset, config.data.kind, logger)
-    return dataset, splits, seconds
+    _check_class_count(dataset, kind, logger)
 
 
 def _log_file_only(logger: logging.Logger, message: str) -> None:
