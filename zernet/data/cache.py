@@ -131,7 +131,8 @@ def usable_cache_entry(path: Path) -> bool:
         return True
     except DatasetError as error:
         # One report (a warning; the command line prints it as one line), not a warning and a log line too.
-        warnings.warn(f"{error} -- rebuilding it", RuntimeWarning, stacklevel=3)
+        reason = str(error).split("; delete it")[0]  # the advice is taken here: it is rebuilt
+        warnings.warn(f"{reason}; rebuilding it", RuntimeWarning, stacklevel=3)
         try:
             path.unlink()
         except OSError:

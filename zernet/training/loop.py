@@ -161,8 +161,10 @@ def merge_resume_config(stored: Mapping[str, Any], given, logger: logging.Logger
             sections.setdefault(section, {})[key] = new
     config = dataclasses.replace(config, **{name: dataclasses.replace(getattr(config, name), **changes)
                                             for name, changes in sections.items()})
-    if plain(given.to_dict()) != plain(config.to_dict()):
-        differing = _differing_keys(plain(given.to_dict()), plain(config.to_dict()))
+    changeable = {f"{section}.{key}" for section, key in RESUME_CHANGEABLE}
+    differing = [key for key in _differing_keys(plain(given.to_dict()), plain(config.to_dict()))
+                 if key not in changeable]
+    if differing:
         allowed = ", ".join(f"{section}.{key}" for section, key in RESUME_CHANGEABLE)
         logger.warning(f"resume: the given configuration differs from the run's in {', '.join(differing)}; "
                        f"continuing with the run's own config.yaml (only {allowed} may change on resume)")
