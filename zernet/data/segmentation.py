@@ -26,6 +26,13 @@ label files of the data set: if no file contains 0 and some file contains ``num_
 0..num_classes-1, or the error names the file and the offending value. The detected base is stored in
 ``dataset.info["label_base"]``. Pass ``label_base=0`` or ``1`` to skip the detection.
 
+Class names (legends, per-class scores): ``class_names`` if given, else the lines of ``class_names.txt`` beside
+the labels, else "part 1" .. "part N" (:func:`resolve_class_names`). They are never inferred from the number
+of classes: data sets with 8 parts number them in different orders.
+
+A label file that cannot be read (text where a number should be, reported with its 1-based line) fails its
+own mesh only, which the bad-shape policy (``LoaderOptions.on_error``) then handles like any other.
+
 Test split: mesh paths with a folder called ``test`` (the benchmark's ``meshes/test/shrec``) form the test
 split when there are any; otherwise ``test`` names them, or a seeded ``test_fraction`` of the meshes is used.
 """
