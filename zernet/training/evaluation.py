@@ -161,7 +161,8 @@ def evaluate(run_dir_or_checkpoint, dataset=None, split: str = "test", progress:
         raise ConfigError(f"the data set has no split {split!r} (it has {', '.join(sorted(dataset.splits))})")
     indices = dataset.splits[split]
     if not indices:
-        raise ConfigError(f"split {split!r} of the data set is empty")
+        others = ", ".join(name for name, members in sorted(dataset.splits.items()) if members)
+        raise ConfigError(f"split {split!r} of the data set is empty (splits with shapes: {others or 'none'})")
     members = [(model_from_checkpoint(checkpoint, device), checkpoint) for checkpoint in checkpoints]
     metrics, _ = evaluate_members(members, dataset, indices, device, progress, keep=0)
     best_epochs = [c["state"]["best_epoch"] for c in checkpoints]
