@@ -2,7 +2,8 @@
 
 A configuration file has five sections and one top-level key (see ``configs/*.yaml``)::
 
-    data:   the data set (kind, split seed, validation share, and the loader's own options)
+    data:   the data set (kind, split seed, validation share, the bad-shape policy on_error: raise|skip,
+            and the loader's own options, checked against the kind's loader)
     patch:  area normalisation and one patch setting per scale
     model:  the model name and the options of its constructor
     train:  optimisation, early stopping, device and precision
