@@ -27,10 +27,10 @@ from zernet.distributed import is_main
 from zernet.io_utils import atomic_write_bytes, write_json
 from zernet.geometry import SurfaceError, load_surface
 from zernet.training import (
+    RESUME_CHANGEABLE,
     ConfigError,
     RunConfig,
     apply_overrides,
-    RESUME_CHANGEABLE,
     build_dataset,
     check_model_config,
     checkpoint_path,
@@ -279,8 +279,8 @@ def _cmd_train(args) -> int:
         stored = args.run_dir / "config.yaml"
         if not stored.is_file():
             raise _UsageError(f"--resume --set needs {stored} (or give the CONFIG file)")
-        config = read_config(stored, overrides)
         _check_resume_overrides(overrides)
+        config = read_config(stored, overrides)
     else:
         config = None
     run_dir = args.run_dir or Path("runs") / args.config.stem

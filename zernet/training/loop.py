@@ -137,7 +137,8 @@ def _fresh_run_config(config, run_dir: Path, overwrite: bool) -> RunConfig:
     return config
 
 
-#: What may change when a run is resumed: none of it changes the trained weights of the epochs to come.
+#: What may change when a run is resumed: none of it changes the weights still to train (on_error only says
+#: what a shape that fails to load would do; the shapes of a run are cached).
 RESUME_CHANGEABLE = (("train", "epochs"), ("train", "patience"), ("train", "threads"), ("data", "on_error"))
 
 
