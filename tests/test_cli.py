@@ -16,7 +16,7 @@ from training.tiny_configs import cli_config
 
 from zernet.cli import _ADVICE, DEMO_CONFIG, build_parser, command_advice, main
 from zernet.data.synthetic import make_creature
-from zernet.training import load_config, resolve_config
+from zernet.training import check_model_config, load_config, parse_config, resolve_config
 
 REPO = Path(__file__).resolve().parent.parent
 SUBCOMMANDS = ("preprocess", "train", "evaluate", "predict", "demo", "bodies")
@@ -123,6 +123,7 @@ def test_demo_yaml_matches_the_built_in_demo():
 def test_shipped_configs_are_valid():
     for path in sorted((REPO / "configs").glob("*.yaml")):
         resolve_config(load_config(path))
+        check_model_config(parse_config(load_config(path)))  # the model builds from its options (meta device)
 
 
 def test_bodies_command_writes_the_loader_layouts(tmp_path, capsys):
