@@ -434,6 +434,7 @@ _ADVICE = (
                             "predict": "set patch.scales in the run's configuration",
                             "*": "set patch.scales (e.g. --set 'patch.scales=[{r0: 5.5}]')"}),
     ("use kind 'synthetic' with task=...", {"*": "use data.kind: synthetic with data.task"}),
+    ("(for a point cloud, set faces=None)", {"*": "(a point cloud is read from .xyz, .npy or a .ply without faces)"}),
 )
 
 
