@@ -14,9 +14,9 @@ import yaml
 
 from training.tiny_configs import cli_config
 
-from zernet.cli import DEMO_CONFIG, main
+from zernet.cli import _ADVICE, DEMO_CONFIG, build_parser, command_advice, main
 from zernet.data.synthetic import make_creature
-from zernet.training import load_config, resolve_config
+from zernet.training import check_model_config, load_config, parse_config, resolve_config
 
 REPO = Path(__file__).resolve().parent.parent
 SUBCOMMANDS = ("preprocess", "train", "evaluate", "predict", "demo", "bodies")
@@ -123,6 +123,7 @@ def test_demo_yaml_matches_the_built_in_demo():
 def test_shipped_configs_are_valid():
     for path in sorted((REPO / "configs").glob("*.yaml")):
         resolve_config(load_config(path))
+        check_model_config(parse_config(load_config(path)))  # the model builds from its options (meta device)
 
 
 def test_bodies_command_writes_the_loader_layouts(tmp_path, capsys):
@@ -136,3 +137,25 @@ def test_bodies_command_writes_the_loader_layouts(tmp_path, capsys):
     capsys.readouterr()
     assert main(["bodies", str(tmp_path / "bad"), "--count", "2", "--n-test", "2"]) == 2
     assert "n_test" in one_line_error(capsys)
+
+
+def test_bad_shape_and_repair_options_are_offered_where_they_apply(capsys):
+    for command, option in (("preprocess", "--skip-bad"), ("train", "--skip-bad"), ("evaluate", "--skip-bad"),
+                            ("predict", "--repair")):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        assert option in capsys.readouterr().out, (command, option)
+
+
+@pytest.mark.parametrize("command", ["preprocess", "train", "evaluate", "predict"])
+def test_advice_in_messages_names_only_options_the_command_has(command):
+    """Every rewritten piece of API advice names options of the command it is shown in."""
+    parser = build_parser()
+    subparser = parser._subparsers._group_actions[0].choices[command]
+    options = {option for action in subparser._actions for option in action.option_strings}
+    for api_text, _ in _ADVICE:
+        advice = command_advice(command, f"problem; {api_text}")
+        assert api_text not in advice or api_text.startswith("(")
+        for word in advice.replace("(", " ").replace(")", " ").split():
+            if word.startswith("--"):
+                assert word.split("=")[0] in options, (command, advice)

@@ -12,13 +12,14 @@ import copy
 import json
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import matplotlib
 import numpy as np
 import trimesh
 
-from zernet.data import DatasetError
+from zernet.data import DatasetError, PreprocessError, SkippedShapesWarning
 from zernet.data.bodies import POSE_MODES as BODY_POSES
 from zernet.data.bodies import TOPOLOGIES as BODY_TOPOLOGIES
 from zernet.data.bodies import write_bodies
@@ -26,10 +27,12 @@ from zernet.distributed import is_main
 from zernet.io_utils import atomic_write_bytes, write_json
 from zernet.geometry import SurfaceError, load_surface
 from zernet.training import (
+    RESUME_CHANGEABLE,
     ConfigError,
     RunConfig,
     apply_overrides,
     build_dataset,
+    check_model_config,
     checkpoint_path,
     evaluate,
     keep_freed_memory,
@@ -84,6 +87,11 @@ def build_parser() -> argparse.ArgumentParser:
     # SUPPRESS: a subcommand's --debug must not reset a --debug given before the subcommand.
     common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                         help="show full tracebacks instead of one-line errors")
+    skip_bad = argparse.ArgumentParser(add_help=False)
+    skip_bad.add_argument("--skip-bad", action="store_true",
+                          help="leave out shapes that fail to load or preprocess (each is listed with its reason, "
+                               "in train.log and metrics.json too) instead of stopping; the same as "
+                               "data.on_error: skip")
     overrides = argparse.ArgumentParser(add_help=False)
     overrides.add_argument("--set", dest="overrides", nargs="+", action="extend", default=[], metavar="KEY=VALUE",
                            help="override config entries with dotted keys, e.g. --set train.epochs=5 "
@@ -100,9 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
-    _add_preprocess_command(sub, [common, overrides])
-    _add_train_command(sub, [common, overrides])
-    _add_evaluate_command(sub, [common])
+    _add_preprocess_command(sub, [common, overrides, skip_bad])
+    _add_train_command(sub, [common, overrides, skip_bad])
+    _add_evaluate_command(sub, [common, skip_bad])
     _add_predict_command(sub, [common])
     _add_demo_command(sub, [common, overrides])
     _add_bodies_command(sub, [common])
@@ -116,7 +124,9 @@ def _add_preprocess_command(sub, parents: list[argparse.ArgumentParser]) -> None
                        description="Preprocess every shape of the data set described by CONFIG (area "
                                    "normalisation, sampling, geodesic polar coordinates, patch operators) in "
                                    "parallel and store the results under the config's cache_dir. Shapes already "
-                                   "cached are skipped, so training afterwards starts at once.")
+                                   "cached are skipped, so training afterwards starts at once. A shape that fails "
+                                   "is listed with its reason and the command exits with status 2, unless "
+                                   "--skip-bad.")
     p.add_argument("config", type=Path, help="YAML configuration file (see configs/)")
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="worker processes (default: the data module's choice, one per core)")
@@ -128,7 +138,9 @@ def _add_train_command(sub, parents: list[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("train", parents=parents, help="train a model from a YAML configuration",
                        description="Train a model, select the best epoch on the validation split, evaluate it on "
                                    "the test split and write the run folder: config.yaml, last.pt, best.pt, "
-                                   "train.log, metrics.json and plots/.")
+                                   "train.log, metrics.json and plots/. Before training, every shape is loaded and "
+                                   "preprocessed: if any fails, all failures are listed and nothing is trained "
+                                   "(exit status 2) unless --skip-bad.")
     p.add_argument("config", type=Path, nargs="?", default=None,
                    help="YAML configuration file (optional with --resume: the run's own config.yaml is used)")
     p.add_argument("--run-dir", type=Path, default=None, metavar="DIR",
@@ -172,6 +184,9 @@ def _add_predict_command(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("mesh", type=Path, help="the surface to predict on")
     p.add_argument("--out", required=True, metavar="PREFIX", help="output path prefix, e.g. out/shape1")
     p.add_argument("--probabilities", action="store_true", help="also write the per-class probabilities")
+    p.add_argument("--repair", action="store_true",
+                   help="merge duplicate vertices and drop degenerate faces first (as data.repair does for "
+                        "training); the outputs then have one value per vertex of the repaired mesh")
     p.add_argument("--colormap", default=None,
                    help="matplotlib colormap for the .ply (default: tab10/tab20 for a few classes, hsv for "
                         "many, viridis for values)")
@@ -227,16 +242,26 @@ def _cmd_bodies(args) -> int:
 
 
 def _cmd_preprocess(args) -> int:
-    config = read_config(args.config, args.overrides)  # fails on a bad key now, before any work
+    config = read_config(args.config, _with_skip_bad(args))  # fails on a bad key now, before any work
+    check_model_config(config)
     started = time.perf_counter()
-    dataset = build_dataset(config, progress=True, workers=args.workers)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SkippedShapesWarning)  # listed below instead
+        dataset = build_dataset(config, progress=True, workers=args.workers)
     seconds = time.perf_counter() - started
     print(f"preprocessed {dataset.summary() if hasattr(dataset, 'summary') else len(dataset)} "
           f"in {seconds:.1f} s; cache: {config.cache_dir}")
     failures = getattr(dataset, "failures", {})
+    if failures:
+        print(f"{len(failures)} shapes skipped (--skip-bad / data.on_error: skip):", file=sys.stderr)
     for name, reason in failures.items():
-        print(f"  failed: {name}: {reason}", file=sys.stderr)
+        print(f"  skipped {name}: {reason}", file=sys.stderr)
     return 0
+
+
+def _with_skip_bad(args) -> list[str]:
+    """The ``--set`` overrides, with ``data.on_error=skip`` last when ``--skip-bad`` is given."""
+    return list(args.overrides) + (["data.on_error=skip"] if getattr(args, "skip_bad", False) else [])
 
 
 def _cmd_train(args) -> int:
@@ -246,9 +271,18 @@ def _cmd_train(args) -> int:
         raise _UsageError("--resume needs --run-dir: the run folder to continue")
     if args.resume and args.overwrite:
         raise _UsageError("--resume and --overwrite contradict each other")
-    config = read_config(args.config, args.overrides) if args.config is not None else None
-    if config is None and args.overrides:
-        raise _UsageError("--set needs a CONFIG file; on resume only train.epochs and train.patience may change")
+    overrides = _with_skip_bad(args)
+    if args.config is not None:
+        config = read_config(args.config, overrides)
+    elif overrides:
+        # --resume --set ...: the run's own configuration with the overrides (only some keys may change).
+        stored = args.run_dir / "config.yaml"
+        if not stored.is_file():
+            raise _UsageError(f"--resume --set needs {stored} (or give the CONFIG file)")
+        _check_resume_overrides(overrides)
+        config = read_config(stored, overrides)
+    else:
+        config = None
     run_dir = args.run_dir or Path("runs") / args.config.stem
     metrics = train(config, run_dir, resume=args.resume, progress=not args.no_progress,
                     overwrite=args.overwrite, workers=args.workers)
@@ -257,11 +291,25 @@ def _cmd_train(args) -> int:
     return 0
 
 
+def _check_resume_overrides(overrides: list[str]) -> None:
+    """On resume, ``--set`` may only change the keys that do not change the weights still to train."""
+    allowed = {f"{section}.{key}" for section, key in RESUME_CHANGEABLE}
+    refused = [item.partition("=")[0].strip() for item in overrides if item.partition("=")[0].strip() not in allowed]
+    if refused:
+        raise _UsageError(f"--resume --set cannot change {', '.join(refused)}: on resume only "
+                          f"{', '.join(sorted(allowed))} may change (train a new run with --run-dir for others)")
+
+
 def _cmd_evaluate(args) -> int:
     runs = args.run_dir if len(args.run_dir) > 1 else args.run_dir[0]
-    metrics = evaluate(runs, split=args.split, progress=not args.no_progress, device=args.device)
+    # The same policy as preprocess and train: a shape that fails stops the command unless --skip-bad.
+    metrics = evaluate(runs, split=args.split, progress=not args.no_progress, device=args.device,
+                       on_error="skip" if args.skip_bad else "raise")
     what = f"ensemble of {len(args.run_dir)}, " if len(args.run_dir) > 1 else ""
-    print(f"{args.split} ({what}{metrics['n_shapes']} shapes): {summary_line(metrics)}")
+    skipped = f"; {len(metrics['skipped'])} shapes skipped" if metrics.get("skipped") else ""
+    print(f"{args.split} ({what}{metrics['n_shapes']} shapes{skipped}): {summary_line(metrics)}")
+    for item in metrics.get("skipped", []):
+        print(f"  skipped {item['name']}: {item['reason']}", file=sys.stderr)
     out = args.out
     if out is None and len(args.run_dir) == 1 and args.run_dir[0].is_dir():
         run_dir = args.run_dir[0]
@@ -282,8 +330,8 @@ def _cmd_predict(args) -> int:
         raise FileNotFoundError(f"mesh not found: {args.mesh}")
     path = checkpoint_path(args.run_dir)
     checkpoint = load_checkpoint(path)
-    surface = load_surface(args.mesh)
-    result = predict(path, surface, probabilities=args.probabilities, device=args.device)
+    surface = load_surface(args.mesh, repair=args.repair)
+    result = predict(path, surface, probabilities=args.probabilities, device=args.device, repair=args.repair)
     prediction, probabilities = result if args.probabilities else (result, None)
 
     prefix = Path(args.out)
@@ -298,6 +346,8 @@ def _cmd_predict(args) -> int:
     ply_path = prefix.parent / f"{prefix.name}.ply"
     _write_coloured_ply(ply_path, surface, prediction, checkpoint, args.colormap)
     written.append(ply_path)
+    if args.repair:
+        print(f"repaired {args.mesh}: {surface.n_vertices} vertices, {surface.n_faces} faces after the repair")
     if checkpoint["task"] == "classification":
         counts = np.bincount(prediction, minlength=1)
         print(f"predicted {len(prediction)} vertices of {args.mesh}: {np.count_nonzero(counts)} distinct classes")
@@ -341,8 +391,17 @@ def _cmd_demo(args) -> int:
 
 
 def _print_metrics(metrics: dict, run_dir: Path) -> None:
-    print(f"test metrics ({metrics.get('n_shapes', '?')} shapes, model of epoch {metrics.get('best_epoch')} "
-          f"chosen on validation): {summary_line(metrics)}")
+    """The final banner: the split the scores are of, the selected epoch, skipped shapes, the files."""
+    split = metrics.get("split", "test")
+    skipped = metrics.get("skipped") or []
+    extra = f", {len(skipped)} shapes skipped" if skipped else ""
+    print(f"{split} metrics ({metrics.get('n_shapes', '?')} shapes, model of epoch {metrics.get('best_epoch')} "
+          f"chosen on validation{extra}): {summary_line(metrics)}")
+    if split == "val":
+        print("  note: no test shapes; these are scores on the validation split, the one the model was chosen "
+              "on, so they overstate how it does on new shapes")
+    for item in skipped:
+        print(f"  skipped {item['name']}: {item['reason']}")
     print(f"run folder: {run_dir}")
     print(f"  metrics:  {run_dir / 'metrics.json'}")
     for plot in metrics.get("plots", []):
@@ -360,12 +419,61 @@ def _user_errors() -> tuple[type[BaseException], ...]:
             IsADirectoryError, PermissionError, ValueError, KeyError)
 
 
+#: Advice written for the Python API, and what it means in each command: (API text, {command: CLI text}).
+_ADVICE = (
+    ("pass repair=True to", {"predict": "rerun with --repair to",
+                             "evaluate": "rerun with --skip-bad to leave the shape out, or train with "
+                                         "data.repair: true to",
+                             "*": "rerun with --set data.repair=true to"}),
+    ("run validate_surface(repair=True) first", {"predict": "rerun with --repair",
+                                                 "evaluate": "rerun with --skip-bad to leave the shape out",
+                                                 "*": "rerun with --set data.repair=true"}),
+    ("(on_error='skip' leaves them out)", {"predict": "",
+                                           "*": "rerun with --skip-bad to leave them out (data.on_error: skip)"}),
+    ("give patch_configs", {"evaluate": "set patch.scales in the run's configuration",
+                            "predict": "set patch.scales in the run's configuration",
+                            "*": "set patch.scales (e.g. --set 'patch.scales=[{r0: 5.5}]')"}),
+    ("use kind 'synthetic' with task=...", {"*": "use data.kind: synthetic with data.task"}),
+    ("(for a point cloud, set faces=None)", {"*": "(a point cloud is read from .xyz, .npy or a .ply without faces)"}),
+)
+
+
+def command_advice(command: str, message: str) -> str:
+    """``message`` with advice meant for the Python API rewritten as the options of ``command``."""
+    for api_text, by_command in _ADVICE:
+        if api_text in message:
+            message = message.replace(api_text, by_command.get(command, by_command["*"]))
+    return message
+
+
+def _error_lines(command: str, error: BaseException) -> list[str]:
+    """The lines reporting a user error: one line, or for shapes that failed, one line per shape."""
+    message = str(error.args[0]) if isinstance(error, KeyError) and error.args else str(error)
+    message = command_advice(command, message)
+    lines = [line.rstrip() for line in message.splitlines() if line.strip()]
+    if isinstance(error, PreprocessError):
+        return [f"zernet {command}: error: {lines[0]}"] + [f"  {line.strip()}" for line in lines[1:]]
+    return [f"zernet {command}: error: " + ("; ".join(line.strip() for line in lines) or type(error).__name__)]
+
+
+def _one_line_warnings(command: str):
+    """A ``warnings.showwarning`` that prints ``zernet COMMAND: warning: message`` on one line (no source
+    line, which reads like a crash)."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = "; ".join(part.strip() for part in str(message).splitlines() if part.strip())
+        print(f"zernet {command}: warning: {command_advice(command, text)}", file=file or sys.stderr)
+
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the ``zernet`` command; returns the exit code (0 success, 2 user error, 1 internal error)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     debug = bool(getattr(args, "debug", False))
     keep_freed_memory()
+    previous_showwarning = warnings.showwarning
+    warnings.showwarning = _one_line_warnings(args.command)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
@@ -375,16 +483,16 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as error:
         if debug:
             raise
-        user_error = isinstance(error, _user_errors())
-        message = str(error.args[0]) if isinstance(error, KeyError) and error.args else str(error)
-        # One line, even for messages that list several problems (e.g. shapes that failed to preprocess).
-        message = "; ".join(line.strip() for line in message.splitlines() if line.strip()) or type(error).__name__
-        if user_error:
-            print(f"zernet {args.command}: error: {message}", file=sys.stderr)
+        if isinstance(error, _user_errors()):
+            for line in _error_lines(args.command, error):
+                print(line, file=sys.stderr)
             return EXIT_USER_ERROR
+        message = "; ".join(line.strip() for line in str(error).splitlines() if line.strip())
         print(f"zernet {args.command}: internal error: {type(error).__name__}: {message} "
               "(rerun with --debug for the traceback)", file=sys.stderr)
         return 1
+    finally:
+        warnings.showwarning = previous_showwarning
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -12,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["atomic_write_bytes", "snapshot_file", "atomic_save_torch", "write_json", "plain"]
+__all__ = ["atomic_write_bytes", "snapshot_file", "atomic_save_torch", "write_json", "json_ready", "plain"]
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
@@ -26,6 +27,8 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        # mkstemp makes the file private (0600); give it the mode a plain open() would (0644 under umask 022).
+        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
             handle.flush()
@@ -41,6 +44,13 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             raise OSError(error.errno, f"{error.strerror or error} (while writing)", str(path)) from error
         raise
     return path
+
+
+def _umask() -> int:
+    """The process's file-creation mask (read by setting it and restoring it at once)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def snapshot_file(source: str | os.PathLike, destination: str | os.PathLike) -> Path | None:
@@ -79,18 +89,32 @@ def atomic_save_torch(obj, path: str | os.PathLike) -> Path:
 
 
 def write_json(path: str | os.PathLike, data: dict) -> Path:
-    """Write ``data`` as indented JSON, atomically; numpy scalars and arrays become numbers and lists."""
-    def default(value):
-        if isinstance(value, (np.integer,)):
-            return int(value)
-        if isinstance(value, (np.floating,)):
-            return float(value)
-        if isinstance(value, np.ndarray):
-            return value.tolist()
-        raise TypeError(f"not JSON serialisable: {type(value).__name__}")
-
-    text = json.dumps(data, indent=2, default=default, allow_nan=True)
+    """Write ``data`` as indented, valid (strict) JSON, atomically: numpy scalars and arrays become numbers
+    and lists, and an undefined number (NaN, infinity) becomes ``null``."""
+    text = json.dumps(json_ready(data), indent=2, allow_nan=False)
     return atomic_write_bytes(path, (text + "\n").encode("utf-8"))
+
+
+def json_ready(value):
+    """``value`` with JSON types only: numpy scalars and arrays as numbers and lists, tuples as lists,
+    paths as strings, and NaN or infinite numbers as None (``null``: undefined)."""
+    if isinstance(value, dict):
+        return {str(k): json_ready(v) for k, v in value.items()}
+    if isinstance(value, np.ndarray):
+        return json_ready(value.tolist())
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if value is None or isinstance(value, (int, str)):
+        return value
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 def plain(value):

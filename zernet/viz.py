@@ -7,8 +7,11 @@
 
 Camera convention: the surface's ``up`` axis (default ``"y"``, the usual convention of PLY/OBJ scans such
 as FAUST) points up in every view; "front" looks at the surface from its +z side (for ``up="y"``), "side"
-from +x, "back" from -z, "top" from above. Faces are drawn with their own colour (the mean of the three
-vertex values; the majority class for labels), lit by a light at the camera so relief is visible.
+from +x, "back" from -z, "top" from above. Continuous values colour each face by the mean of its three
+vertex values. Labels (integers) and masks (booleans) are drawn per vertex: each triangle is split into its
+three corner cells (corner, the two edge midpoints, the centroid), each coloured by its own vertex, so one
+vertex with another label shows as a small patch around it, whatever its neighbours are. Everything is lit
+by a light at the camera so relief is visible.
 """
 
 from __future__ import annotations
@@ -43,6 +46,8 @@ VIEWS = {
 # and the aneurysm meshes (up to ~16000) are drawn whole.
 _MAX_FACES = 40000
 _PANEL_INCHES = 3.2
+#: The two colours of a right/wrong mask: light grey for right, red for wrong.
+_RIGHT_WRONG = mcolors.ListedColormap(["#d9d9d9", "#d62728"])
 
 
 def _to_plot(points: np.ndarray, up: str) -> np.ndarray:
@@ -70,15 +75,15 @@ def _is_labels(values: np.ndarray) -> bool:
     return np.issubdtype(values.dtype, np.integer) or values.dtype == bool
 
 
-def _face_values(faces: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Per-face value: mean of the corners, or for integer labels the majority (ties: the first corner)."""
-    corner = values[faces]
-    if not _is_labels(values):
-        return corner.mean(axis=1)
-    majority = corner[:, 0].copy()
-    agree = corner[:, 1] == corner[:, 2]
-    majority[agree] = corner[agree, 1]
-    return majority
+def _corner_cells(triangles: np.ndarray) -> np.ndarray:
+    """(3F, 4, 3) corner cells of (F, 3, 3) triangles: for each corner, the quadrilateral corner -> middle of
+    the next edge -> centroid -> middle of the previous edge. Together they tile each triangle."""
+    centroid = triangles.mean(axis=1)
+    cells = []
+    for i in range(3):
+        corner, after, before = triangles[:, i], triangles[:, (i + 1) % 3], triangles[:, (i + 2) % 3]
+        cells.append(np.stack([corner, (corner + after) / 2, centroid, (corner + before) / 2], axis=1))
+    return np.stack(cells, axis=1).reshape(-1, 4, 3)  # face-major: cells of face f are 3f, 3f+1, 3f+2
 
 
 def _norm_and_cmap(values: np.ndarray, cmap, vmin, vmax, labels: bool):
@@ -115,8 +120,13 @@ def _draw(ax, surface, values, norm, cmap, view: str, up: str, point_size: float
         normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
         length = np.linalg.norm(normals, axis=1)
         facing = (normals @ camera) / np.maximum(length, 1e-300)
-        rgba = cmap(norm(_face_values(faces, values)))
         shade = 0.55 + 0.45 * np.abs(facing)  # two-sided lighting from the camera
+        if _is_labels(values):  # per vertex: three corner cells per face
+            triangles = _corner_cells(triangles)
+            rgba = cmap(norm(values[faces].reshape(-1)))
+            shade = np.repeat(shade, 3)
+        else:
+            rgba = cmap(norm(values[faces].mean(axis=1)))
         rgba[:, :3] *= shade[:, None]
         # Edges in the face colour hide the hairline seams antialiasing leaves between adjacent triangles.
         collection = Poly3DCollection(triangles, facecolors=rgba, edgecolors=rgba, linewidths=0.3)
@@ -142,7 +152,8 @@ def _colorbar(fig, axes_row, norm, cmap, labels: bool, label: str | None, class_
     if labels:
         n = cmap.N
         bar.set_ticks(np.arange(n))
-        bar.set_ticklabels(list(class_names)[:n] if class_names is not None else [str(i) for i in range(n)])
+        names = list(class_names)[:n] if class_names is not None else []
+        bar.set_ticklabels(names + [str(i) for i in range(len(names), n)])
     if label:
         bar.set_label(label)
     return bar
@@ -226,9 +237,10 @@ def render_comparison(
     """PNG with three rows — prediction, ground truth, error — of the same views of one surface.
 
     Prediction and truth share one colour scale (classes, or the truth's range widened to cover the
-    prediction). The error row has its own scale from 0 to ``error_max`` (default: its maximum); pass e.g.
-    the per-vertex geodesic error for correspondence, ``pred != truth`` for labels, or the absolute
-    relative error for regression. ``error`` may be None to draw only two rows. Returns the path.
+    prediction). The error row has its own scale: a boolean ``error`` (e.g. ``pred != truth`` for labels)
+    is drawn per vertex in two colours with a two-entry colour bar (right, wrong); a numeric one (the
+    per-vertex geodesic error for correspondence, the absolute relative error for regression) from 0 to
+    ``error_max`` (default: its maximum). ``error`` may be None to draw only two rows. Returns the path.
     """
     prediction = _check_values(surface, prediction, "prediction")
     truth = _check_values(surface, truth, "truth")
@@ -244,12 +256,17 @@ def render_comparison(
         norm, colormap = _norm_and_cmap(finite, cmap, finite.min(), finite.max(), False)
     rows = [("prediction", prediction), ("ground truth", truth)]
     if error is not None:
-        error = _check_values(surface, error, "error").astype(np.float64)
+        error = _check_values(surface, error, "error")
+        error = error.astype(np.int64) if error.dtype == bool else error.astype(np.float64)
         rows.append((error_label, error))
 
     fig = plt.figure(figsize=(_PANEL_INCHES * len(views) + 1.2, _PANEL_INCHES * len(rows) + 0.4))
     for r, (row_name, values) in enumerate(rows):
-        if row_name == error_label:
+        row_names = class_names
+        if row_name == error_label and _is_labels(values):  # a right/wrong mask: two colours, two ticks
+            row_norm, row_cmap, row_labels = mcolors.BoundaryNorm([-0.5, 0.5, 1.5], 2), _RIGHT_WRONG, True
+            row_names = ("right", "wrong")
+        elif row_name == error_label:
             finite = values[np.isfinite(values)]
             top = error_max if error_max is not None else (finite.max() if finite.size else 1.0)
             row_norm, row_cmap = mcolors.Normalize(0.0, top if top > 0 else 1.0), plt.get_cmap(error_cmap)
@@ -266,7 +283,7 @@ def render_comparison(
             axes.append(ax)
         axes[0].text2D(-0.02, 0.5, row_name, transform=axes[0].transAxes, rotation=90, va="center",
                        ha="right", fontsize=10)
-        _colorbar(fig, axes, row_norm, row_cmap, row_labels, None, class_names)
+        _colorbar(fig, axes, row_norm, row_cmap, row_labels, None, row_names)
     if title:
         fig.suptitle(title, fontsize=11)
     fig.subplots_adjust(left=0.04, right=0.9, bottom=0.01, top=0.92 if title else 0.96, wspace=0.0, hspace=0.05)
@@ -302,12 +319,14 @@ def plot_error_curve(
     return _save(fig, path)
 
 
-def plot_training_curves(history: Sequence[Mapping[str, float]], path: str | os.PathLike, title: str | None = None) -> Path:
+def plot_training_curves(history: Sequence[Mapping[str, float]], path: str | os.PathLike, title: str | None = None,
+                         best_epoch: int | None = None) -> Path:
     """PNG of a training history: losses (left, log scale when all positive) and other metrics (right).
 
     history: one dict per epoch, e.g. ``{"epoch": 3, "train_loss": .., "val_loss": .., "val_accuracy": ..}``.
     Keys ending in ``loss`` go left, every other numeric key except ``epoch``, ``seconds`` and ``lr`` goes
-    right (train_* solid, val_* dashed). Returns the path.
+    right (train_* solid, val_* dashed). ``best_epoch``: the selected model's epoch, marked in both panels
+    by a vertical line. Returns the path.
     """
     if not history:
         raise ValueError("plot_training_curves needs a non-empty history (one dict per epoch)")
@@ -326,13 +345,16 @@ def plot_training_curves(history: Sequence[Mapping[str, float]], path: str | os.
             x = [e for e, h in zip(epochs, history) if key in h]
             y = [float(h[key]) for h in history if key in h]
             ax.plot(x, y, "--" if key.startswith("val") else "-", marker="." if len(x) < 30 else None, label=key)
+        if best_epoch is not None:
+            ax.axvline(best_epoch, color="0.4", linestyle=":", linewidth=1.2, label=f"selected epoch {best_epoch}")
         if chosen:
-            ax.legend(fontsize=8)
             values = np.array([float(h[k]) for h in history for k in chosen if k in h])
             if name == "loss" and values.size and np.all(values > 0) and values.max() / values.min() > 20:
                 ax.set_yscale("log")
         else:
             ax.text(0.5, 0.5, f"no {name} recorded", ha="center", va="center", transform=ax.transAxes)
+        if chosen or best_epoch is not None:
+            ax.legend(fontsize=8)
         ax.set_xlabel("epoch")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel(name)

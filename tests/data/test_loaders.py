@@ -5,6 +5,7 @@ Meshes here are tiny (icospheres of 162 vertices, creatures of 300) so the whole
 
 import json
 import os
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from zernet.data import (
     LoaderOptions,
     PreprocessError,
     ShapeSource,
+    SkippedShapesWarning,
     build_dataset,
     load_dataset,
     synthetic,
@@ -135,9 +137,11 @@ def test_load_dataset_with_options_matches_the_keyword_interface(tmp_path):
 def test_loader_options_defaults_and_checks():
     options = LoaderOptions(patch_configs={"r0": 2.0})
     assert options.patch_configs == (PatchConfig(r0=2.0),) and LoaderOptions(patch_configs=[]).patch_configs is None
-    filled = LoaderOptions(n_val=3).with_defaults(n_val=8, strict=True, patch_configs=SYNTHETIC_CONFIGS)
-    assert (filled.n_val, filled.strict, filled.patch_configs) == (3, True, SYNTHETIC_CONFIGS)
-    assert LoaderOptions(strict=False).with_defaults(n_val=0.1, strict=True).strict is False
+    filled = LoaderOptions(n_val=3).with_defaults(n_val=8, patch_configs=SYNTHETIC_CONFIGS)
+    assert (filled.n_val, filled.on_error, filled.patch_configs) == (3, "raise", SYNTHETIC_CONFIGS)
+    assert LoaderOptions(on_error="skip").with_defaults(n_val=0.1).build_arguments()["on_error"] == "skip"
+    with pytest.raises(DatasetError, match="on_error must be one of raise, skip, got 'ignore'"):
+        LoaderOptions(on_error="ignore")
     with pytest.raises(ValueError, match="with_defaults first"):
         LoaderOptions().build_arguments()
     with pytest.raises(DatasetError, match=r"unknown feature kind 'xyz\+colour'"):
@@ -173,13 +177,16 @@ def test_failures_are_reported_by_name_and_others_go_on(tmp_path):
                ShapeSource("b", partial(_sphere_source, 1))]
     common = dict(patch_configs=CONFIGS, cache_dir=tmp_path, target_area=AREA, task="classification",
                   num_classes=2, split_names={"train": ["a", "bad"], "test": ["b"]}, workers=0, progress=False)
-    with pytest.warns(RuntimeWarning, match="bad: broken.ply: vertex 3 is NaN"):
-        dataset = build_dataset(sources, **common)
+    # By default a failing shape stops the build, after every shape was tried, naming it and its reason.
+    with pytest.raises(PreprocessError, match="1 of 3 shapes failed to load or preprocess:\n  bad: broken.ply: "
+                                              "vertex 3 is NaN") as caught:
+        build_dataset(sources, **common)
+    assert caught.value.failures == {"bad": "broken.ply: vertex 3 is NaN"} and caught.value.total == 3
+    with pytest.warns(SkippedShapesWarning, match="bad: broken.ply: vertex 3 is NaN"):
+        dataset = build_dataset(sources, on_error="skip", **common)
     assert dataset.names == ["a", "b"] and dataset.splits["train"] == [0] and "bad" in dataset.failures
-    with pytest.raises(PreprocessError, match="bad"):
-        build_dataset(sources, strict=True, **common)
     with pytest.raises(PreprocessError, match="1 of 1"):
-        build_dataset([sources[1]], **{**common, "split_names": {"train": ["bad"]}})
+        build_dataset([sources[1]], on_error="skip", **{**common, "split_names": {"train": ["bad"]}})
 
 
 def test_parallel_workers_match_in_process(tmp_path):
@@ -270,6 +277,48 @@ def test_segmentation_shared_one_based_face_labels(tmp_path):
     assert np.all(target[upper] == 1) and np.all(target[vertices[:, 2] < -0.3] == 0)
 
 
+def test_class_names_come_from_the_data_never_from_the_class_count(tmp_path):
+    """8 classes are not the human benchmark's parts unless the data says so: the names come from
+    class_names, else a class_names.txt beside the labels, else "part 1" .. "part N"."""
+    vertices, faces = _sphere(0)
+    for i in range(3):
+        _write_ply(tmp_path / "m" / f"s{i}.ply", _sphere(i)[0], faces)
+        np.savetxt(tmp_path / "m" / f"s{i}.txt", np.arange(len(vertices)) % 8, fmt="%d")
+    options = LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", n_val=1, workers=0, progress=False)
+
+    def names(**arguments):
+        return load_segmentation(tmp_path / "m", area=AREA, num_classes=8, test=["s2"], options=options,
+                                 **arguments).info["class_names"]
+
+    assert names() == [f"part {i}" for i in range(1, 9)]
+    scan_order = ["head", "hand", "forearm", "upper arm", "torso", "thigh", "shin", "foot"]
+    (tmp_path / "m" / "class_names.txt").write_text("\n".join(scan_order) + "\n")
+    assert names() == scan_order
+    assert names(class_names=list("abcdefgh")) == list("abcdefgh")  # given names win over the file
+    with pytest.raises(DatasetError, match=r"data.class_names: 2 class names for 8 classes"):
+        names(class_names=["a", "b"])
+    (tmp_path / "m" / "class_names.txt").write_text("head\ntorso\n")
+    with pytest.raises(DatasetError, match=r"class_names.txt: 2 class names for 8 classes"):
+        names()
+
+
+def test_an_unreadable_label_file_fails_its_own_shape_like_any_bad_shape(tmp_path):
+    vertices, faces = _sphere(0)
+    for i in range(3):
+        _write_ply(tmp_path / "m" / f"s{i}.ply", _sphere(i)[0], faces)
+        np.savetxt(tmp_path / "m" / f"s{i}.txt", (vertices[:, 2] > 0).astype(int), fmt="%d")
+    lines = (tmp_path / "m" / "s1.txt").read_text().splitlines()
+    lines[20] = "torso"
+    (tmp_path / "m" / "s1.txt").write_text("\n".join(lines) + "\n")
+    options = LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", n_val=0, workers=0, progress=False)
+    with pytest.raises(PreprocessError, match=r"1 of 3 shapes.*\n  s1: .*s1.txt: line 21: 'torso' is not a number"):
+        load_segmentation(tmp_path / "m", area=AREA, num_classes=2, test=["s2"], options=options)
+    with pytest.warns(SkippedShapesWarning, match="s1.txt: line 21"):
+        dataset = load_segmentation(tmp_path / "m", area=AREA, num_classes=2, test=["s2"],
+                                    options=replace(options, on_error="skip"))
+    assert dataset.names == ["s0", "s2"] and list(dataset.failures) == ["s1"]
+
+
 def test_segmentation_label_count_mismatch_names_both_files(tmp_path):
     vertices, faces = _sphere(0)
     _write_ply(tmp_path / "m" / "a.ply", vertices, faces)
@@ -339,5 +388,8 @@ def test_generic_regression_and_value_count_mismatch(tmp_path):
     dataset = load_regression(tmp_path, test=["b"], **common)
     assert dataset.names == ["a", "b"] and dataset.splits["test"] == [1]
     np.savetxt(tmp_path / "b.txt", vertices[:10, 1])
-    with pytest.warns(RuntimeWarning, match=r"b\.txt: has 10 values but .*b\.ply has 162 vertices"):
+    with pytest.raises(PreprocessError, match=r"b\.txt: has 10 values but .*b\.ply has 162 vertices"):
         load_regression(tmp_path, **common)
+    common["options"] = replace(common["options"], on_error="skip")
+    with pytest.warns(SkippedShapesWarning, match=r"b\.txt: has 10 values but .*b\.ply has 162 vertices"):
+        assert load_regression(tmp_path, **common).names == ["a"]

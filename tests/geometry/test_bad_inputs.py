@@ -302,3 +302,50 @@ def test_operators_of_tiny_odd_meshes_are_finite_or_a_clear_error(name):
     assert operator.matrix.shape == (len(vertices) * operator.k, len(vertices))
     assert np.isfinite(operator.matrix.data).all()
     assert np.isfinite(record.features).all()
+
+
+@pytest.mark.parametrize("extension, face_line, first", [(".obj", "f 1 2 9", 1), (".off", "3 0 1 8", 0)])
+def test_a_face_past_the_vertex_count_names_the_face_and_its_line(tmp_path, extension, face_line, first):
+    vertices, faces = _tetrahedron()
+    if extension == ".obj":
+        lines = ["# a tetrahedron", *(f"v {x} {y} {z}" for x, y, z in vertices),
+                 *(f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces)]
+        lines[1 + 4 + 2] = face_line  # face 2, on line 8
+    else:
+        lines = ["OFF", f"{len(vertices)} {len(faces)} 0", *(f"{x} {y} {z}" for x, y, z in vertices),
+                 *(f"3 {a} {b} {c}" for a, b, c in faces)]
+        lines[2 + 4 + 2] = face_line  # face 2, on line 9
+    path = tmp_path / f"mesh{extension}"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(SurfaceError) as caught:
+        load_surface(path)
+    line = 8 if extension == ".obj" else 9
+    vertex = face_line.split()[-1]
+    assert str(caught.value) == (f"{path}: face 2 (line {line}) refers to vertex {vertex}, but the file has 4 "
+                                 f"vertices ({first}-based indices)")
+
+
+def test_a_binary_obj_is_unreadable_not_empty(tmp_path):
+    path = tmp_path / "binary.obj"
+    path.write_bytes(bytes(np.random.default_rng(1).integers(128, 256, 2000).astype(np.uint8)))
+    with pytest.raises(SurfaceError, match=r"binary.obj: unreadable: not a text OBJ file \(binary or not UTF-8"):
+        load_surface(path)
+    path.write_bytes(b"v 0 0 0\x00\x01\x02" * 50)
+    with pytest.raises(SurfaceError, match="unreadable: not a text OBJ file"):
+        load_surface(path)
+
+
+def test_text_in_label_and_value_files_is_named_by_file_and_1_based_line(tmp_path):
+    path = tmp_path / "labels.txt"
+    path.write_text("# part labels\n0\n1\n\n2 3\nhead\n")
+    with pytest.raises(DatasetError, match=r"labels.txt: line 6: 'head' is not a number"):
+        read_labels(path)
+    path.write_text("0\n1\n2.5\n")
+    with pytest.raises(DatasetError, match=r"labels.txt: line 3: label 2.5 is not an integer class label"):
+        read_labels(path)
+    path.write_text("1.0\n\n2.0\nnan\n")
+    with pytest.raises(DatasetError, match=r"labels.txt: line 4: value nan is not finite"):
+        read_values(path)
+    path.write_bytes(b"\xff\xfe1\n2\n")
+    with pytest.raises(DatasetError, match="unreadable: not a text file of labels"):
+        read_labels(path)

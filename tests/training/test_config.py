@@ -17,7 +17,8 @@ from zernet.training.config import TrainSection
 # A resolved configuration exactly as resolve_config wrote it into config.yaml and checkpoints before the
 # redesign (the demo's): keys in this order, pass-through keys after the data and model defaults.
 TODAYS_FORMAT = {
-    "data": {"kind": "synthetic", "seed": 0, "val_fraction": None, "val_count": 3, "task": "segmentation",
+    "data": {"kind": "synthetic", "seed": 0, "val_fraction": None, "val_count": 3, "on_error": "raise",
+             "task": "segmentation",
              "n_shapes": 30, "n_vertices": 1000, "test_fraction": 0.2, "features": "xyz+normals"},
     "patch": {"area": None, "scales": [{"r0": 2.5, "n_samples": 4000, "patch_size": 50, "n_max": 5,
                                         "subtract_center": True}]},
@@ -90,6 +91,7 @@ def test_read_config_applies_overrides(tmp_path):
     ("data.features", 3, "a string"),
     ("data.n_shapes", "many", "an integer >= 1"),
     ("data.strict", "no", "true or false"),
+    ("data.on_error", "ignore", "one of raise, skip"),
     ("model.name", "zernett", "one of "),
     ("model.widths", [8, "x"], "a list of integers"),
     ("model.dropout", 1.5, "a number >= 0 and < 1"),
@@ -132,13 +134,19 @@ def test_structure_errors_name_the_key(tmp_path):
         parse_config([1])
 
 
-def test_unknown_data_and_model_keys_pass_through_to_the_loader_and_model(tmp_path):
+def test_loader_keys_pass_through_and_keys_unknown_to_the_data_kind_are_named(tmp_path):
     config = tiny_config(tmp_path)
-    config["data"]["root"] = "/somewhere"
+    config["data"] = {"kind": "segmentation", "meshes": "/somewhere", "num_classes": 3}
     config["model"]["nonlinearity"] = "regular"
     parsed = parse_config(config)
-    assert parsed.data.options["root"] == "/somewhere" and parsed.model.options["nonlinearity"] == "regular"
-    assert list(parsed.to_dict()["data"])[:4] == ["kind", "seed", "val_fraction", "val_count"]
+    assert parsed.data.options["meshes"] == "/somewhere" and parsed.model.options["nonlinearity"] == "regular"
+    assert list(parsed.to_dict()["data"])[:5] == ["kind", "seed", "val_fraction", "val_count", "on_error"]
+    config["data"]["root"] = "/elsewhere"
+    with pytest.raises(ConfigError, match=r"unknown key data.root for data kind 'segmentation' \(known: .*meshes"):
+        parse_config(config)
+    config["data"] = {"kind": "synthetic", "area": 3.0}
+    with pytest.raises(ConfigError, match="data.area is not a data option: the target area is patch.area"):
+        parse_config(config)
 
 
 def test_sections_check_their_values_when_made_directly():
@@ -150,6 +158,15 @@ def test_sections_check_their_values_when_made_directly():
 
 def test_a_stored_config_of_an_older_release_missing_newer_keys_gets_their_defaults():
     older = copy.deepcopy(TODAYS_FORMAT)
-    del older["train"]["precision"], older["eval"]["plots"]
+    del older["train"]["precision"], older["eval"]["plots"], older["data"]["on_error"]
     config = parse_config(older)
-    assert config.train.precision == "float32" and config.eval.plots is True
+    assert config.train.precision == "float32" and config.eval.plots is True and config.data.on_error == "raise"
+
+
+def test_the_former_data_strict_maps_to_on_error_with_a_deprecation_warning(tmp_path):
+    for strict, on_error in ((True, "raise"), (False, "skip")):
+        config = tiny_config(tmp_path)
+        config["data"]["strict"] = strict
+        with pytest.warns(FutureWarning, match=f"data.strict is deprecated: use data.on_error: {on_error}"):
+            parsed = parse_config(config)
+        assert parsed.data.on_error == on_error and "strict" not in parsed.to_dict()["data"]

@@ -29,7 +29,7 @@ from tiny_configs import faults_config
 
 from zernet import io_utils
 from zernet.cli import main
-from zernet.data import PreprocessError, ShapeSource, build_dataset
+from zernet.data import PreprocessError, ShapeSource, SkippedShapesWarning, build_dataset
 from zernet.data.preprocess import WORKER_DIED, file_key, preprocess_shapes
 from zernet.io_utils import atomic_save_torch, atomic_write_bytes
 from zernet.operators import PatchConfig
@@ -299,10 +299,11 @@ def test_parallel_preprocessing_reports_a_broken_mesh_and_resumes_from_the_cache
     damaged = next((cache / "shapes").glob("good1-*.npz"))
     damaged.write_bytes(damaged.read_bytes()[:100])
     log.unlink()
-    with pytest.warns(RuntimeWarning, match=rf"{damaged.name}: shape cache file is unreadable"):
+    with pytest.warns(RuntimeWarning, match=rf"{damaged.name}: shape cache file is unreadable"), \
+            pytest.warns(SkippedShapesWarning, match="bad.obj"):
         dataset = build_dataset(_sources(paths, log), CONFIGS, cache, AREA, task="classification", num_classes=2,
                                 split_names={"train": ["good0", "good1"], "test": ["good2"]}, workers=0,
-                                progress=False)
+                                progress=False, on_error="skip")
     assert _calls(log) == ["bad", "good1"]
     assert dataset.names == ["good0", "good1", "good2"] and set(dataset.failures) == {"bad"}
     assert np.isfinite(dataset[1].features).all()

@@ -1,10 +1,13 @@
 """Metrics against hand-computed values, and the geodesic error protocol on a sphere."""
 
+import json
+
 import numpy as np
 import pytest
 import trimesh
 
 from zernet import metrics
+from zernet.io_utils import write_json
 
 
 def test_accuracy_from_labels_and_scores():
@@ -89,3 +92,19 @@ def test_error_curve_monotone_and_endpoints():
     assert frac[0] == pytest.approx(2 / 6) and frac[-1] == pytest.approx(4 / 6)
     scores = metrics.correspondence_scores([errors[:3], errors[3:]])
     assert scores["accuracy"] == pytest.approx(2 / 6) and scores["within_0.05"] == pytest.approx(4 / 6)
+
+
+def test_metrics_files_are_strict_json_with_null_for_undefined_scores(tmp_path):
+    scores = metrics.segmentation_scores(np.array([0, 0, 1]), np.array([0, 0, 1]), num_classes=4)
+    assert np.isnan(scores["per_class_accuracy"][2])
+    path = write_json(tmp_path / "m.json", {"summary": scores, "inf": float("inf"), "n": np.int64(3),
+                                            "array": np.array([1.5, np.nan]), "flag": np.bool_(True)})
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    loaded = json.loads(path.read_text(), parse_constant=refuse)
+    assert loaded["summary"]["per_class_accuracy"] == [1.0, 1.0, None, None]
+    assert loaded["inf"] is None and loaded["n"] == 3 and loaded["array"] == [1.5, None] and loaded["flag"] is True
+    with pytest.raises(TypeError, match="not JSON serialisable: object"):
+        write_json(tmp_path / "bad.json", {"x": object()})

@@ -6,7 +6,8 @@ import pytest
 import trimesh
 
 from zernet import viz
-from zernet.metrics import error_curve
+from zernet.metrics import error_curve, regression_scores
+from zernet.training.run_dir import regression_title
 from zernet.geometry import Surface
 
 
@@ -58,3 +59,74 @@ def test_error_curve_and_training_curves(tmp_path):
                 "val_accuracy": 1 - 1.2 / (e + 1), "seconds": 1.0} for e in range(1, 21)]
     path = viz.plot_training_curves(history, tmp_path / "history.png")
     assert _size(path) == (1000, 380) and path.stat().st_size > 5000
+
+
+def _red_pixels(image: np.ndarray, top: float, bottom: float) -> int:
+    """Pixels of the right/wrong mask's "wrong" red in a band of rows, left of the colour bars."""
+    height, width = image.shape[:2]
+    band = image[int(top * height):int(bottom * height), : int(0.85 * width), :3]
+    return int(np.count_nonzero((band[..., 0] > 0.45) & (band[..., 1] < 0.2) & (band[..., 2] < 0.2)
+                                & (band[..., 0] > 2.5 * band[..., 1])))
+
+
+def test_corner_cells_tile_each_triangle_and_belong_to_its_corners():
+    triangles = np.random.default_rng(0).normal(size=(5, 3, 3))
+    cells = viz._corner_cells(triangles)
+    assert cells.shape == (15, 4, 3)
+    np.testing.assert_allclose(cells[0::3, 0], triangles[:, 0])   # cell 3f+i starts at corner i of face f
+    np.testing.assert_allclose(cells[2::3, 0], triangles[:, 2])
+
+    def area(polygon):  # planar polygons (each cell lies in its triangle's plane)
+        return 0.5 * np.linalg.norm(sum(np.cross(polygon[k], polygon[(k + 1) % len(polygon)])
+                                        for k in range(len(polygon))))
+
+    for f in range(5):
+        np.testing.assert_allclose(sum(area(cells[3 * f + i]) for i in range(3)), area(triangles[f]), rtol=1e-9)
+
+
+def test_one_wrong_vertex_shows_in_the_prediction_and_in_the_error_row(tmp_path, surface):
+    truth = np.zeros(len(surface.vertices), dtype=np.int64)
+    front = int(np.argmax(surface.vertices[:, 2]))  # the vertex nearest the camera of the front view
+    prediction = truth.copy()
+    prediction[front] = 1
+    wrong = viz.render_comparison(surface, prediction, truth, prediction != truth, tmp_path / "wrong.png",
+                                  views=("front",), error_label="wrong label", class_names=["a", "b"])
+    right = viz.render_comparison(surface, truth, truth, truth != truth, tmp_path / "right.png",
+                                  views=("front",), error_label="wrong label", class_names=["a", "b"])
+    wrong_image, right_image = mpimg.imread(wrong), mpimg.imread(right)
+    assert _red_pixels(right_image, 0.66, 1.0) == 0
+    assert _red_pixels(wrong_image, 0.66, 1.0) > 20   # the error row: one vertex's cells, in red
+    # The prediction row: the vertex's cells take class 1's colour (tab10 orange) among class 0's blue.
+    band = wrong_image[: wrong_image.shape[0] // 3, : int(0.85 * wrong_image.shape[1]), :3]
+    orange = (band[..., 0] > 0.6) & (band[..., 1] > 0.3) & (band[..., 1] < 0.6) & (band[..., 2] < 0.2)
+    assert np.count_nonzero(orange) > 20
+
+
+def test_a_boolean_error_gets_a_two_entry_colour_bar(tmp_path, surface, monkeypatch):
+    figures = []
+    monkeypatch.setattr(viz, "_save", lambda fig, path: figures.append(fig) or path)
+    labels = (surface.vertices[:, 1] > 0).astype(np.int64)
+    viz.render_comparison(surface, labels, labels, labels == 1, tmp_path / "x.png", class_names=["low", "high"])
+    bars = [ax for ax in figures[0].axes if ax.get_label() == "<colorbar>"]
+    ticks = [[t.get_text() for t in bar.get_yticklabels()] for bar in bars]
+    assert ticks == [["low", "high"], ["low", "high"], ["right", "wrong"]]
+
+
+def test_training_curves_mark_the_selected_epoch(tmp_path, monkeypatch):
+    figures = []
+    monkeypatch.setattr(viz, "_save", lambda fig, path: figures.append(fig) or path)
+    history = [{"epoch": e, "train_loss": 1.0 / e, "val_accuracy": 0.5 + e / 20} for e in range(1, 6)]
+    viz.plot_training_curves(history, tmp_path / "h.png", best_epoch=3)
+    for ax in figures[0].axes:
+        marks = [line for line in ax.get_lines() if line.get_label() == "selected epoch 3"]
+        assert len(marks) == 1 and list(marks[0].get_xdata()) == [3, 3]
+
+
+def test_regression_title_uses_the_metrics_mape_and_flags_zero_crossing_targets():
+    target = np.array([0.0, 1.0, -2.0, 4.0])
+    pred = np.array([0.5, 1.5, -2.0, 3.0])
+    title = regression_title("s", pred, target)
+    assert f"MAPE {regression_scores(pred, target)['MAPE']:.3f}" in title and "inf" not in title
+    assert "targets cross zero: relative errors are not meaningful" in title
+    assert "touch zero" in regression_title("s", pred, np.abs(target))
+    assert regression_title("s", pred, target + 10) == f"s: MAPE {regression_scores(pred, target + 10)['MAPE']:.3f}"

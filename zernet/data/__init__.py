@@ -7,7 +7,7 @@ Entry point for training and the command line::
                            **kind_arguments)
 
 :class:`~zernet.data.options.LoaderOptions` holds the options every data set shares (patch settings, cache,
-features, seed and validation count, workers, strict, repair, progress); ``kind_arguments`` are the
+features, seed and validation count, workers, on_error, repair, progress); ``kind_arguments`` are the
 arguments particular to the kind's loader (:data:`DATASET_KINDS`):
 
 - ``"synthetic"`` / ``"synthetic-parts"``: built-in creatures, part segmentation (4 classes);
@@ -32,13 +32,14 @@ kind does not take raises TypeError naming it and listing what the kind takes.
 from __future__ import annotations
 
 import inspect
+import warnings
 from collections.abc import Callable
 
 from zernet.data.dataset import DatasetError, ShapeDataset, ShapeRecord, carve_validation
 from zernet.data.faust import load_faust
 from zernet.data.features import FEATURE_PARTS, compute_features, default_features
-from zernet.data.options import SHARED_OPTIONS, LoaderOptions
-from zernet.data.preprocess import PreprocessError, build_dataset, prepare_record
+from zernet.data.options import ON_ERROR_CHOICES, SHARED_OPTIONS, LoaderOptions
+from zernet.data.preprocess import PreprocessError, SkippedShapesWarning, build_dataset, prepare_record
 from zernet.data.regression import load_aneurysm, load_regression
 from zernet.data.segmentation import load_segmentation
 from zernet.data.source import ShapeSource
@@ -46,6 +47,8 @@ from zernet.data.synthetic import make_synthetic_dataset
 
 __all__ = [
     "DATASET_KINDS",
+    "ON_ERROR_CHOICES",
+    "data_option_names",
     "load_dataset",
     "LoaderOptions",
     "ShapeRecord",
@@ -53,6 +56,7 @@ __all__ = [
     "ShapeSource",
     "DatasetError",
     "PreprocessError",
+    "SkippedShapesWarning",
     "FEATURE_PARTS",
     "build_dataset",
     "prepare_record",
@@ -105,9 +109,27 @@ def load_dataset(kind: str, options: LoaderOptions | None = None, **arguments) -
     return loader(**arguments, options=options)
 
 
+def data_option_names(kind: str) -> tuple[str, ...]:
+    """The keys a run configuration's ``data`` section may pass to the loader of ``kind``, besides the ones
+    the run sets itself (``seed``, ``val_fraction``, ``val_count``, ``on_error``): the loader's own arguments
+    (except ``area``, which is ``patch.area``), ``features``, ``repair`` and ``workers``. Empty for an
+    unknown kind."""
+    if kind not in LOADERS:
+        return ()
+    own = set(inspect.signature(LOADERS[kind]).parameters) - {"options", "area"}
+    if kind in _SYNTHETIC_TASKS:
+        own.discard("task")
+    return tuple(sorted(own | {"features", "repair", "workers"}))
+
+
 def _options_from_keywords(arguments: dict) -> tuple[LoaderOptions, dict]:
     """Split the configuration interface's keywords into LoaderOptions and the loader's own arguments."""
     arguments = dict(arguments)
+    if "strict" in arguments:  # the former name of on_error
+        strict = arguments.pop("strict")
+        warnings.warn("the data option 'strict' is deprecated: use on_error='raise' (strict true) or 'skip' "
+                      "(strict false)", FutureWarning, stacklevel=3)
+        arguments.setdefault("on_error", "raise" if strict else "skip")
     shared = {name: arguments.pop(name) for name in SHARED_OPTIONS if name in arguments}
     val_fraction = arguments.pop("val_fraction", 0.1)
     val_count = arguments.pop("val_count", None)

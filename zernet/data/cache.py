@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import logging
 import re
 import warnings
 from collections.abc import Sequence
@@ -38,7 +37,6 @@ __all__ = [
     "cached_vertex_count",
 ]
 
-logger = logging.getLogger(__name__)
 
 #: Bump when the content of the shape cache files changes, so old entries are not misread.
 CACHE_FORMAT = "zernet-shape-1"
@@ -132,8 +130,9 @@ def usable_cache_entry(path: Path) -> bool:
         read_shape(path)
         return True
     except DatasetError as error:
-        warnings.warn(f"{error} -- rebuilding it", RuntimeWarning, stacklevel=3)
-        logger.warning("%s -- rebuilding it", error)
+        # One report (a warning; the command line prints it as one line), not a warning and a log line too.
+        reason = str(error).split("; delete it")[0]  # the advice is taken here: it is rebuilt
+        warnings.warn(f"{reason}; rebuilding it", RuntimeWarning, stacklevel=3)
         try:
             path.unlink()
         except OSError:

@@ -97,12 +97,12 @@ def load_faust(
         area: target surface area (default 15000; None keeps the files' scale).
         options: the shared :class:`~zernet.data.options.LoaderOptions`. FAUST's defaults:
             ``patch_configs`` :func:`faust_patch_configs`, ``n_val`` 8 validation shapes carved from the
-            training ones, ``strict`` True (with correspondence by vertex index, a broken registration means
-            a broken copy of the data set).
+            training ones. A broken registration stops the loader with ``on_error="raise"`` (the default for
+            every data set); with correspondence by vertex index it means a broken copy of the data set.
 
     Returns a :class:`ShapeDataset` with ``correspondence = True`` and ``num_classes`` = vertex count.
     """
-    options = options.with_defaults(n_val=8, strict=True, patch_configs=faust_patch_configs())
+    options = options.with_defaults(n_val=8, patch_configs=faust_patch_configs())
     folder = find_registrations(root)
     train_indices, test_indices = [int(i) for i in train_indices], [int(i) for i in test_indices]
     overlap = sorted(set(train_indices) & set(test_indices))

@@ -4,7 +4,12 @@ Each loader (:func:`~zernet.data.faust.load_faust`, :func:`~zernet.data.segmenta
 :func:`~zernet.data.regression.load_aneurysm`, :func:`~zernet.data.regression.load_regression`,
 :func:`~zernet.data.synthetic.make_synthetic_dataset`) takes the arguments particular to its data set plus
 ``options: LoaderOptions``. The fields whose default differs between data sets (``patch_configs``,
-``n_val``, ``strict``) are None here, meaning "the data set's default", which each loader's docstring gives.
+``n_val``) are None here, meaning "the data set's default", which each loader's docstring gives.
+
+Bad shapes: ``on_error="raise"`` (the default, for every data set) tries every shape, then stops with a
+:class:`~zernet.data.preprocess.PreprocessError` listing each one that failed and why; ``on_error="skip"``
+leaves them out (``dataset.failures`` lists them). The former ``strict=True/False`` is ``on_error``
+``"raise"``/``"skip"``.
 
 The target ``area`` is not a shared option: its default is a property of each data set (FAUST 15000,
 aneurysm 100, ...), and for a loader None means "keep the files' scale".
@@ -16,10 +21,14 @@ import os
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
+from zernet.data.dataset import DatasetError
 from zernet.data.features import feature_parts
 from zernet.data.preprocess import as_patch_configs
 
-__all__ = ["LoaderOptions", "SHARED_OPTIONS"]
+__all__ = ["LoaderOptions", "SHARED_OPTIONS", "ON_ERROR_CHOICES"]
+
+#: What a shape that fails to load or preprocess does: stop the loader (after trying every shape), or be left out.
+ON_ERROR_CHOICES = ("raise", "skip")
 
 
 @dataclass(frozen=True)
@@ -36,8 +45,9 @@ class LoaderOptions:
         n_val: validation shapes carved from the training ones, a count or a fraction in (0, 1); None: the
             data set's default.
         workers: preprocessing processes; None: one per CPU; 0 or 1: in this process.
-        strict: a shape that fails to preprocess stops everything instead of being left out; None: the
-            data set's default (True for FAUST, False otherwise).
+        on_error: what a shape that fails to load or preprocess does: ``"raise"`` (every shape is tried,
+            then an error lists each failure) or ``"skip"`` (it is left out and listed in
+            ``dataset.failures``).
         repair: merge duplicate vertices and drop degenerate faces while validating the surfaces.
         progress: show a progress bar while preprocessing.
     """
@@ -48,7 +58,7 @@ class LoaderOptions:
     seed: int = 0
     n_val: int | float | None = None
     workers: int | None = None
-    strict: bool | None = None
+    on_error: str = "raise"
     repair: bool = False
     progress: bool = True
 
@@ -57,23 +67,21 @@ class LoaderOptions:
         # One PatchConfig, a dict or a list of either; empty means "the data set's default", like None.
         object.__setattr__(self, "patch_configs", tuple(as_patch_configs(configs)) if configs else None)
         feature_parts(self.feature_kind)  # an unknown feature kind fails here, before any file is read
+        if self.on_error not in ON_ERROR_CHOICES:
+            raise DatasetError(f"on_error must be one of {', '.join(ON_ERROR_CHOICES)}, got {self.on_error!r}")
 
-    def with_defaults(self, *, n_val: int | float, strict: bool = False, patch_configs=None) -> LoaderOptions:
+    def with_defaults(self, *, n_val: int | float, patch_configs=None) -> LoaderOptions:
         """These options with a data set's defaults filled in where a field is None."""
-        return replace(
-            self,
-            n_val=n_val if self.n_val is None else self.n_val,
-            strict=strict if self.strict is None else self.strict,
-            patch_configs=self.patch_configs or patch_configs,
-        )
+        return replace(self, n_val=n_val if self.n_val is None else self.n_val,
+                       patch_configs=self.patch_configs or patch_configs)
 
     def build_arguments(self) -> dict[str, Any]:
         """The keyword arguments of :func:`~zernet.data.preprocess.build_dataset` these options give."""
-        if self.n_val is None or self.strict is None:
-            raise ValueError("LoaderOptions.build_arguments needs n_val and strict: call with_defaults first")
+        if self.n_val is None:
+            raise ValueError("LoaderOptions.build_arguments needs n_val: call with_defaults first")
         return {"patch_configs": self.patch_configs, "cache_dir": self.cache_dir, "n_val": self.n_val,
                 "seed": self.seed, "feature_kind": self.feature_kind, "workers": self.workers,
-                "strict": self.strict, "repair": self.repair, "progress": self.progress}
+                "on_error": self.on_error, "repair": self.repair, "progress": self.progress}
 
 
 #: Names of the shared options (the fields of :class:`LoaderOptions`).

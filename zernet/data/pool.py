@@ -39,6 +39,14 @@ def worker_init() -> None:
     """Initialiser of every pool worker."""
     # Several workers share few cores: one thread each avoids oversubscription.
     torch.set_num_threads(1)
+    # A warning in a worker (e.g. unused vertices) prints as one line, without the source line that would
+    # read like a crash, as the command line does in the main process.
+    warnings.showwarning = _one_line_warning
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    text = "; ".join(part.strip() for part in str(message).splitlines() if part.strip())
+    print(f"warning: {text}", file=file or sys.stderr)
 
 
 def pool_context():

@@ -15,9 +15,10 @@ Steps 1-4 run in worker processes (:mod:`zernet.data.pool`; ``workers`` 0 or 1 r
 with a bounded number of shapes in flight, so memory stays at a few shapes per worker whatever the data set size. A worker returns
 only a short status; the records are then read back from the cache. A shape whose cache entry exists is
 skipped without loading its file (the entry is read back once to check it; a truncated or corrupt one is
-reported by file name and rebuilt). A shape that fails (unreadable file, label mismatch, ...) is reported
-with its name and reason and the others go on; :class:`PreprocessError` is raised at the end only when
-every shape failed or when ``strict=True``.
+reported by file name and rebuilt). A shape that fails (unreadable file, label mismatch, ...) is recorded
+with its name and reason and the others go on; at the end, :func:`build_dataset` raises one
+:class:`PreprocessError` listing every failure (``on_error="raise"``, the default, and always when every
+shape failed), or leaves the failed shapes out with a :class:`SkippedShapesWarning` (``on_error="skip"``).
 """
 
 from __future__ import annotations
@@ -53,6 +54,8 @@ from zernet.geometry import Surface, normalize_area, validate_surface
 __all__ = [
     "ShapeSource",
     "PreprocessError",
+    "SkippedShapesWarning",
+    "failure_listing",
     "build_dataset",
     "preprocess_shapes",
     "prepare_record",
@@ -74,12 +77,27 @@ IN_MEMORY_VERTEX_LIMIT = 200_000
 _TARGET_FIELD = "__zernet_target__"
 
 
-class PreprocessError(RuntimeError):
-    """Preprocessing failed for every shape, or for any shape with ``strict=True``. Lists name and reason."""
+class PreprocessError(DatasetError):
+    """Shapes failed to load or preprocess: every one with ``on_error="raise"``, or all of them.
 
-    def __init__(self, message: str, failures: dict[str, str]):
+    ``failures`` maps each failed shape's name to its reason; ``total`` is the number of shapes tried.
+    """
+
+    def __init__(self, message: str, failures: dict[str, str], total: int | None = None):
         super().__init__(message)
         self.failures = dict(failures)
+        self.total = len(failures) if total is None else int(total)
+
+
+class SkippedShapesWarning(RuntimeWarning):
+    """Shapes that failed were left out (``on_error="skip"``); the message lists them with their reasons."""
+
+
+def failure_listing(failures: dict[str, str], total: int) -> str:
+    """``"2 of 7 shapes failed to load or preprocess:"`` and one indented ``name: reason`` line per shape."""
+    lines = [f"{len(failures)} of {total} shapes failed to load or preprocess:"]
+    lines += [f"  {name}: {reason}" for name, reason in failures.items()]
+    return "\n".join(lines)
 
 
 def as_patch_configs(configs) -> list[PatchConfig]:
@@ -194,7 +212,7 @@ def preprocess_shapes(
     def record(name: str, error: str | None) -> None:
         if error is not None:
             failures[name] = error
-            logger.warning("preprocessing %s failed: %s", name, error)
+            logger.info("preprocessing %s failed: %s", name, error)
             bar.set_postfix(failed=len(failures))
         bar.update(1)
 
@@ -277,7 +295,7 @@ def build_dataset(
     seed: int = 0,
     feature_kind: str = "xyz",
     workers: int | None = None,
-    strict: bool = False,
+    on_error: str = "raise",
     repair: bool = False,
     progress: bool = True,
     in_memory: bool | None = None,
@@ -297,7 +315,9 @@ def build_dataset(
             Shapes that failed are dropped from every split.
         feature_kind: parts of :data:`~zernet.data.features.FEATURE_PARTS` joined by '+'.
         workers, repair, progress: see :func:`preprocess_shapes`.
-        strict: raise :class:`PreprocessError` if any shape fails (otherwise only if all fail).
+        on_error: ``"raise"``: if any shape fails, raise one :class:`PreprocessError` listing every failure
+            (all shapes are tried first); ``"skip"``: leave failed shapes out with a
+            :class:`SkippedShapesWarning` (``dataset.failures`` lists them); an error if every shape failed.
         in_memory: hold every record in memory; None decides by size (:data:`IN_MEMORY_VERTEX_LIMIT`).
         info: extra description stored on the data set.
         correspondence: mark the data set as template correspondence (class = vertex index).
@@ -309,12 +329,14 @@ def build_dataset(
     cache_dir = Path(cache_dir)
     failures = preprocess_shapes(sources, configs, cache_dir, target_area, workers=workers, repair=repair,
                                  progress=progress)
+    if on_error not in ("raise", "skip"):
+        raise DatasetError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
     if failures:
-        listing = "\n".join(f"  {name}: {reason}" for name, reason in failures.items())
-        message = f"{len(failures)} of {len(sources)} shapes failed to preprocess:\n{listing}"
-        if strict or len(failures) == len(sources):
-            raise PreprocessError(message, failures)
-        warnings.warn(message + "\n(continuing without them)", RuntimeWarning, stacklevel=2)
+        message = failure_listing(failures, len(sources))
+        if on_error == "raise" or len(failures) == len(sources):
+            hint = "" if len(failures) == len(sources) else "\n(on_error='skip' leaves them out)"
+            raise PreprocessError(message + hint, failures, len(sources))
+        warnings.warn(message + "\n(left out: on_error='skip')", SkippedShapesWarning, stacklevel=2)
 
     kept = [s for s in sources if s.name not in failures]
     loaders = [_record_loader(source, configs, cache_dir, target_area, task, feature_kind, repair) for source in kept]

@@ -28,7 +28,7 @@ from zernet.data.dataset import DatasetError, ShapeDataset, carve_validation
 from zernet.data.options import LoaderOptions
 from zernet.data.preprocess import build_dataset
 from zernet.data.segmentation import MESH_EXTENSIONS, draw_test_names, find_meshes
-from zernet.data.source import ShapeSource, file_key
+from zernet.data.source import ShapeSource, file_key, read_text_numbers
 from zernet.operators import PatchConfig
 from zernet.geometry import Surface, load_surface
 
@@ -68,11 +68,14 @@ MAX_VALUE = 1e150
 def read_values(path: str | os.PathLike) -> np.ndarray:
     """Per-vertex values from a .npy file or a text file (one per line), as (L,) float64."""
     path = Path(path)
-    try:
-        values = np.load(path, allow_pickle=False) if path.suffix.lower() == ".npy" else np.loadtxt(
-            path, dtype=np.float64, comments="#", ndmin=1)
-    except Exception as error:
-        raise DatasetError(f"{path}: cannot read values: {type(error).__name__}: {error}") from error
+    lines = None
+    if path.suffix.lower() == ".npy":
+        try:
+            values = np.load(path, allow_pickle=False)
+        except Exception as error:
+            raise DatasetError(f"{path}: cannot read values: {type(error).__name__}: {error}") from None
+    else:
+        values, lines = read_text_numbers(path, "value")
     if np.asarray(values).dtype.kind not in "biuf":
         raise DatasetError(f"{path}: values must be numbers, got an array of {np.asarray(values).dtype}")
     values = np.asarray(values, dtype=np.float64)
@@ -82,7 +85,8 @@ def read_values(path: str | os.PathLike) -> np.ndarray:
         raise DatasetError(f"{path}: expected one value per vertex (a 1-D array), got shape {values.shape}")
     if not np.all(np.isfinite(values)):
         bad = int(np.flatnonzero(~np.isfinite(values))[0])
-        raise DatasetError(f"{path}: value {bad} is {values[bad]}; targets must be finite")
+        where = f"line {lines[bad]}" if lines is not None and values.ndim == 1 else f"entry {bad}"
+        raise DatasetError(f"{path}: {where}: value {values[bad]} is not finite; targets must be finite")
     if values.size and np.abs(values).max() > MAX_VALUE:
         bad = int(np.argmax(np.abs(values)))
         raise DatasetError(f"{path}: value {bad} is {values[bad]}; values beyond ±{MAX_VALUE:g} overflow the "
@@ -149,7 +153,7 @@ def load_aneurysm(
     "TP_Ia105I"); default none (use :func:`leave_one_out_splits` for the paper's folds). ``area``: target
     surface area (default 100, the files' own; None keeps the files' scale). ``options``: the shared
     :class:`~zernet.data.options.LoaderOptions`; the aneurysm defaults are ``patch_configs``
-    :func:`aneurysm_patch_configs`, ``n_val`` 2 and ``strict`` False.
+    :func:`aneurysm_patch_configs` and ``n_val`` 2.
     """
     options = options.with_defaults(n_val=2, patch_configs=aneurysm_patch_configs())
     root = Path(os.path.expanduser(os.fspath(root)))
@@ -190,8 +194,7 @@ def load_regression(
     ``test``: names (paths relative to root, without extension) of the test shapes, or ``test_fraction`` for
     a share drawn with ``options.seed``; neither: no test split. ``area``: target area (default None keeps
     the files' scale). ``options``: the shared :class:`~zernet.data.options.LoaderOptions`;
-    ``options.patch_configs`` is required (no default suits every scale), ``n_val`` defaults to 0.1 and
-    ``strict`` to False.
+    ``options.patch_configs`` is required (no default suits every scale), ``n_val`` defaults to 0.1.
     """
     options = options.with_defaults(n_val=0.1)
     root = Path(os.path.expanduser(os.fspath(root)))

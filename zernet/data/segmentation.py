@@ -26,6 +26,13 @@ label files of the data set: if no file contains 0 and some file contains ``num_
 0..num_classes-1, or the error names the file and the offending value. The detected base is stored in
 ``dataset.info["label_base"]``. Pass ``label_base=0`` or ``1`` to skip the detection.
 
+Class names (legends, per-class scores): ``class_names`` if given, else the lines of ``class_names.txt`` beside
+the labels, else "part 1" .. "part N" (:func:`resolve_class_names`). They are never inferred from the number
+of classes: data sets with 8 parts number them in different orders.
+
+A label file that cannot be read (text where a number should be, reported with its 1-based line) fails its
+own mesh only, which the bad-shape policy (``LoaderOptions.on_error``) then handles like any other.
+
 Test split: mesh paths with a folder called ``test`` (the benchmark's ``meshes/test/shrec``) form the test
 split when there are any; otherwise ``test`` names them, or a seeded ``test_fraction`` of the meshes is used.
 """
@@ -44,7 +51,7 @@ import trimesh
 from zernet.data.dataset import DatasetError, ShapeDataset
 from zernet.data.options import LoaderOptions
 from zernet.data.preprocess import build_dataset
-from zernet.data.source import ShapeSource, file_key
+from zernet.data.source import ShapeSource, file_key, read_text_numbers
 from zernet.geometry import Surface, load_surface, validate_surface
 
 __all__ = [
@@ -57,10 +64,14 @@ __all__ = [
     "find_meshes",
     "load_labelled_mesh",
     "draw_test_names",
+    "resolve_class_names",
+    "CLASS_NAMES_FILE",
 ]
 
 MESH_EXTENSIONS = (".ply", ".obj", ".off", ".stl")
 LABEL_EXTENSIONS = (".txt", ".npy", ".seg", ".eseg", ".labels")
+#: The file beside the labels that names the classes, one per line in label order.
+CLASS_NAMES_FILE = "class_names.txt"
 #: The 8 parts of Maron et al. 2017's human-segmentation benchmark, in its label order (label 1 = head).
 HUMAN_PART_NAMES = ("head", "torso", "upper arm", "lower arm", "hand", "upper leg", "lower leg", "foot")
 
@@ -71,15 +82,18 @@ def find_meshes(root: Path, extensions: Sequence[str] = MESH_EXTENSIONS) -> list
 
 
 def read_labels(path: str | os.PathLike) -> np.ndarray:
-    """Integer labels from a text file (one per line or whitespace-separated) or a .npy file: (L,) int64."""
+    """Integer labels from a text file (one per line or whitespace-separated) or a .npy file: (L,) int64.
+
+    A bad value is reported with the file and, for text, its 1-based line."""
     path = Path(path)
-    try:
-        if path.suffix.lower() == ".npy":
+    lines = None
+    if path.suffix.lower() == ".npy":
+        try:
             values = np.load(path, allow_pickle=False)
-        else:
-            values = np.loadtxt(path, dtype=np.float64, comments="#", ndmin=1)
-    except Exception as error:
-        raise DatasetError(f"{path}: cannot read labels: {type(error).__name__}: {error}") from error
+        except Exception as error:
+            raise DatasetError(f"{path}: cannot read labels: {type(error).__name__}: {error}") from None
+    else:
+        values, lines = read_text_numbers(path, "label")
     values = np.asarray(values).reshape(-1)
     if values.size == 0:
         raise DatasetError(f"{path}: label file is empty")
@@ -90,7 +104,8 @@ def read_labels(path: str | os.PathLike) -> np.ndarray:
     bad_mask = ~np.isfinite(values) | (values != np.round(values)) | (np.abs(values) >= 2.0**53)
     if bad_mask.any():
         bad = int(np.flatnonzero(bad_mask)[0])
-        raise DatasetError(f"{path}: label {bad} (line {bad + 1}) is {values[bad]!r}, not an integer class label")
+        where = f"line {lines[bad]}" if lines is not None else f"entry {bad}"
+        raise DatasetError(f"{path}: {where}: label {float(values[bad])!r} is not an integer class label")
     return values.astype(np.int64)
 
 
@@ -207,8 +222,14 @@ def _pair_with_labels(mesh_files: list[Path], mesh_root: Path, label_root: Path)
 def _label_base(label_files: set[Path], label_base: int | str, num_classes: int) -> int:
     """The labels' base (0 or 1), decided once over all label files (see the module docstring).
 
-    Every label file is read here, so an unreadable one stops the loader before any preprocessing."""
-    label_values = [read_labels(label) for label in label_files]
+    A label file that cannot be read is left out of the decision here: its mesh then fails in the
+    preprocessing with the same message and is handled like any other bad shape (``on_error``)."""
+    label_values = []
+    for label in sorted(label_files):
+        try:
+            label_values.append(read_labels(label))
+        except DatasetError:
+            continue
     if label_base in (0, 1):
         return int(label_base)
     if label_base != "auto":
@@ -216,6 +237,28 @@ def _label_base(label_files: set[Path], label_base: int | str, num_classes: int)
     has_zero = any((values == 0).any() for values in label_values)
     has_top = any((values == num_classes).any() for values in label_values)
     return 1 if (not has_zero and has_top) else 0
+
+
+def resolve_class_names(class_names: Sequence[str] | None, num_classes: int, label_root: Path) -> list[str]:
+    """The class names: ``class_names`` if given, else ``class_names.txt`` beside the labels, else
+    "part 1" .. "part N"; a list of another length than ``num_classes`` is an error naming its source."""
+    source = "data.class_names"
+    if class_names is None:
+        names_file = (label_root.parent if label_root.is_file() else label_root) / CLASS_NAMES_FILE
+        if not names_file.is_file():
+            return [f"part {i + 1}" for i in range(num_classes)]
+        try:
+            text = names_file.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as error:
+            raise DatasetError(f"{names_file}: cannot read the class names ({error})") from None
+        class_names = [line.strip() for line in text.splitlines() if line.strip()]
+        source = str(names_file)
+    if isinstance(class_names, str) or not all(isinstance(name, str) for name in class_names):
+        raise DatasetError(f"{source}: class names must be a list of strings, got {class_names!r}")
+    if len(class_names) != num_classes:
+        raise DatasetError(f"{source}: {len(class_names)} class names for {num_classes} classes "
+                           "(data.num_classes); give one name per class, in label order")
+    return list(class_names)
 
 
 def draw_test_names(names: Sequence[str], test_fraction: float, seed: int) -> list[str]:
@@ -261,7 +304,10 @@ def load_segmentation(
         labels: folder of per-mesh label files, or one label file shared by every mesh; default: the mesh
             folder (label files next to the meshes).
         num_classes: number of parts (8 for the human benchmark).
-        class_names: names for plots (default :data:`HUMAN_PART_NAMES` when num_classes == 8).
+        class_names: the name of each class, in label order, for legends and per-class scores; default:
+            the lines of a ``class_names.txt`` beside the labels (in the label folder, or in the folder of
+            a shared label file; ``zernet bodies`` writes one), else "part 1" .. "part N". Names are never
+            guessed from the number of classes: label orders differ between data sets.
         label_base: "auto" (see the module docstring), 0 or 1.
         label_kind: "auto", "vertex" or "face".
         test: names (mesh paths relative to ``meshes``, without extension) of the test meshes; default: meshes
@@ -269,9 +315,10 @@ def load_segmentation(
         area: target surface area (default 15000, human bodies as in the paper; None keeps the files').
         options: the shared :class:`~zernet.data.options.LoaderOptions`. ``options.patch_configs`` is
             required (segmentation data comes at any scale; for human bodies at area 15000 use
-            :func:`zernet.data.faust.faust_patch_configs`); ``n_val`` defaults to 0.1, ``strict`` (stop at
-            the first failing mesh instead of leaving it out) to False; ``repair`` merges duplicate vertices
-            and drops degenerate faces after the labels are read, the labels following.
+            :func:`zernet.data.faust.faust_patch_configs`); ``n_val`` defaults to 0.1; ``on_error`` says whether a
+            mesh that fails (unreadable, bad labels, ...) stops the loader (``"raise"``, the default, after
+            every mesh was tried) or is left out (``"skip"``); ``repair`` merges duplicate vertices and
+            drops degenerate faces after the labels are read, the labels following.
     """
     options = options.with_defaults(n_val=0.1)
     mesh_root = Path(os.path.expanduser(os.fspath(meshes)))
@@ -304,8 +351,7 @@ def load_segmentation(
 
     test_names = _test_names(names, test, test_fraction, options.seed, mesh_root)
     train_names = [name for name in names if name not in set(test_names)]
-    if class_names is None and num_classes == len(HUMAN_PART_NAMES):
-        class_names = HUMAN_PART_NAMES
+    class_names = resolve_class_names(class_names, num_classes, label_root)
 
     if not options.patch_configs:
         raise DatasetError("segmentation: give patch_configs (e.g. [{'r0': 5.5}] for human bodies at area 15000)")
@@ -314,6 +360,6 @@ def load_segmentation(
         sources, target_area=area, task="classification", num_classes=num_classes,
         split_names={"train": train_names, "test": test_names},
         info={"kind": "segmentation", "meshes": str(mesh_root), "labels": str(label_root), "label_base": base,
-              "class_names": list(class_names) if class_names is not None else None},
+              "class_names": class_names},
         **replace(options, repair=False).build_arguments(),
     )

@@ -5,12 +5,14 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from zernet.data.dataset import DatasetError
 from zernet.geometry import Surface
 
-__all__ = ["ShapeSource", "file_key"]
+__all__ = ["ShapeSource", "file_key", "read_text_numbers"]
 
 
 @dataclass(frozen=True)
@@ -45,3 +47,31 @@ def file_key(*paths: str | os.PathLike) -> str:
         stat = os.stat(path)
         parts.append(f"{os.path.abspath(path)}|{stat.st_size}|{stat.st_mtime_ns}")
     return ";".join(parts)
+
+
+def read_text_numbers(path: str | os.PathLike, what: str = "value") -> tuple[np.ndarray, np.ndarray]:
+    """The numbers of a text file (one or more per line, ``#`` starts a comment): (L,) float64 values and
+    the (L,) 1-based line each one is on.
+
+    A token that is not a number is reported with the file and its 1-based line, as an editor shows it:
+    ``labels.txt: line 21: 'abc' is not a number``. A file that is not text (not UTF-8) says so.
+    """
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise DatasetError(f"{path}: unreadable: not a text file of {what}s (not UTF-8 at byte "
+                           f"{error.start})") from None
+    except OSError as error:
+        raise DatasetError(f"{path}: cannot read {what}s: {error.strerror or error}") from None
+    numbers: list[float] = []
+    lines: list[int] = []
+    for line_number, line in enumerate(text.splitlines(), start=1):
+        for token in line.split("#", 1)[0].replace(",", " ").split():
+            try:
+                numbers.append(float(token))
+                lines.append(line_number)
+            except ValueError:
+                raise DatasetError(f"{path}: line {line_number}: {token[:40]!r} is not a number "
+                                   f"(expected one {what} per line)") from None
+    return np.asarray(numbers, dtype=np.float64), np.asarray(lines, dtype=np.int64)

@@ -20,6 +20,8 @@ __all__ = ["load_surface"]
 
 _MESH_EXTENSIONS = (".ply", ".obj", ".off", ".stl")
 _CLOUD_EXTENSIONS = (".npy", ".xyz", ".txt")
+# Text formats whose faces are checked line by line when trimesh cannot read them.
+_TEXT_MESH_EXTENSIONS = (".obj", ".off")
 # PLY vertex properties that are geometry or colour, not per-vertex fields.
 _PLY_NON_FIELDS = {"x", "y", "z", "nx", "ny", "nz", "red", "green", "blue", "alpha"}
 
@@ -97,7 +99,11 @@ def _load_trimesh(name: str, extension: str) -> Surface:
             # Several meshes in one file: trimesh's own concatenation (applies the scene transforms).
             loaded = trimesh.load(name, process=False, force="mesh", **options)
     except Exception as error:  # trimesh raises many types for a malformed file
+        if extension in _TEXT_MESH_EXTENSIONS:
+            _check_text_mesh(name, extension)  # names the bad face and its line, or says "not text"
         raise SurfaceError(f"{name}: cannot read the file: {type(error).__name__}: {error}") from error
+    if extension in _TEXT_MESH_EXTENSIONS and len(getattr(loaded, "vertices", ())) == 0:
+        _check_text_mesh(name, extension)  # a binary or non-UTF-8 file reads as "no vertices": say unreadable
 
     if extension == ".ply":
         _check_ply_counts(name, loaded)
@@ -119,6 +125,69 @@ def _load_trimesh(name: str, extension: str) -> Surface:
         vertices, faces, _, _ = merge_coincident(vertices, faces, None, {})
     # File normals of a mesh are not kept: the face orientation defines the normals (vertex_normals()).
     return Surface(vertices, faces, None, _ply_fields(raw, len(vertices)), name)
+
+
+def _check_text_mesh(name: str, extension: str) -> None:
+    """Explain why a text mesh (OBJ, OFF) could not be read: a SurfaceError for a file that is not UTF-8
+    text, or for the first face whose vertex index is out of range (with its 1-based line); returns if
+    neither applies."""
+    with open(name, "rb") as handle:
+        data = handle.read()
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        text = None
+        where = error.start
+    if text is None or "\x00" in text:
+        where = data.find(b"\x00") if text is not None else where
+        raise SurfaceError(f"{name}: unreadable: not a text {extension[1:].upper()} file (binary or not UTF-8 "
+                           f"at byte {where})")
+    lines = text.splitlines()
+    faces = _obj_faces(lines) if extension == ".obj" else _off_faces(lines)
+    if faces is None:
+        return
+    n_vertices, entries, base = faces
+    for face_number, (line_number, indices) in enumerate(entries):
+        for index in indices:
+            resolved = index + n_vertices if (base == 1 and index < 0) else index - base
+            if not 0 <= resolved < n_vertices:
+                raise SurfaceError(f"{name}: face {face_number} (line {line_number}) refers to vertex {index}, but "
+                                   f"the file has {n_vertices} vertices ({'1' if base else '0'}-based indices)")
+
+
+def _obj_faces(lines: list[str]):
+    """(vertex count, [(line, vertex indices of a face)], index base 1) of OBJ text; None if unparsable."""
+    n_vertices, entries = 0, []
+    for line_number, line in enumerate(lines, start=1):
+        parts = line.split("#", 1)[0].split()
+        if not parts:
+            continue
+        if parts[0] == "v":
+            n_vertices += 1
+        elif parts[0] == "f":
+            try:
+                entries.append((line_number, [int(token.split("/")[0]) for token in parts[1:]]))
+            except ValueError:
+                return None
+    return n_vertices, entries, 1
+
+
+def _off_faces(lines: list[str]):
+    """(vertex count, [(line, vertex indices of a face)], index base 0) of OFF text; None if unparsable."""
+    content = [(number, line.split("#", 1)[0].split()) for number, line in enumerate(lines, start=1)]
+    content = [(number, parts) for number, parts in content if parts]
+    if not content:
+        return None
+    if content[0][1][0].upper().endswith("OFF"):
+        head = content[0][1][1:]
+        content = content[1:] if not head else [(content[0][0], head)] + content[1:]
+    try:
+        n_vertices, n_faces = int(content[0][1][0]), int(content[0][1][1])
+        rows = content[1 + n_vertices: 1 + n_vertices + n_faces]
+        entries = [(number, [int(v) for v in parts[1: 1 + int(parts[0])]]) for number, parts in rows]
+    except (ValueError, IndexError):
+        return None
+    return n_vertices, entries, 0
 
 
 def _check_ply_counts(name: str, loaded) -> None:

@@ -8,7 +8,7 @@
   :class:`RunConfig` (:mod:`~zernet.training.config`).
 """
 
-from zernet.training.build import build_dataset, build_model_from_spec, load_data, model_spec
+from zernet.training.build import build_dataset, build_model_from_spec, check_model_config, load_data, model_spec
 from zernet.training.checkpoint import CHECKPOINT_FORMAT, checkpoint_path, load_checkpoint
 from zernet.training.config import (
     DEFAULT_CONFIG,
@@ -21,7 +21,7 @@ from zernet.training.config import (
     resolve_config,
 )
 from zernet.training.evaluation import evaluate, summary_line
-from zernet.training.loop import train
+from zernet.training.loop import RESUME_CHANGEABLE, train
 from zernet.training.predict import predict
 from zernet.training.run_dir import write_json
 from zernet.training.runtime import keep_freed_memory, precision_autocast, resolve_device
@@ -32,5 +32,5 @@ __all__ = [
     "resolve_config", "build_dataset", "load_data", "model_spec", "build_model_from_spec", "train", "evaluate",
     "predict", "summary_line", "write_json", "load_checkpoint", "checkpoint_path", "CHECKPOINT_FORMAT",
     "epoch_order", "epoch_learning_rate", "step_groups", "precision_autocast", "keep_freed_memory",
-    "resolve_device",
+    "resolve_device", "check_model_config", "RESUME_CHANGEABLE",
 ]

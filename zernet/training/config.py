@@ -2,7 +2,8 @@
 
 A configuration file has five sections and one top-level key (see ``configs/*.yaml``)::
 
-    data:   the data set (kind, split seed, validation share, and the loader's own options)
+    data:   the data set (kind, split seed, validation share, the bad-shape policy on_error: raise|skip,
+            and the loader's own options, checked against the kind's loader)
     patch:  area normalisation and one patch setting per scale
     model:  the model name and the options of its constructor
     train:  optimisation, early stopping, device and precision
@@ -25,6 +26,7 @@ import copy
 import dataclasses
 import math
 import re
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +34,7 @@ from typing import Any, ClassVar
 
 import yaml
 
-from zernet.data import DATASET_KINDS
+from zernet.data import DATASET_KINDS, ON_ERROR_CHOICES, data_option_names
 from zernet.nn.models import available_models
 from zernet.operators import PatchConfig
 
@@ -75,7 +77,7 @@ class ConfigError(ValueError):
 class Rule:
     """What one configuration value may be; :meth:`check` raises a :class:`ConfigError` naming the key."""
 
-    kind: str                        # "int" | "number" | "str" | "bool" | "int_list" | "path"
+    kind: str                        # "int" | "number" | "str" | "bool" | "int_list" | "str_list" | "names" | "path"
     optional: bool = False           # None allowed
     minimum: float | None = None     # value >= minimum
     positive: bool = False           # value > 0
@@ -87,7 +89,8 @@ class Rule:
             text = f"one of {', '.join(self.choices)}"
         else:
             text = {"int": "an integer", "number": "a number", "str": "a string", "bool": "true or false",
-                    "int_list": "a list of integers", "path": "a folder path"}[self.kind]
+                    "int_list": "a list of integers", "str_list": "a list of strings",
+                    "names": "a name or a list of names", "path": "a folder path"}[self.kind]
         if self.minimum is not None:
             text += f" >= {self.minimum}"
         if self.positive:
@@ -111,6 +114,11 @@ class Rule:
             return isinstance(value, str)
         if self.kind == "int_list":
             return isinstance(value, (list, tuple)) and all(_is_int(v) for v in value)
+        if self.kind == "str_list":
+            return isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value)
+        if self.kind == "names":
+            return isinstance(value, str) or (isinstance(value, (list, tuple))
+                                              and all(isinstance(v, (str, int)) for v in value))
         if self.kind == "int" and not _is_int(value):
             return False
         if self.kind == "number" and not (_is_number(value) and math.isfinite(value)):
@@ -187,16 +195,40 @@ class DataSection(_Section):
     NAME: ClassVar[str] = "data"
     OPTION_RULES: ClassVar[dict[str, Rule]] = {
         "features": Rule("str"), "root": Rule("path"), "meshes": Rule("path"), "labels": Rule("path", optional=True),
-        "task": Rule("str"), "field": Rule("str", optional=True), "strict": Rule("bool"), "rotate": Rule("bool"),
+        "task": Rule("str"), "field": Rule("str", optional=True), "rotate": Rule("bool"), "repair": Rule("bool"),
         "n_shapes": Rule("int", minimum=1), "n_vertices": Rule("int", minimum=1, optional=True),
         "num_classes": Rule("int", minimum=1), "test_fraction": Rule("number", minimum=0, below=1, optional=True),
+        "class_names": Rule("str_list", optional=True), "label_kind": Rule("str", choices=("auto", "vertex", "face")),
+        "test": Rule("names", optional=True), "train_indices": Rule("int_list"), "test_indices": Rule("int_list"),
+        "target_exponent": Rule("number"), "workers": Rule("int", minimum=0, optional=True),
     }
 
     kind: str = _rule("synthetic", "str", choices=DATASET_KINDS)
     seed: int = _rule(0, "int", minimum=0)                    # seeds the validation split
     val_fraction: float | None = _rule(None, "number", minimum=0, below=1, optional=True)
     val_count: int | None = _rule(None, "int", minimum=0, optional=True)  # overrides val_fraction
+    # A shape that fails to load or preprocess: stop before training, listing every failure (raise), or
+    # train without it (skip; the run lists it in train.log and metrics.json).
+    on_error: str = _rule("raise", "str", choices=ON_ERROR_CHOICES)
     options: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.options, Mapping) and "strict" in self.options:
+            options = dict(self.options)
+            strict = options.pop("strict")
+            Rule("bool").check("data.strict", strict)
+            warnings.warn(f"data.strict is deprecated: use data.on_error: {'raise' if strict else 'skip'} "
+                          "(strict: true is on_error: raise, strict: false is on_error: skip)", FutureWarning,
+                          stacklevel=2)
+            object.__setattr__(self, "options", options)
+            object.__setattr__(self, "on_error", "raise" if strict else "skip")
+        super().__post_init__()
+        if "area" in self.options:
+            raise ConfigError("data.area is not a data option: the target area is patch.area")
+        unknown = sorted(set(self.options) - set(data_option_names(self.kind)))
+        if unknown:
+            raise ConfigError(f"unknown key data.{unknown[0]} for data kind {self.kind!r} (known: "
+                              f"{', '.join(sorted(set(data_option_names(self.kind)) | set(self._core_names())))})")
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -11,6 +12,7 @@ import torch
 from tqdm.auto import tqdm
 
 from zernet import metrics as zmetrics
+from zernet.data import SkippedShapesWarning
 from zernet.training.build import build_dataset
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
 from zernet.training.config import ConfigError
@@ -122,7 +124,7 @@ def check_ensemble(paths: Sequence[Path], checkpoints: Sequence[dict]) -> None:
 
 
 def evaluate(run_dir_or_checkpoint, dataset=None, split: str = "test", progress: bool = True,
-             device: str | None = None) -> dict:
+             device: str | None = None, on_error: str | None = None) -> dict:
     """Evaluate a trained model (a run folder's ``best.pt``, or any checkpoint file) on one split; given
     several, evaluate their ensemble.
 
@@ -136,6 +138,8 @@ def evaluate(run_dir_or_checkpoint, dataset=None, split: str = "test", progress:
             from the configuration stored in the (first) checkpoint.
         split: ``"test"``, ``"val"``, ``"train"`` or any split the data set defines.
         device: overrides the configured ``train.device``.
+        on_error: overrides the stored ``data.on_error`` when the data set is rebuilt: ``"skip"`` evaluates
+            without the shapes that fail to load (listed under ``"skipped"``).
 
     Returns:
         The same metrics dictionary that training writes to ``metrics.json`` (for an ensemble,
@@ -150,17 +154,22 @@ def evaluate(run_dir_or_checkpoint, dataset=None, split: str = "test", progress:
     config = checkpoints[0]["config"]
     device = resolve_device(device or config["train"]["device"])
     if dataset is None:
-        dataset = build_dataset(config, progress=progress)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SkippedShapesWarning)  # listed under "skipped" instead
+            dataset = build_dataset(config, progress=progress, on_error=on_error)
     if split not in dataset.splits:
         raise ConfigError(f"the data set has no split {split!r} (it has {', '.join(sorted(dataset.splits))})")
     indices = dataset.splits[split]
     if not indices:
-        raise ConfigError(f"split {split!r} of the data set is empty")
+        others = ", ".join(name for name, members in sorted(dataset.splits.items()) if members)
+        raise ConfigError(f"split {split!r} of the data set is empty (splits with shapes: {others or 'none'})")
     members = [(model_from_checkpoint(checkpoint, device), checkpoint) for checkpoint in checkpoints]
     metrics, _ = evaluate_members(members, dataset, indices, device, progress, keep=0)
     best_epochs = [c["state"]["best_epoch"] for c in checkpoints]
     epochs = [c["state"]["epoch"] for c in checkpoints]
     metrics.update({"split": split, "checkpoint": [str(p) for p in paths] if many else str(paths[0]),
                     "best_epoch": best_epochs if many else best_epochs[0],
-                    "epochs_trained": epochs if many else epochs[0]})
+                    "epochs_trained": epochs if many else epochs[0],
+                    "skipped": [{"name": name, "reason": reason}
+                                for name, reason in getattr(dataset, "failures", {}).items()]})
     return metrics

@@ -9,7 +9,8 @@ model on the test split and writes a complete run folder:
 ``previous.pt``  the ``last.pt`` of the epoch before: ``resume`` falls back to it if last.pt is damaged;
 ``best.pt``      checkpoint of the epoch with the best validation metric;
 ``train.log``    what happened, one line per event and per epoch;
-``metrics.json`` the validation-selected model evaluated on the test shapes;
+``metrics.json`` the validation-selected model evaluated on the test shapes (``"split": "val"`` when the
+                 data set has none), with the shapes left out by ``data.on_error: skip`` (``"skipped"``);
 ``plots/``       training curves, the geodesic error curve (correspondence), renders of test shapes.
 
 Every random choice is seeded from the configuration (see :mod:`zernet.training.schedule`), and the
@@ -23,17 +24,22 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
+from zernet.data import PreprocessError, SkippedShapesWarning
+from zernet.data.preprocess import failure_listing
 from zernet.distributed import DistributedContext, is_main, setup as setup_distributed
 from zernet.io_utils import plain
 from zernet.training.build import (
     build_model_from_spec,
+    check_model_config,
     is_correspondence,
     load_data,
     model_spec,
@@ -64,7 +70,7 @@ from zernet.training.schedule import seed_everything, set_rng_state
 from zernet.training.stopping import BUDGET, Monitor, initial_state, record_epoch, reopen_if_budget_raised
 from zernet.training.targets import feature_stats, target_stats
 
-__all__ = ["train", "merge_resume_config"]
+__all__ = ["train", "merge_resume_config", "RESUME_CHANGEABLE"]
 
 
 @dataclass
@@ -81,7 +87,7 @@ def train(config: Mapping[str, Any] | RunConfig | None, run_dir: str | Path, res
     Args:
         config: the run configuration (a :class:`~zernet.training.config.RunConfig` or a mapping as in
             ``configs/*.yaml``). With ``resume`` it may be ``None`` (the run's own config is used);
-            otherwise only ``train.epochs``/``train.patience`` may differ from the run's.
+            otherwise only the keys of :data:`RESUME_CHANGEABLE` may differ from the run's.
         run_dir: the run folder; created if needed.
         resume: continue from ``run_dir/last.pt`` exactly where it stopped.
         progress: show progress bars (preprocessing, steps of each epoch).
@@ -105,7 +111,8 @@ def train(config: Mapping[str, Any] | RunConfig | None, run_dir: str | Path, res
         if resume_note:
             logger.warning(resume_note)
         if checkpoint is not None:
-            config = merge_resume_config(checkpoint["config"], config, logger)
+            config = merge_resume_config(checkpoint["config"], config, logger, checkpoint["state"]["epoch"])
+        check_model_config(config)  # a bad model option fails now, before any shape is loaded
         # Joins the torchrun process group, if any (see zernet.distributed); a no-op for one process.
         ctx = setup_distributed(resolve_device(config.train.device))
         if ctx.is_main:
@@ -130,22 +137,47 @@ def _fresh_run_config(config, run_dir: Path, overwrite: bool) -> RunConfig:
     return config
 
 
-def merge_resume_config(stored: Mapping[str, Any], given, logger: logging.Logger) -> RunConfig:
-    """On resume the stored configuration wins, except that the epoch budget and patience may be raised."""
+#: What may change when a run is resumed: none of it changes the weights still to train (on_error only says
+#: what a shape that fails to load would do; the shapes of a run are cached).
+RESUME_CHANGEABLE = (("train", "epochs"), ("train", "patience"), ("train", "threads"), ("data", "on_error"))
+
+
+def merge_resume_config(stored: Mapping[str, Any], given, logger: logging.Logger, trained: int = 0) -> RunConfig:
+    """On resume the stored configuration wins, except for :data:`RESUME_CHANGEABLE` (the epoch budget,
+    patience, CPU threads, the bad-shape policy). ``train.epochs`` never drops below the ``trained`` epochs,
+    so ``config.yaml`` never claims fewer epochs than the checkpoints hold."""
     config = parse_config(stored)
     if given is None:
         return config
     given = parse_config(given)
-    for key in ("epochs", "patience"):
-        old, new = getattr(config.train, key), getattr(given.train, key)
+    sections = {}
+    for section, key in RESUME_CHANGEABLE:
+        old, new = getattr(getattr(config, section), key), getattr(getattr(given, section), key)
+        if section == "train" and key == "epochs" and new < trained:
+            logger.warning(f"resume: train.epochs {new} is below the {trained} epochs already trained; "
+                           f"keeping {trained}")
+            new = trained
         if new != old:
-            logger.info(f"resume: train.{key} changed from {old} to {new}")
-    budget = {"epochs": given.train.epochs, "patience": given.train.patience}
-    config = dataclasses.replace(config, train=dataclasses.replace(config.train, **budget))
-    if plain(given.to_dict()) != plain(config.to_dict()):
-        logger.warning("resume: the given configuration differs from the run's; continuing with the run's own "
-                       "config.yaml (only train.epochs and train.patience may change on resume)")
+            logger.info(f"resume: {section}.{key} changed from {old} to {new}")
+            sections.setdefault(section, {})[key] = new
+    config = dataclasses.replace(config, **{name: dataclasses.replace(getattr(config, name), **changes)
+                                            for name, changes in sections.items()})
+    changeable = {f"{section}.{key}" for section, key in RESUME_CHANGEABLE}
+    differing = [key for key in _differing_keys(plain(given.to_dict()), plain(config.to_dict()))
+                 if key not in changeable]
+    if differing:
+        allowed = ", ".join(f"{section}.{key}" for section, key in RESUME_CHANGEABLE)
+        logger.warning(f"resume: the given configuration differs from the run's in {', '.join(differing)}; "
+                       f"continuing with the run's own config.yaml (only {allowed} may change on resume)")
     return config
+
+
+def _differing_keys(a, b, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two plain mappings."""
+    if not (isinstance(a, dict) and isinstance(b, dict)):
+        return [prefix.rstrip(".") or "config"] if a != b else []
+    keys = list(dict.fromkeys(list(a) + list(b)))
+    return [k for key in keys for k in _differing_keys(a.get(key), b.get(key), f"{prefix}{key}.")]
 
 
 def _run(config: RunConfig, run_dir: Path, checkpoint: dict | None, progress: bool, logger: logging.Logger,
@@ -171,14 +203,21 @@ def _run(config: RunConfig, run_dir: Path, checkpoint: dict | None, progress: bo
                 "stop_reason": state["stop_reason"]}
     metrics, predictions = _test(model, state, dataset, splits, monitor, run_dir, ctx.device, progress, logger)
     metrics["preprocess_seconds"] = preprocess_seconds
+    metrics["skipped"] = [{"name": name, "reason": reason} for name, reason in dataset.failures.items()]
     return _report(metrics, predictions, state["history"], dataset, config, run_dir, logger)
 
 
 def _load_dataset(config: RunConfig, progress: bool, workers, ctx: DistributedContext, logger):
     """The data set and its splits (rank 0 fills the cache first; the other ranks then read it)."""
     started = time.perf_counter()
-    with ctx.main_first():
-        dataset = load_data(config.data, config.patch, config.cache_dir, progress=progress, workers=workers)
+    with ctx.main_first(), warnings.catch_warnings():
+        # Skipped shapes are written to train.log (below) instead of being warned about as well.
+        warnings.simplefilter("ignore", SkippedShapesWarning)
+        try:
+            dataset = load_data(config.data, config.patch, config.cache_dir, progress=progress, workers=workers)
+        except PreprocessError as error:
+            _log_file_only(logger, f"stopped before training: {failure_listing(error.failures, error.total)}")
+            raise
     seconds = time.perf_counter() - started
     splits = _Splits(list(dataset.splits["train"]), list(dataset.splits.get("val", [])),
                      list(dataset.splits.get("test", [])))
@@ -186,9 +225,43 @@ def _load_dataset(config: RunConfig, progress: bool, workers, ctx: DistributedCo
         raise ConfigError("the data set has no training shapes")
     logger.info(f"data: {config.data.kind}, {dataset.task}, {len(splits.train)} train / {len(splits.val)} val / "
                 f"{len(splits.test)} test shapes (loaded in {seconds:.1f} s)")
+    if ctx.is_main:  # reported once, not by every rank of a distributed run
+        _report_data(dataset, splits, config.data.kind, logger)
+    return dataset, splits, seconds
+
+
+def _report_data(dataset, splits: _Splits, kind: str, logger) -> None:
+    """Warnings about the data set: skipped shapes (each with its reason), missing splits, unused classes."""
+    for name, reason in dataset.failures.items():
+        logger.warning(f"skipped shape {name} (data.on_error: skip): {reason}")
     if not splits.val:
         logger.warning("no validation shapes: the last epoch is kept as the model and early stopping is off")
-    return dataset, splits, seconds
+    if not splits.test:
+        logger.warning("no test shapes: the final scores are of the validation split, on which the model is "
+                       "chosen, and are labelled val")
+    _check_class_count(dataset, kind, logger)
+
+
+def _log_file_only(logger: logging.Logger, message: str) -> None:
+    """An ERROR line in train.log only (the command line reports the error itself)."""
+    record = logger.makeRecord(logger.name, logging.ERROR, __file__, 0, message, None, None)
+    for handler in logger.handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.handle(record)
+
+
+def _check_class_count(dataset, kind: str, logger) -> None:
+    """One warning when ``num_classes`` is larger than the labels the data set uses (segmentation)."""
+    if dataset.task != "classification" or is_correspondence(dataset, kind) or dataset.num_classes is None:
+        return
+    seen = set()
+    for i in range(len(dataset)):
+        seen.update(np.unique(np.asarray(dataset.target(i))).tolist())
+    missing = [c for c in range(int(dataset.num_classes)) if c not in seen]
+    if missing:
+        shown = ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else "")
+        logger.warning(f"data.num_classes is {dataset.num_classes} but no shape has a vertex of class {shown}: "
+                       "their per-class scores are null in metrics.json")
 
 
 def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict | None, logger):
@@ -286,7 +359,6 @@ def _test(model, state: dict, dataset, splits: _Splits, monitor: Monitor, run_di
     if splits.test:
         split, indices = "test", splits.test
     else:
-        logger.warning("the data set has no test shapes: metrics.json reports the validation split instead")
         split, indices = "val", splits.val
     metrics, predictions = evaluate_members([(model, best)], dataset, indices, device, progress)
     metrics.update({
@@ -307,11 +379,13 @@ def _report(metrics: dict, predictions: list[dict], history: list[dict], dataset
     if config.eval.plots:
         try:
             metrics["plots"] = write_plots(run_dir, history, metrics, predictions,
-                                           getattr(dataset, "info", {}).get("class_names"), config.eval.renders)
+                                           getattr(dataset, "info", {}).get("class_names"), config.eval.renders,
+                                           logger)
         except Exception as error:  # a plotting problem must not throw away a finished training run
             logger.warning(f"plots failed: {type(error).__name__}: {error}")
             metrics["plots"] = []
     write_json(run_dir / "metrics.json", metrics)
-    logger.info(f"{metrics['split']} metrics: {summary_line(metrics)}")
+    logger.info(f"{metrics['split']} metrics: {summary_line(metrics)}"
+                + (f" ({len(metrics['skipped'])} shapes skipped)" if metrics.get("skipped") else ""))
     logger.info(f"wrote {run_dir / 'metrics.json'}")
     return metrics

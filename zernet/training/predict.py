@@ -53,7 +53,7 @@ def model_from_checkpoint(checkpoint: dict, device: torch.device) -> torch.nn.Mo
 
 
 def predict(checkpoint: str | Path, surface, probabilities: bool = False, device: str | None = None,
-            cache_dir: str | Path | None = None, progress: bool = False):
+            cache_dir: str | Path | None = None, progress: bool = False, repair: bool = False):
     """Per-vertex predictions of a trained model on a new surface.
 
     Args:
@@ -61,6 +61,8 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
         surface: a :class:`~zernet.geometry.surface.Surface` or a path to a mesh / point-cloud file. It is
             preprocessed exactly like the training shapes (area normalisation, features, patch operators).
         probabilities: classification only — also return the (N, C) softmax probabilities.
+        repair: merge duplicate vertices and drop degenerate faces first (the repair training offers as
+            ``data.repair``); the prediction is then one value per vertex of the repaired surface.
 
     Returns:
         (N,) int64 class indices or (N,) float32 values (regression: in the surface's own units — the model
@@ -70,13 +72,14 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
     checkpoint = load_checkpoint(checkpoint_path(checkpoint))
     config, spec = checkpoint["config"], checkpoint["preprocess"]
     if not hasattr(surface, "vertices"):
-        surface = load_surface(surface)
+        surface = load_surface(surface, repair=repair)
     record = prepare_record(
         surface,
         [PatchConfig(**c) for c in spec["patch_configs"]],
         cache_dir=config["cache_dir"] if cache_dir is None else cache_dir,
         target_area=spec["area"],
         feature_kind=spec["feature_kind"],
+        repair=repair,
     )
     device = resolve_device(device or config["train"]["device"])
     model = model_from_checkpoint(checkpoint, device)

@@ -15,9 +15,10 @@ from tqdm.auto import tqdm
 
 from zernet import viz
 from zernet.io_utils import atomic_write_bytes, plain, write_json
+from zernet.metrics import regression_scores
 
 __all__ = ["RUN_FILES", "open_log", "close_log", "clear_run_files", "write_config_yaml", "write_json",
-           "write_plots", "epoch_line"]
+           "write_plots", "epoch_line", "picture_name", "regression_title"]
 
 #: The files a fresh run replaces.
 RUN_FILES = ("last.pt", "previous.pt", "best.pt", "metrics.json", "train.log")
@@ -85,25 +86,36 @@ def epoch_line(entry: dict, epochs: int, improved: bool) -> str:
 
 
 def write_plots(run_dir: Path, history: list[dict], metrics: dict, kept: list[dict], class_names,
-                renders: int) -> list[str]:
-    """Training curves, the error curve (correspondence) and renders of a few test shapes; returns paths."""
+                renders: int, logger: logging.Logger | None = None) -> list[str]:
+    """Training curves (the selected epoch marked), the error curve (correspondence) and renders of a few
+    shapes of the split the metrics are of, named ``<split>_<shape>.png``; returns the paths."""
     plot_dir = run_dir / "plots"
     plot_dir.mkdir(exist_ok=True)
+    split = metrics.get("split", "test")
     written = []
     if history:
         written.append(viz.plot_training_curves(history, plot_dir / "training_curves.png",
-                                                title=f"training ({metrics['kind']})"))
+                                                title=f"training ({metrics['kind']})",
+                                                best_epoch=metrics.get("best_epoch")))
     if "error_curve" in metrics:
         curve = metrics["error_curve"]
-        written.append(viz.plot_error_curve({"zernet (test)": (curve["radii"], curve["fractions"])},
+        written.append(viz.plot_error_curve({f"zernet ({split})": (curve["radii"], curve["fractions"])},
                                             plot_dir / "error_curve.png"))
     for item in kept[:renders]:
-        written.append(_render_shape(item, metrics["kind"], plot_dir / f"test_{_safe_name(item['name'])}.png",
-                                     class_names))
+        path = plot_dir / f"{split}_{picture_name(item['name'], split)}.png"
+        written.append(_render_shape(item, metrics["kind"], path, class_names, logger))
     return [str(p) for p in written]
 
 
-def _render_shape(item: dict, kind: str, path: Path, class_names) -> Path:
+def picture_name(shape: str, split: str) -> str:
+    """A file-name-safe shape name without a leading folder named like the split (``test/x`` -> ``x``)."""
+    parts = Path(shape).parts
+    if len(parts) > 1 and parts[0] == split:
+        shape = str(Path(*parts[1:]))
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in shape)[:80]
+
+
+def _render_shape(item: dict, kind: str, path: Path, class_names, logger) -> Path:
     surface, pred, target, error = item["surface"], item["prediction"], item["target"], item["error"]
     if kind == "correspondence":
         # Vertex indices carry no visual meaning: colour each vertex by the height of the vertex it is
@@ -114,12 +126,24 @@ def _render_shape(item: dict, kind: str, path: Path, class_names) -> Path:
                                      error_label="geodesic error", title=f"{item['name']}: matched vertex height",
                                      error_max=0.1)
     if kind == "segmentation":
-        return viz.render_comparison(surface, pred, target, error, path, error_label="wrong label",
-                                     class_names=class_names, error_max=1.0,
+        # Labels and the right/wrong mask are both drawn per vertex: one wrong vertex shows in both rows.
+        return viz.render_comparison(surface, pred, target, np.asarray(pred) != np.asarray(target), path,
+                                     error_label="wrong label", class_names=class_names,
                                      title=f"{item['name']}: {np.mean(pred == target):.1%} correct")
     return viz.render_comparison(surface, pred, target, np.minimum(error, 1.0), path, error_label="relative error",
-                                 title=f"{item['name']}: MAPE {np.nanmean(error):.3f}", error_max=0.5)
+                                 title=regression_title(item["name"], pred, target, logger), error_max=0.5)
 
 
-def _safe_name(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)[:80]
+def regression_title(name: str, pred, target, logger: logging.Logger | None = None) -> str:
+    """``name: MAPE x`` with the MAPE of ``metrics.json`` (vertices with a zero target left out), and a
+    note (and a warning) when the targets cross or touch zero, where relative errors mean little."""
+    target = np.asarray(target, dtype=np.float64)
+    mape = regression_scores(pred, target)["MAPE"]
+    title = f"{name}: MAPE {mape:.3f}" if np.isfinite(mape) else f"{name}: MAPE undefined (all targets zero)"
+    if target.size and target.min() <= 0 <= target.max():
+        note = ("targets cross zero" if target.min() < 0 < target.max() else "targets touch zero")
+        title += f" ({note}: relative errors are not meaningful)"
+        if logger is not None:
+            logger.warning(f"{name}: {note}; MAPE leaves out the zero targets and is not a meaningful score "
+                           "for such a field (compare RRMSE or MAE)")
+    return title
