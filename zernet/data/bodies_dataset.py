@@ -76,6 +76,7 @@ def load_bodies(
     check_counts(int(count), int(n_test))
     seed = options.seed if body_seed is None else int(body_seed)
     generator = BodyGenerator(topology, poses, seed, options.cache_dir)
+    generator.topology()  # builds the model if needed: a missing extra is reported before any progress bar
     sources, splits = [], {"train": [], "test": []}
     for number in tqdm(range(int(count)), desc=f"bodies ({topology})", unit="body", disable=not options.progress):
         split, index = split_of(number, int(count), int(n_test))

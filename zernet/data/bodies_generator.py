@@ -175,6 +175,7 @@ def generate_bodies(count: int = 100, seed: int = 0, topology: str = "faust", po
     """``count`` bodies named ``body_000`` ...: the first ``count - n_test`` train, the rest test."""
     check_counts(count, n_test)
     generator = BodyGenerator(topology, poses, seed, cache_dir)
+    generator.topology()  # builds the model if needed: a missing extra is reported before any progress bar
     bodies = []
     for number in tqdm(range(count), desc=f"bodies ({topology})", unit="body", disable=not progress):
         split, index = split_of(number, count, n_test)
