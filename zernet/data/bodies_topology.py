@@ -65,8 +65,16 @@ PART_BONES = {
 
 
 def import_anny():
-    """anny, or a DatasetError naming the extra (the only place anny is imported)."""
+    """anny, or a DatasetError naming the extra (the only place anny is imported).
+
+    anny's kernel library (warp) reports its start-up and every kernel load at INFO level: unless the
+    caller chose a level already, only its warnings and errors are shown.
+    """
     try:
+        import warp
+
+        if warp.config.log_level == warp.LOG_INFO:
+            warp.config.log_level = warp.LOG_WARNING
         import anny
     except ImportError as error:
         raise DatasetError(MISSING_EXTRA_MESSAGE) from error
