@@ -83,6 +83,7 @@ rotations), ``bodies_topology`` (shared connectivity, part labels, the only anny
 
 from __future__ import annotations
 
+from zernet.data.bodies_dataset import load_bodies
 from zernet.data.bodies_generator import GENERATOR_VERSION, Body, BodyGenerator, generate_bodies
 from zernet.data.bodies_layout import BodiesLayout, write_bodies
 from zernet.data.bodies_pose import POSE_MODES
@@ -101,4 +102,5 @@ __all__ = [
     "part_of_bone",
     "generate_bodies",
     "write_bodies",
+    "load_bodies",
 ]
