@@ -5,10 +5,10 @@
 
 In one process, on the same inputs and with the same thread count, it measures
 
-1. **Operator build** on a 6,890-vertex body-like surface (a procedural creature from
-   :mod:`zernet.data.synthetic` with FAUST's vertex count, scaled to area 15000; r0 = 5.5, 12000 samples,
-   50 per patch, k = 21, samples within r0/4 left out, centre subtracted — the paper's FAUST settings), and
-   FeaStNet's equivalent (the mesh edge graph).
+1. **Operator build** on a generated human body of FAUST's size (``zernet.data.bodies``, topology ``faust``:
+   6,890 vertices, body 0 of seed 0, varied pose; needs the ``bodies`` extra), scaled to area 15000; r0 = 5.5,
+   12000 samples, 50 per patch, k = 21, samples within r0/4 left out, centre subtracted — the paper's FAUST
+   settings), and FeaStNet's equivalent (the mesh edge graph).
 2. **One training step and one inference pass** with the 6,890-way output (cross-entropy against
    vertex ids, Adam) for zernet at s = 1, 4, 16, the paper's formulation (``paper-zernet``: per-layer
    least squares, s rotated kernel copies) and FeaStNet (``feastnet``, PyTorch Geometric's FeaStConv,
@@ -18,9 +18,13 @@ In one process, on the same inputs and with the same thread count, it measures
    saved operator and edges, runs two steps and reports its peak resident set size (``ru_maxrss``) and
    the part of it added by the model (peak minus the resident size before the model was built).
 4. **Short fixed-budget training runs** through :func:`zernet.training.train` (the training command's own loop,
-   data, splits and metrics): same epochs, same seed for every model, on the built-in synthetic data
-   (segmentation, and curvature regression, both with the recipe of ``configs/demo.yaml``) and, when the aneurysm data exist
-   (``--aneurysm-root``, default ``data/aneurysm``: your copy of the aneurysm data set), on leave-one-out aneurysm cases.
+   data, splits and metrics): same epochs, same seed for every model, on the procedural creatures
+   (segmentation, and curvature regression, both with the recipe of ``configs/creatures.yaml``), on
+   generated bodies (segmentation and correspondence with the recipe of ``configs/demo.yaml``: 40 coarse
+   bodies, ``--bodies-epochs``) and, when the aneurysm data exist (``--aneurysm-root``, default
+   ``data/aneurysm``: your copy of the aneurysm data set), on leave-one-out aneurysm cases.
+
+Tables and plots are drawn by ``benchmarks/report_tables.py``.
 
 It writes ``<out>/report.md`` (tables, ratios to FeaStNet, the issue's targets), ``<out>/report.json``,
 plots ``<out>/report-*.png`` and the training run folders ``<out>/report-runs/<task>/<model>/``
@@ -30,10 +34,8 @@ plots ``<out>/report-*.png`` and the training run folders ``<out>/report-runs/<t
 from __future__ import annotations
 
 import argparse
-import datetime
+import importlib.util
 import json
-import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -42,71 +44,30 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
-import torch_geometric
 import yaml
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.ticker  # noqa: E402
-import matplotlib.pyplot as plt  # noqa: E402
-
-from zernet.data.preprocess import mesh_edge_index  # noqa: E402
-from zernet.data.synthetic import make_creature  # noqa: E402
-from zernet.operators import Geometry  # noqa: E402
-from zernet.nn.models import build_model  # noqa: E402
-from zernet.operators import PatchConfig, PatchOperator, build_patch_operator  # noqa: E402
-from zernet.training import keep_freed_memory, load_checkpoint, train  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
-N_VERTICES = 6890
-WIDTHS = (64, 128, 256, 512)
-BODY_AREA = 15000.0
-BODY_PATCH = dict(r0=5.5, n_samples=12000, patch_size=50, n_max=5, inner_radius=0.25, subtract_center=True)
-BASELINE = "feastnet"
-
-
-# --------------------------------------------------------------------------------------------------------
-# Models compared
-# --------------------------------------------------------------------------------------------------------
-
-
-def timing_models(quick: bool) -> list[dict]:
-    """The models of the timing and memory tables: label, registry name, options."""
-    models = [
-        {"label": "zernet s=1", "name": "zernet", "options": {"angular_resolution": 1}},
-        {"label": "zernet s=4", "name": "zernet", "options": {"angular_resolution": 4}},
-        {"label": "zernet s=16", "name": "zernet", "options": {"angular_resolution": 16}},
-        {"label": "paper-zernet s=4", "name": "paper-zernet", "options": {"angular_resolution": 4}},
-    ]
-    if not quick:
-        models += [
-            {"label": "paper-zernet s=1", "name": "paper-zernet", "options": {"angular_resolution": 1}},
-            {"label": "paper-zernet s=16", "name": "paper-zernet", "options": {"angular_resolution": 16}},
-            {"label": "feastnet 32-64-128-256", "name": "feastnet", "options": {"widths": [32, 64, 128, 256]}},
-        ]
-    models.append({"label": "feastnet", "name": "feastnet", "options": {}})
-    for model in models:
-        model["options"].setdefault("widths", list(WIDTHS))
-    return models
-
-
-def training_models(angular_resolution: int) -> list[dict]:
-    """The models of the training runs: zernet, the paper's formulation, FeaStNet.
-
-    Widths come from the task (``widths`` unset), identical for the three. zernet and the paper's
-    formulation use the same ``s`` (``--train-s``, default 4: the paper formulation's cost grows with s),
-    so with the same seed they learn the same function (to rounding): the paper row shows what the
-    per-layer fit and the s rotated copies cost in training time.
-    """
-    s = int(angular_resolution)
-    return [
-        {"label": "zernet", "name": "zernet", "options": {"angular_resolution": s}},
-        {"label": "paper-zernet", "name": "paper-zernet", "options": {"angular_resolution": s}},
-        {"label": "feastnet", "name": "feastnet", "options": {}},
-    ]
+from report_tables import (
+    BODY_AREA,
+    BODY_PATCH,
+    ROOT,
+    check_targets,
+    environment,
+    load_average,
+    plain,
+    plot_memory,
+    plot_times,
+    plot_training,
+    timing_models,
+    training_models,
+    write_report,
+)
+from zernet.data.bodies import BodyGenerator
+from zernet.data.preprocess import mesh_edge_index
+from zernet.geometry import normalize_area
+from zernet.nn.models import build_model
+from zernet.operators import Geometry, PatchConfig, PatchOperator, build_patch_operator
+from zernet.training import keep_freed_memory, load_checkpoint, train
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -114,16 +75,20 @@ def training_models(angular_resolution: int) -> list[dict]:
 # --------------------------------------------------------------------------------------------------------
 
 
-def body_surface():
-    """The 6,890-vertex body-like test surface at area 15000 (a closed procedural creature)."""
-    surface, _, _ = make_creature(seed=6890, n_vertices=N_VERTICES, rotate=False, area=BODY_AREA)
-    surface.name = f"creature-{N_VERTICES}"
+def body_surface(cache_dir: str):
+    """The timing surface: a generated posed body of the FAUST-sized topology (6,890 vertices), at area 15000.
+
+    Body 0 of seed 0, poses "varied" (``zernet.data.bodies``), cached under ``cache_dir``.
+    """
+    body = BodyGenerator("faust", "varied", seed=0, cache_dir=cache_dir).body(0)
+    surface, _ = normalize_area(body.surface(), BODY_AREA)
+    surface.name = f"generated body ({surface.n_vertices} vertices)"
     return surface
 
 
-def build_inputs(workdir: Path) -> tuple[dict, dict]:
+def build_inputs(workdir: Path, cache_dir: str) -> tuple[dict, dict]:
     """Surface, operator and edges for the timing runs; returns (inputs, build timings)."""
-    surface = body_surface()
+    surface = body_surface(cache_dir)
     started = time.perf_counter()
     operator = build_patch_operator(surface, PatchConfig(**BODY_PATCH), cache_dir=None)
     operator_seconds = time.perf_counter() - started
@@ -134,8 +99,8 @@ def build_inputs(workdir: Path) -> tuple[dict, dict]:
     operator_path = workdir / "operator.npz"
     operator.save(operator_path)
     edges_path = workdir / "edges.pt"
-    torch.save(edge_index, edges_path)
     features = torch.as_tensor(surface.vertices - surface.vertices.mean(axis=0), dtype=torch.float32)
+    torch.save({"edge_index": edge_index, "features": features}, edges_path)
     inputs = {
         "surface": surface,
         "features": features,
@@ -255,10 +220,9 @@ def probe_memory(spec_json: str, operator_path: str, edges_path: str, threads: i
     torch.set_num_threads(threads)
     spec = json.loads(spec_json)
     operator = PatchOperator.load(operator_path)
-    edge_index = torch.load(edges_path, weights_only=True)
-    surface = body_surface()
-    x = torch.as_tensor(surface.vertices - surface.vertices.mean(axis=0), dtype=torch.float32)
-    target = torch.arange(surface.n_vertices)
+    saved = torch.load(edges_path, weights_only=True)
+    edge_index, x = saved["edge_index"], saved["features"]
+    target = torch.arange(len(x))
     geometry = Geometry(operators=[operator], edge_index=edge_index)
     scoped = _reset_peak() and _status_bytes("VmHWM") is not None
     before = _status_bytes("VmRSS") or _maxrss_bytes()
@@ -290,20 +254,42 @@ def measure_memory(specs: list[dict], inputs: dict, threads: int) -> dict:
 # --------------------------------------------------------------------------------------------------------
 
 
+def _recipe_task(recipe: dict, task: str, epochs: int) -> dict:
+    """A training configuration with a shipped recipe's data (``task`` set), patch, widths, dropout, lr."""
+    return {"data": {**recipe["data"], "task": task}, "patch": recipe["patch"],
+            "model": {"widths": recipe["model"]["widths"], "dropout": recipe["model"]["dropout"]},
+            "train": {"epochs": epochs, "lr": recipe["train"]["lr"]}}
+
+
 def training_tasks(args) -> list[dict]:
-    """The data sets of the training runs, as (partial) training configurations."""
-    epochs = args.epochs
-    # The built-in tasks use the demo's recipe (configs/demo.yaml: 30 creatures, xyz + normals, its patch,
-    # widths and learning rate) for every model, so each model meets a task it can learn in a few epochs.
-    demo = yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())
+    """The data sets of the training runs, as (partial) training configurations.
+
+    Each built-in task uses a shipped recipe for every model, so each model meets a task it can learn in a
+    few epochs: the creatures (configs/creatures.yaml: 30 creatures, xyz + normals) for ``--epochs``, the
+    generated bodies (configs/demo.yaml: 40 coarse-615 bodies, segmentation and correspondence) for
+    ``--bodies-epochs`` (skipped at 0 or without the bodies extra), then the aneurysm cases.
+    """
+    creatures = yaml.safe_load((ROOT / "configs" / "creatures.yaml").read_text())
     tasks = []
     for name, slug, metric, higher in (("segmentation", "synthetic-segmentation", "accuracy", True),
                                        ("regression", "synthetic-curvature", "MAPE", False)):
-        config = {"data": {**demo["data"], "task": name}, "patch": demo["patch"],
-                  "model": {"widths": demo["model"]["widths"], "dropout": demo["model"]["dropout"]},
-                  "train": {"epochs": epochs, "lr": demo["train"]["lr"]}}
         label = "synthetic segmentation" if name == "segmentation" else "synthetic curvature regression"
-        tasks.append({"task": label, "slug": slug, "metric": metric, "higher": higher, "config": config})
+        tasks.append({"task": label, "slug": slug, "metric": metric, "higher": higher,
+                      "config": _recipe_task(creatures, name, args.epochs)})
+    if args.bodies_epochs and importlib.util.find_spec("anny") is not None:
+        bodies = yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())
+        for name in ("segmentation", "correspondence"):
+            tasks.append({"task": f"bodies {name} ({bodies['data']['count']} {bodies['data']['topology']} bodies)",
+                          "slug": f"bodies-{name}", "metric": "accuracy", "higher": True,
+                          "config": _recipe_task(bodies, name, args.bodies_epochs)})
+    elif args.bodies_epochs:
+        print("  bodies runs skipped: the bodies extra (anny) is not installed", flush=True)
+    return tasks + aneurysm_tasks(args)
+
+
+def aneurysm_tasks(args) -> list[dict]:
+    """Leave-one-out aneurysm cases (``--aneurysm-cases``) when the data exist under ``--aneurysm-root``."""
+    tasks = []
     root = Path(args.aneurysm_root)
     if not root.is_absolute():
         root = (ROOT / root).resolve()
@@ -330,13 +316,6 @@ def training_tasks(args) -> list[dict]:
                           # FeaStNet keeps its own setting of no weight decay.
                           "train_overrides": {"feastnet": {"weight_decay": 0.0}}})
     return tasks
-
-
-def _aneurysm_recipe_summary() -> str:
-    """One line naming the shipped aneurysm recipe's model, for the report's text."""
-    model = yaml.safe_load((ROOT / "configs" / "aneurysm_regression.yaml").read_text())["model"]
-    options = ", ".join(f"{key} {value}" for key, value in model.items() if key != "name")
-    return f"{model['name']}, {options}"
 
 
 def run_training(tasks: list[dict], models: list[dict], out: Path, threads: int, cache_dir: str) -> dict:
@@ -382,268 +361,19 @@ def run_training(tasks: list[dict], models: list[dict], out: Path, threads: int,
     return results
 
 
-# --------------------------------------------------------------------------------------------------------
-# Report
-# --------------------------------------------------------------------------------------------------------
 
-
-def _fmt(value, digits=3) -> str:
-    if value is None:
-        return "—"
-    if isinstance(value, float):
-        if value != 0 and (abs(value) < 1e-2 or abs(value) >= 1e4):
-            return f"{value:.{digits}g}"
-        return f"{value:.{digits}f}"
-    return str(value)
-
-
-def _mib(value) -> str:
-    return "—" if value is None else f"{value / 2**20:,.0f}"
-
-
-def plot_times(times: dict, path: Path) -> None:
-    labels = list(times)
-    step = [times[label]["step_seconds"] for label in labels]
-    infer = [times[label]["inference_seconds"] for label in labels]
-    y = np.arange(len(labels))
-    fig, ax = plt.subplots(figsize=(8, 0.5 * len(labels) + 1.5))
-    ax.barh(y - 0.2, step, height=0.4, label="training step")
-    ax.barh(y + 0.2, infer, height=0.4, label="inference pass")
-    ax.set_yticks(y, labels)
-    ax.invert_yaxis()
-    ax.set_xscale("log")
-    ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
-    ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
-    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-    ax.set_xlabel("seconds (median, log scale)")
-    ax.set_title(f"{N_VERTICES}-vertex surface, {N_VERTICES}-way output, widths {'-'.join(map(str, WIDTHS))}")
-    ax.legend(loc="lower right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def plot_memory(memory: dict, path: Path) -> None:
-    labels = [label for label in memory if "peak_bytes" in memory[label]]
-    if not labels:
-        return
-    y = np.arange(len(labels))
-    fig, ax = plt.subplots(figsize=(8, 0.5 * len(labels) + 1.5))
-    ax.barh(y - 0.2, [memory[label]["peak_bytes"] / 2**20 for label in labels], height=0.4, label="peak RSS")
-    ax.barh(y + 0.2, [memory[label]["model_bytes"] / 2**20 for label in labels], height=0.4,
-            label="added by the model and its training step")
-    ax.set_yticks(y, labels)
-    ax.invert_yaxis()
-    ax.set_xlabel("MiB")
-    ax.legend(loc="lower right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def plot_training(task: dict, runs: dict, path: Path) -> None:
-    key = "val_accuracy" if task["higher"] else "val_loss"
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    for label, run in runs.items():
-        history = run.get("history") or []
-        if not history:
-            continue
-        epochs = [entry["epoch"] for entry in history]
-        elapsed = np.cumsum([entry["seconds"] for entry in history])
-        values = [entry.get(key) for entry in history]
-        axes[0].plot(epochs, values, marker="o", label=label)
-        axes[1].plot(elapsed, values, marker="o", label=label)
-    axes[0].set_xlabel("epoch")
-    axes[1].set_xlabel("training seconds")
-    for ax in axes:
-        ax.set_ylabel(key.replace("_", " "))
-        ax.grid(alpha=0.3)
-    axes[0].legend()
-    fig.suptitle(task["task"])
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def write_report(out: Path, results: dict, args) -> Path:
-    lines = ["# zernet vs the paper's formulation vs FeaStNet", ""]
-    env = results["environment"]
-    lines += [
-        f"Generated {env['date']} by `{results['command']}` "
-        f"(commit `{env['commit']}`), torch {env['torch']}, torch_geometric {env['torch_geometric']}, "
-        f"{env['threads']} CPU thread(s) on {env['machine']} ({env['cpus']} logical CPUs), float32.",
-        "All measurements in one process on the same inputs; memory in one child process per model.",
-        f"Load average (1, 5, 15 min) at the start: {env.get('load_average_start')}, at the end: "
-        f"{env.get('load_average_end')}. Other processes on the machine slow every model, multi-threaded "
-        "ones most: compare ratios within one report, and rerun on an idle machine for absolute times.",
-        "",
-    ]
-    builds = results.get("builds")
-    times = results.get("times", {})
-    if builds:
-        lines += [
-            "## Inputs and preprocessing",
-            "",
-            f"Body-like closed surface (procedural creature): {builds['n_vertices']:,} vertices, "
-            f"{builds['n_faces']:,} faces, area {builds['area']:.0f}; patch settings "
-            + ", ".join(f"{k} = {v}" for k, v in BODY_PATCH.items()) + ".",
-            "",
-            "| what | seconds | notes |",
-            "|---|---:|---|",
-            f"| zernet patch operator (polar coordinates, fit, sparse matrix) | {builds['operator_seconds']:.2f} | "
-            f"{builds['operator_nnz']:,} non-zeros, {builds['operator_nnz_per_row']:.1f} per row; used by zernet "
-            "and by paper-zernet (which re-fits from its patch data every layer and step) |",
-            f"| FeaStNet graph (mesh edges) | {builds['edges_seconds']:.3f} | {builds['n_edges']:,} edges |",
-            "",
-        ]
-    if times:
-        base = times.get(BASELINE)
-        lines += [
-            f"## Training step and inference, {N_VERTICES}-way output",
-            "",
-            f"Widths {'-'.join(map(str, WIDTHS))} unless the name says otherwise; cross-entropy against vertex ids, "
-            f"Adam; median of {args.rounds} rounds after one warm-up (models interleaved).",
-            "",
-            "| model | parameters | training step (s) | × FeaStNet | inference (s) | × FeaStNet |",
-            "|---|---:|---:|---:|---:|---:|",
-        ]
-        for label, t in times.items():
-            ratio_s = t["step_seconds"] / base["step_seconds"] if base else None
-            ratio_i = t["inference_seconds"] / base["inference_seconds"] if base else None
-            lines.append(f"| {label} | {t['parameters']:,} | {t['step_seconds']:.3f} | {_fmt(ratio_s, 2)} | "
-                         f"{t['inference_seconds']:.3f} | {_fmt(ratio_i, 2)} |")
-        lines += ["", "![step and inference times](report-times.png)", ""]
-    memory = results.get("memory", {})
-    if memory:
-        lines += [
-            "## Peak memory of a training step",
-            "",
-            "Child process per model: load the saved operator and edges, reset the peak counter, build the model, "
-            "two training steps. 'Peak' is the resident-set peak from the reset on (Linux `VmHWM` after "
-            "`/proc/self/clear_refs`; the process-lifetime `ru_maxrss` where unsupported); 'added' is that peak "
-            "minus the resident size just before the model was built (inputs excluded).",
-            "",
-            "| model | peak RSS (MiB) | added (MiB) | added × FeaStNet |",
-            "|---|---:|---:|---:|",
-        ]
-        base = memory.get(BASELINE, {}).get("model_bytes")
-        for label, m in memory.items():
-            if "error" in m:
-                lines.append(f"| {label} | failed: {m['error']} | | |")
-                continue
-            ratio = m["model_bytes"] / base if base else None
-            lines.append(f"| {label} | {_mib(m['peak_bytes'])} | {_mib(m['model_bytes'])} | {_fmt(ratio, 2)} |")
-        lines += ["", "![peak memory](report-memory.png)", ""]
-    training = results.get("training", {})
-    if training:
-        lines += [
-            "## Fixed-budget training runs",
-            "",
-            f"`zernet.training.train` (the training command's loop, data, splits and metrics); every model with the same "
-            f"epochs, seed 0, no early stopping; the test metric of the epoch chosen on validation. Synthetic "
-            f"tasks ({args.epochs} epochs): the recipe of configs/demo.yaml for every model, s = {args.train_s} for "
-            f"zernet and paper-zernet. Aneurysm ({args.aneurysm_epochs} epochs): zernet runs the shipped recipe "
-            f"(configs/aneurysm_regression.yaml: {_aneurysm_recipe_summary()}), FeaStNet (its own Lin16 input "
-            f"layer) the same widths, input features and "
-            f"training settings except weight decay (none: with the recipe's coupled L2 of 1e-3 beside the L1 loss "
-            f"its weights decay to zero and it predicts a constant); the paper's formulation is left out there (it learns zernet's function at "
-            f"several times the cost).",
-            "",
-        ]
-        for task in results["tasks"]:
-            runs = training.get(task["slug"], {})
-            if not runs:
-                continue
-            metric = task["metric"]
-            base = runs.get(BASELINE, {}).get("summary", {}).get(metric)
-            base_time = runs.get(BASELINE, {}).get("train_seconds")
-            lines += [f"### {task['task']}", "",
-                      f"| model | test {metric} ({'higher' if task['higher'] else 'lower'} is better) | "
-                      f"× FeaStNet | epochs | best epoch | training seconds | × FeaStNet |",
-                      "|---|---:|---:|---:|---:|---:|---:|"]
-            for label, run in runs.items():
-                if "error" in run:
-                    lines.append(f"| {label} | failed: {run['error']} | | | | | |")
-                    continue
-                value = run["summary"].get(metric)
-                ratio = value / base if (value is not None and base) else None
-                ratio_t = run["train_seconds"] / base_time if base_time else None
-                lines.append(f"| {label} | {_fmt(value, 4)} | {_fmt(ratio, 2)} | {run['epochs']} | "
-                             f"{run['best_epoch']} | {_fmt(run['train_seconds'], 1)} | {_fmt(ratio_t, 2)} |")
-            baseline = next((run.get("baseline") for run in runs.values() if run.get("baseline")), None)
-            if baseline:
-                lines.append("")
-                lines.append("Reference: " + ", ".join(f"{k} {_fmt(v, 4)}" for k, v in baseline.items()) + ".")
-            lines += ["", f"![{task['task']}](report-training-{task['slug']}.png)", ""]
-    lines += ["## Targets of issue 5", ""]
-    for line in results.get("targets", []):
-        lines.append(f"- {line}")
-    lines.append("")
-    path = out / "report.md"
-    path.write_text("\n".join(lines), encoding="utf-8")
-    return path
-
-
-def check_targets(results: dict) -> list[str]:
-    lines = []
-    times = results.get("times", {})
-    if "zernet s=4" in times and BASELINE in times:
-        ratio = times["zernet s=4"]["step_seconds"] / times[BASELINE]["step_seconds"]
-        verdict = "met" if ratio <= 0.8 else "NOT met"
-        lines.append(f"zernet s=4 training step = {ratio:.2f} × FeaStNet's at widths {'-'.join(map(str, WIDTHS))} "
-                     f"(target <= 0.80): **{verdict}**.")
-    for task in results.get("tasks", []):
-        runs = results.get("training", {}).get(task["slug"], {})
-        ours = runs.get("zernet", {}).get("summary", {}).get(task["metric"])
-        theirs = runs.get(BASELINE, {}).get("summary", {}).get(task["metric"])
-        if ours is None or theirs is None:
-            continue
-        better = ours > theirs if task["higher"] else ours < theirs
-        lines.append(f"{task['task']}: zernet {task['metric']} {ours:.4f} vs FeaStNet {theirs:.4f} at equal epochs: "
-                     f"**{'zernet better' if better else 'zernet NOT better'}**.")
-    return lines
-
-
-def environment(threads: int) -> dict:
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=ROOT).stdout.strip() or "unknown"
-    except OSError:
-        commit = "unknown"
-    return {"date": datetime.datetime.now().isoformat(timespec="seconds"), "commit": commit,
-            "torch": torch.__version__, "torch_geometric": torch_geometric.__version__, "threads": threads,
-            "machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),
-            "load_average_start": _load_average()}
-
-
-def _load_average() -> list[float] | None:
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except (AttributeError, OSError):
-        return None
-
-
-def _plain(value):
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true",
-                        help="fewer models and rounds, 2-epoch training, one aneurysm case with 1 epoch")
+                        help="fewer models and rounds, 2-epoch training (bodies too), one aneurysm case with 1 epoch")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"), help="output folder")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     parser.add_argument("--rounds", type=int, default=None, help="timing rounds (default 5, quick 2)")
     parser.add_argument("--epochs", type=int, default=None, help="synthetic training epochs (default 15, quick 2)")
+    parser.add_argument("--bodies-epochs", type=int, default=None,
+                        help="epochs of the bodies segmentation and correspondence runs (default 12, quick 2; "
+                             "0: none)")
     parser.add_argument("--aneurysm-root", default="data/aneurysm",
                         help="folder of the aneurysm .mat files (skipped when missing)")
     parser.add_argument("--aneurysm-cases", default=None,
@@ -657,7 +387,11 @@ def main(argv=None) -> int:
     parser.add_argument("--probe-memory", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--operator", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--edges", default=None, help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
 
     if args.probe_memory:
         probe_memory(args.probe_memory, args.operator, args.edges, args.threads)
@@ -665,6 +399,8 @@ def main(argv=None) -> int:
 
     args.rounds = args.rounds or (2 if args.quick else 5)
     args.epochs = args.epochs or (2 if args.quick else 15)
+    if args.bodies_epochs is None:
+        args.bodies_epochs = 2 if args.quick else 12
     args.aneurysm_epochs = args.aneurysm_epochs or (1 if args.quick else 10)
     if args.aneurysm_cases is None:
         args.aneurysm_cases = "TP_Ia105I" if args.quick else "TP_Ia105I,TP_Ia166I"
@@ -679,8 +415,8 @@ def main(argv=None) -> int:
     specs = timing_models(args.quick)
     with tempfile.TemporaryDirectory(prefix="zernet-report-") as workdir:
         if not {"timing", "memory"} <= skip:
-            print("building the operator of the 6,890-vertex surface", flush=True)
-            inputs, results["builds"] = build_inputs(Path(workdir))
+            print("building the operator of the 6,890-vertex generated body", flush=True)
+            inputs, results["builds"] = build_inputs(Path(workdir), args.cache_dir)
             print(f"  {results['builds']['operator_seconds']:.1f} s", flush=True)
             if "timing" not in skip:
                 print("timing training steps and inference passes", flush=True)
@@ -697,9 +433,9 @@ def main(argv=None) -> int:
         results["training"] = run_training(tasks, training_models(args.train_s), out, args.threads, args.cache_dir)
         for task in tasks:
             plot_training(task, results["training"].get(task["slug"], {}), out / f"report-training-{task['slug']}.png")
-    results["environment"]["load_average_end"] = _load_average()
+    results["environment"]["load_average_end"] = load_average()
     results["targets"] = check_targets(results)
-    (out / "report.json").write_text(json.dumps(_plain(results), indent=1), encoding="utf-8")
+    (out / "report.json").write_text(json.dumps(plain(results), indent=1), encoding="utf-8")
     path = write_report(out, results, args)
     print(f"wrote {path}")
     for line in results["targets"]:

@@ -120,6 +120,22 @@ def test_demo_yaml_matches_the_built_in_demo():
     assert yaml.safe_load((REPO / "configs" / "demo.yaml").read_text()) == DEMO_CONFIG
 
 
+def test_demo_runs_end_to_end_on_a_few_tiny_bodies(tmp_path, capsys):
+    """The demo's own configuration (bodies kind, segmentation), shrunk to 5 coarse bodies and one epoch."""
+    pytest.importorskip("anny")
+    run_dir = tmp_path / "demo"
+    assert main(["demo", "--run-dir", str(run_dir), "--no-progress", "--workers", "0", "--set",
+                 "data.count=5", "data.n_test=2", "data.val_count=1", "data.topology=coarse-369",
+                 "patch.scales.0.n_samples=600", "patch.scales.0.patch_size=20", "patch.scales.0.r0=8",
+                 "train.epochs=1", "eval.renders=1", f"cache_dir={tmp_path / 'cache'}"]) == 0
+    out = capsys.readouterr().out
+    assert "test metrics (2 shapes" in out and "majority_class_accuracy" in out
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["n_shapes"] == 2 and 0.0 <= metrics["summary"]["accuracy"] <= 1.0
+    assert any(str(plot).endswith("body_003.png") for plot in metrics["plots"])
+    assert yaml.safe_load((run_dir / "config.yaml").read_text())["data"]["kind"] == "bodies"
+
+
 def test_shipped_configs_are_valid():
     for path in sorted((REPO / "configs").glob("*.yaml")):
         resolve_config(load_config(path))

@@ -1,28 +1,31 @@
 """Generated human bodies (zernet.data.bodies): shared topology, part labels, seeds, layouts the loaders read.
 
-Tiny coarse bodies (369 vertices) keep this to seconds once anny's own model cache exists.
+Tiny coarse bodies (369 vertices) keep this to seconds once anny's own model cache exists. Tests that need
+anny are skipped without it; the message naming the extra is tested either way.
 """
 
+import importlib.util
 import sys
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
-pytest.importorskip("anny")
-
-from zernet.data import DatasetError  # noqa: E402
-from zernet.data.bodies import (  # noqa: E402
+from zernet.cli import main
+from zernet.data import DatasetError
+from zernet.data.bodies import (
     MISSING_EXTRA_MESSAGE,
     BodyGenerator,
     generate_bodies,
     part_of_bone,
     write_bodies,
 )
-from zernet.data.faust import load_faust  # noqa: E402
-from zernet.data.options import LoaderOptions  # noqa: E402
-from zernet.data.segmentation import HUMAN_PART_NAMES, load_segmentation, read_labels  # noqa: E402
-from zernet.operators import PatchConfig  # noqa: E402
-from zernet.geometry import Surface, load_surface, validate_surface  # noqa: E402
+from zernet.data.bodies_pose import JOINTS, bone_rotations, rotation_matrix
+from zernet.data.faust import load_faust
+from zernet.data.options import LoaderOptions
+from zernet.data.segmentation import HUMAN_PART_NAMES, load_segmentation, read_labels
+from zernet.operators import PatchConfig
+from zernet.geometry import Surface, load_surface, validate_surface
 
 COARSE = "coarse-369"
 CONFIGS = [PatchConfig(r0=20.0, n_samples=800, patch_size=20, n_max=2)]
@@ -30,6 +33,8 @@ CONFIGS = [PatchConfig(r0=20.0, n_samples=800, patch_size=20, n_max=2)]
 
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory):
+    if importlib.util.find_spec("anny") is None:
+        pytest.skip("needs the bodies extra (anny)")
     return tmp_path_factory.mktemp("bodies-cache")
 
 
@@ -77,6 +82,51 @@ def test_left_and_right_have_equal_counts_on_the_rest_pose(cache):
     assert left_x > 0.1 and right_x == pytest.approx(-left_x, rel=0.05)
 
 
+def _mirror_partner(vertices: np.ndarray) -> tuple[np.ndarray, float]:
+    """(index of each vertex's mirror image x -> -x, largest distance to it relative to the body's height)."""
+    distance, partner = cKDTree(vertices).query(vertices * [-1.0, 1.0, 1.0])
+    return partner, float(distance.max() / np.ptp(vertices[:, 1]))
+
+
+def test_a_mirror_symmetric_pose_gives_a_mirror_symmetric_body_with_mirrored_labels(cache):
+    """Same angles on both sides (and none on the midline): the body is its own mirror image, and each
+    vertex's mirror partner has the same part on the other side — the pose code turns left and right alike."""
+    generator = BodyGenerator(COARSE, "varied", seed=0, cache_dir=cache)
+    topology = generator.topology()
+    symmetric = {}
+    for group, bone, _, _, low, high in JOINTS:
+        if "{side}" in bone:
+            angle = low + 0.7 * (high - low)
+            symmetric.update({f"{group}|{bone.format(side=side)}": angle for side in ("L", "R")})
+    phenotype, _ = generator.draws(0)
+    posed = topology.place(generator.pose_model(phenotype, symmetric))  # anny's frame: left is +x
+    rest = topology.place(generator.pose_model(phenotype, {}))
+    assert np.abs(posed - rest).max() > 0.05  # the pose does move the limbs
+    partner, gap = _mirror_partner(posed)
+    assert gap < 1e-3
+    np.testing.assert_array_equal(partner[partner], np.arange(len(partner)))  # an involution
+    np.testing.assert_array_equal(topology.parts[partner], topology.parts)
+    np.testing.assert_array_equal(topology.sides[partner], -topology.sides)
+    # An asymmetric pose (one elbow only) breaks the symmetry: the test can fail.
+    one_elbow = {key: value for key, value in symmetric.items() if key != "elbow|lowerarm01.R"}
+    assert _mirror_partner(topology.place(generator.pose_model(phenotype, one_elbow)))[1] > 0.01
+
+
+def test_toward_rotations_move_the_far_end_toward_the_direction():
+    """Analytic: a segment along +x (the left upper arm) raised by 30 degrees toward up (+z)."""
+    bones = ["upperarm01.L", "lowerarm01.L", "upperarm01.R", "lowerarm01.R"]
+    heads = np.array([[0.2, 0.0, 1.4], [0.5, 0.0, 1.4], [-0.2, 0.0, 1.4], [-0.5, 0.0, 1.4]])
+    deltas = bone_rotations(bones, heads, {"shoulder raise|upperarm01.L": 30.0, "shoulder raise|upperarm01.R": 30.0,
+                                           "hip spread|upperleg01.L": 0.0})
+    assert set(deltas) == {"upperarm01.L", "upperarm01.R"}
+    for bone, sign in (("upperarm01.L", 1.0), ("upperarm01.R", -1.0)):
+        turned = deltas[bone][:3, :3] @ np.array([sign, 0.0, 0.0])
+        np.testing.assert_allclose(turned, [sign * np.cos(np.radians(30)), 0.0, np.sin(np.radians(30))], atol=1e-12)
+    rotation = rotation_matrix(np.array([0.0, 0.0, 1.0]), 90.0)
+    np.testing.assert_allclose(rotation[:3, :3] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(rotation[:3, :3] @ rotation[:3, :3].T, np.eye(3), atol=1e-12)
+
+
 def test_same_seed_same_bodies_other_seed_other_bodies(cache, tmp_path, varied):
     again = generate_bodies(count=6, seed=0, topology=COARSE, poses="varied", n_test=2, cache_dir=tmp_path)
     for first, second in zip(varied, again):  # a fresh cache: generated again, identically
@@ -105,6 +155,14 @@ def test_missing_anny_names_the_extra(monkeypatch, tmp_path):
     with pytest.raises(DatasetError, match=r"optional dependency anny: pip install 'zernet\[bodies\]'"):
         generator.body(0)
     assert "zernet[bodies]" in MISSING_EXTRA_MESSAGE
+
+
+def test_missing_anny_is_one_line_naming_the_extra_from_the_command(monkeypatch, tmp_path, capsys):
+    monkeypatch.setitem(sys.modules, "anny", None)
+    assert main(["bodies", str(tmp_path / "out"), "--count", "2", "--n-test", "1", "--topology", COARSE,
+                 "--cache-dir", str(tmp_path / "cache")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "pip install 'zernet[bodies]'" in err and "Traceback" not in err
 
 
 def test_bad_arguments_are_named(cache):

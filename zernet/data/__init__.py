@@ -18,15 +18,18 @@ arguments particular to the kind's loader (:data:`DATASET_KINDS`):
   n_vertices, area.
 - ``"segmentation"``: :func:`~zernet.data.segmentation.load_segmentation` — meshes (required), labels,
   num_classes, class_names, label_base, label_kind, test, test_fraction, area.
+- ``"bodies"``: :func:`~zernet.data.bodies_dataset.load_bodies` — generated human bodies (extra
+  ``zernet[bodies]``), no files written: task ("segmentation" | "correspondence"), count, n_test, topology,
+  poses, body_seed, area.
 - ``"aneurysm"``: :func:`~zernet.data.regression.load_aneurysm` — root (required), field, test, area.
 - ``"regression"``: :func:`~zernet.data.regression.load_regression` — root (required), field,
   target_exponent, test, test_fraction, area.
 
 Without ``options``, every shared option is also accepted as a keyword, together with ``val_fraction``
 (default 0.1) and ``val_count`` (a count, overrides ``val_fraction``) for ``n_val``, and ``area=None`` then
-means the kind's default area (FAUST/segmentation 15000, aneurysm 100, synthetic 1000; the generic
-regression default keeps the files' scale) — the interface the run configuration uses. An argument the
-kind does not take raises TypeError naming it and listing what the kind takes.
+means the kind's default area (FAUST/segmentation/bodies 15000, aneurysm 100, synthetic 1000; the generic
+regression default keeps the files' scale) — the interface the run configuration uses. An argument the kind
+does not take raises TypeError naming it and listing what the kind takes.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ import inspect
 import warnings
 from collections.abc import Callable
 
+from zernet.data.bodies_dataset import load_bodies
 from zernet.data.dataset import DatasetError, ShapeDataset, ShapeRecord, carve_validation
 from zernet.data.faust import load_faust
 from zernet.data.features import FEATURE_PARTS, compute_features, default_features
@@ -72,6 +76,7 @@ LOADERS: dict[str, Callable[..., ShapeDataset]] = {
     "synthetic-curvature": make_synthetic_dataset,
     "faust": load_faust,
     "segmentation": load_segmentation,
+    "bodies": load_bodies,
     "aneurysm": load_aneurysm,
     "regression": load_regression,
 }

@@ -1,4 +1,4 @@
-"""The built-in data set: procedural "creatures" (no download), for ``zernet demo`` and the tests.
+"""Procedural "creatures" (no download, no optional dependency): the tests' shapes and ``configs/creatures.yaml``.
 
 A creature is a closed surface: an ellipsoidal body with a few randomly placed parts of three kinds,
 
