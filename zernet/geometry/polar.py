@@ -62,9 +62,12 @@ from zernet.geometry.polar_fast import fast_polar
 from zernet.geometry.sampling import SurfaceSamples
 from zernet.geometry.surface import Surface
 
-__all__ = ["PolarCoordinates", "tangent_frames", "compute_polar", "transport_angles", "wrap_angle", "BACKENDS"]
+__all__ = ["PolarCoordinates", "tangent_frames", "compute_polar", "transport_angles", "wrap_angle", "BACKENDS",
+           "BACKEND_VERSIONS", "resolve_backend"]
 
 BACKENDS = ("fast", "accurate", "front")
+#: Bumped when a backend's output changes, so cached operators built from the old output are rebuilt.
+BACKEND_VERSIONS = {"fast": 1, "accurate": 1, "front": 2}
 
 # A neighbour defines e1 only if its offset is mostly tangential (|tangent part| / |offset| above this).
 _FRAME_MIN_TANGENTIAL = 0.5
@@ -196,11 +199,19 @@ def wrap_angle(angle: np.ndarray) -> np.ndarray:
 
 
 # ====================================================================== entry point
+def resolve_backend(surface: Surface, backend: str | None) -> str:
+    """The backend used on ``surface``: ``backend``, or for ``None`` ``"front"`` on a mesh (surface
+    distances) and ``"fast"`` on a point cloud (the front needs triangles)."""
+    if backend is not None:
+        return backend
+    return "fast" if surface.is_point_cloud else "front"
+
+
 def compute_polar(
     surface: Surface,
     samples: SurfaceSamples,
     r0: float,
-    backend: str = "fast",
+    backend: str | None = None,
     n_jobs: int | None = None,
 ) -> PolarCoordinates:
     """Geodesic polar coordinates of the samples within ``r0`` of every vertex.
@@ -209,7 +220,8 @@ def compute_polar(
         surface: mesh or point cloud, N vertices.
         samples: M samples on it (:func:`zernet.geometry.sample_surface`).
         r0: patch radius (absolute units), > 0.
-        backend: ``"fast"``, ``"accurate"`` or ``"front"`` (see the module docstring).
+        backend: ``"fast"``, ``"accurate"``, ``"front"`` (see the module docstring) or ``None``
+            (:func:`resolve_backend`: front for a mesh, fast for a point cloud).
         n_jobs: worker processes for ``"accurate"`` (``None``: all available cores; ``1``: in this
             process). Ignored by ``"fast"``.
 
@@ -218,6 +230,7 @@ def compute_polar(
     """
     if not r0 > 0:
         raise ValueError(f"r0 must be positive, got {r0}")
+    backend = resolve_backend(surface, backend)
     if backend not in BACKENDS:
         raise ValueError(f"unknown polar backend {backend!r}; choose one of {BACKENDS}")
     if surface.is_point_cloud and samples.n_samples != surface.n_vertices:

@@ -1,0 +1,78 @@
+"""The least-squares fit of Zernike coefficients to the samples of each patch: a degree-weighted ridge.
+
+For vertex ``p`` with ``n_p`` patch samples at normalised polar coordinates ``(r_j, θ_j)`` and Zernike
+values ``B_p`` (``n_p × k``), the fit matrix is
+
+    ``P_p = (B_pᵀ B_p + λ W)⁻¹ B_pᵀ``,   ``W = diag(w_j)``,  ``w_j = n_j (n_j + 2) / (n_max (n_max + 2))``,
+
+where ``n_j`` is the radial degree of basis ``j`` (the eigenvalue of the disk Laplacian grows like
+``n (n + 2)``, so the penalty is a smoothness prior, 0 for the piston and 1 at the highest degree).
+
+Why degree weights: a plain ridge ``λ I`` shrinks every coefficient, the piston included, so a constant
+field comes out low by about ``λ / eigenvalue`` — a bias that grows where a patch covers less of the disk.
+With ``w_0 = 0`` a constant field is fitted exactly on every non-empty patch (``W a = 0`` for a pure
+piston, so ``P_p B_p a = a``): its piston is exact and every other coefficient 0, whatever the coverage.
+``B_pᵀB_p + λW`` is still positive definite for any non-empty patch (the piston column of ``B_p`` is a
+non-zero constant), so truncated boundary patches stay well-posed: the modes the samples cannot see
+(eigenvalues ≪ λ) shrink to 0 instead of exploding, the least-squares counterpart of the paper's zero
+padding. A vertex with no sample gets all-zero rows.
+
+λ is one absolute number per surface: ``λ = ridge · median_p(trace(B_pᵀB_p) / k)``, ``ridge`` times the
+typical eigenvalue of a full interior patch (≈ n_p / π for samples spread over the unit disk).
+
+The fit is computed in groups of patches with the same number of samples (no padding enters the
+products); the result is returned padded to the widest patch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from zernet.zernike import index_to_nm, num_bases, zernike_basis
+
+__all__ = ["degree_weights", "fit_patches"]
+
+
+def degree_weights(n_max: int) -> np.ndarray:
+    """(k,) ridge weights ``n (n + 2) / (n_max (n_max + 2))`` of the Zernike bases, in single-index order
+    (0 for the piston, 1 at degree ``n_max``)."""
+    degree = np.array([index_to_nm(j)[0] for j in range(num_bases(n_max))], dtype=np.float64)
+    return degree * (degree + 2) / max(n_max * (n_max + 2), 1)
+
+
+def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float) -> tuple[np.ndarray, float]:
+    """Fit matrices of every patch.
+
+    Args:
+        radius: (N, n) normalised radii ``r / r0``; the samples of patch ``p`` are its first ``counts[p]``
+            columns (the rest is padding and is ignored).
+        angle: (N, n) angles.
+        counts: (N,) number of samples of each patch.
+        n_max: highest Zernike degree (k bases).
+        ridge: relative ridge (module docstring), > 0.
+
+    Returns:
+        ``(P, lam)``: (N, k, n) fit matrices, zero in the padding columns and for empty patches, and the
+        absolute λ.
+    """
+    n_vertices, width = radius.shape
+    k = num_bases(n_max)
+    counts = np.asarray(counts, dtype=np.int64)
+    groups = [(size, np.flatnonzero(counts == size)) for size in np.unique(counts) if size > 0]
+    bases, grams, traces = [], [], []
+    for size, rows in groups:
+        basis = zernike_basis(radius[rows, :size], angle[rows, :size], n_max)  # (g, size, k)
+        gram = np.einsum("gsi,gsj->gij", basis, basis)
+        bases.append(basis)
+        grams.append(gram)
+        traces.append(np.trace(gram, axis1=1, axis2=2))
+    scale = float(np.median(np.concatenate(traces)) / k) if traces else 1.0
+    lam = ridge * max(scale, 1e-12)
+    penalty = lam * degree_weights(n_max)
+    fit = np.zeros((n_vertices, k, width))
+    diagonal = np.arange(k)
+    for (size, rows), basis, gram in zip(groups, bases, grams):
+        gram[:, diagonal, diagonal] += penalty
+        # One k × k solve per patch with its n samples as right-hand sides; symmetric positive definite.
+        fit[rows, :, :size] = np.linalg.solve(gram, basis.transpose(0, 2, 1))
+    return fit, lam
