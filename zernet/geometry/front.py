@@ -22,8 +22,9 @@ intrinsic angle is turned into the tangent-plane angle of the same direction
 (:func:`zernet.geometry.fans.tangent_angle_of`); a sample in a triangle around ``p`` gets the straight
 segment (exact). Because the front only moves across shared edges, it never jumps to the far side of a
 fold, to a touching limb or to another connected component, and it stops at open boundaries. The front
-runs until every triangle that can hold a point within ``r0`` has all its corners final, whatever the
-length of its edges (longer than ``r0`` included, around ``p`` too).
+runs until every triangle that can hold a sample within ``r0`` has all its corners final, whatever the
+length of its edges (longer than ``r0`` included, around ``p`` too), but at most one median longest edge
+past ``r0``: beyond that a corner keeps its tentative distance (see ``_propagate``).
 
 The kernel is compiled on first use and cached on disk (``numba.njit(cache=True)``), so later processes
 load it instead of compiling. Sources are split over threads (the kernel releases the GIL).
@@ -45,8 +46,8 @@ __all__ = ["front_polar"]
 
 # Relative tolerance of the test that the line from the virtual source crosses the unfolded edge.
 _CROSSING_TOLERANCE = 1e-9
-# A point of a triangle is at most this many longest edges from its nearest corner (1/√3, equilateral).
-_CIRCUMRADIUS = 0.5774
+# The front runs past r0 by at most this many median longest edges (see _propagate).
+_EXTENSION_EDGES = 1.5
 
 
 def front_polar(
@@ -88,10 +89,12 @@ def front_polar(
     corners = points[faces]
     # opposite[f, c]: length of the edge of face f opposite its corner c.
     opposite = np.linalg.norm(np.roll(corners, -1, axis=1) - np.roll(corners, 1, axis=1), axis=2)
+    reach = _sample_reach(corners, samples.points, samples.face_index)
     arguments = (
         points, faces, fans.wedge_start, fans.wedge_face, fans.wedge_corner, fans.start_angle, fans.scale,
-        fans.corner, opposite, face_sample_start, face_samples,
+        fans.corner, opposite, reach, face_sample_start, face_samples,
         np.ascontiguousarray(samples.points, dtype=np.float64), frames, float(r0),
+        _EXTENSION_EDGES * float(np.median(opposite.max(axis=1))),
     )  # fmt: skip
     if n_threads is None:
         n_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
@@ -109,6 +112,18 @@ def front_polar(
     return center[order], sample[order], radius[order], angle
 
 
+def _sample_reach(corners: np.ndarray, sample_points: np.ndarray, face_index: np.ndarray) -> np.ndarray:
+    """(F, 3) largest distance from each corner of a face to the samples in it (-1 for a face without samples).
+
+    A sample ``x`` in face ``f`` within ``r0`` of the source has every corner ``c`` within
+    ``r0 + |x - c| <= r0 + reach[f, c]`` (triangle inequality), which bounds how far the front must run.
+    """
+    reach = np.full(corners.shape[:2], -1.0)
+    distance = np.linalg.norm(sample_points[:, None, :] - corners[face_index], axis=2)  # (M, 3)
+    np.maximum.at(reach, face_index, distance)
+    return reach
+
+
 def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
     """CSR of the samples in each face."""
     order = np.argsort(face_index, kind="stable").astype(np.int64)
@@ -119,8 +134,8 @@ def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.
 # ====================================================================== compiled kernel
 @numba.njit(cache=True, nogil=True)
 def _front_chunk(
-    sources, points, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, opposite,
-    face_sample_start, face_samples, sample_points, frames, r0,
+    sources, points, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, opposite, reach,
+    face_sample_start, face_samples, sample_points, frames, r0, extension,
 ):  # fmt: skip
     """Front propagation from each of ``sources``; returns the (center, sample, radius, angle) pairs."""
     n = points.shape[0]
@@ -140,8 +155,8 @@ def _front_chunk(
     count = 0
     for p in sources:
         n_touched, heap_key, heap_vertex = _propagate(
-            p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, opposite, r0,
-            distance, angle, final, exact, touched, heap_key, heap_vertex,
+            p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, opposite, reach, r0,
+            extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
         )  # fmt: skip
         for t in range(n_touched):
             v = touched[t]
@@ -153,11 +168,10 @@ def _front_chunk(
                     continue
                 face_stamp[f] = p
                 a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-                if not (final[a] and final[b] and final[c]):
-                    continue
-                longest = max(opposite[f, 0], opposite[f, 1], opposite[f, 2])
-                if min(distance[a], distance[b], distance[c]) > r0 + _CIRCUMRADIUS * longest:
-                    continue  # no point of the face is within r0
+                if not (np.isfinite(distance[a]) and np.isfinite(distance[b]) and np.isfinite(distance[c])):
+                    continue  # a corner the front never reached
+                if distance[a] > r0 + reach[f, 0] or distance[b] > r0 + reach[f, 1] or distance[c] > r0 + reach[f, 2]:
+                    continue  # no sample of the face is within r0
                 adjacent = a == p or b == p or c == p
                 for slot_sample in range(face_sample_start[f], face_sample_start[f + 1]):
                     s = face_samples[slot_sample]
@@ -191,18 +205,21 @@ def _front_chunk(
 
 @numba.njit(cache=True, nogil=True)
 def _propagate(
-    p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, opposite, r0,
-    distance, angle, final, exact, touched, heap_key, heap_vertex,
+    p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, opposite, reach, r0,
+    extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
 ):  # fmt: skip
     """Run the front from vertex ``p``; fills ``distance``, ``angle`` (intrinsic, see
     :mod:`zernet.geometry.fans`), ``final`` for the touched vertices and returns their count and the
     (maybe grown) heap.
 
-    Stopping rule: a face can hold a point within ``r0`` only if its nearest corner is within
-    ``r0 + R`` (``R`` <= longest edge / √3, the largest distance from a point of a triangle to its nearest
-    corner), and then all its corners are within that corner's distance plus the longest edge. The front
-    runs until every such face has all its corners final, so long edges (even longer than ``r0``, also
-    around ``p`` itself) are handled.
+    Stopping rule: a sample ``x`` of face ``f`` within ``r0`` has every corner ``c`` within
+    ``r0 + reach[f, c]`` (``reach``: the largest corner-to-sample distance in the face). So when a corner
+    ``i`` of a face with samples is popped at a distance ``<= r0 + reach[f, i]``, the front is run on
+    until the face's other corners ``c`` are final: past ``min(U_i + |ic|, r0 + reach[f, c])``. Faces
+    without samples, and faces whose samples are all beyond ``r0``, do not extend it; long edges (even
+    longer than ``r0``, also around ``p`` itself) are handled. The extension past ``r0`` is capped at
+    ``extension`` (the mesh's median longest edge): a corner of a large face beyond it keeps the
+    tentative distance its final neighbours gave it (an upper bound, usually already the final value).
 
     Label-correcting: a final vertex offered a shorter distance (in an obtuse triangle a vertex can be
     reached before the corners of the triangle its geodesic crosses) is reopened and propagated again.
@@ -217,9 +234,10 @@ def _propagate(
     bound = r0
     for slot in range(wedge_start[p], wedge_start[p + 1]):
         f, c = wedge_face[slot], wedge_corner[slot]
-        bound = max(bound, max(opposite[f, 0], opposite[f, 1], opposite[f, 2]))
         for side in range(2):
             q = faces[f, (c + 1 + side) % 3]
+            if reach[f, c] >= 0.0:  # the face holds samples: its corners must be final
+                bound = max(bound, min(opposite[f, (c + 2 - side) % 3], r0 + min(reach[f, (c + 1 + side) % 3], extension)))
             if exact[q]:
                 continue
             touched[n_touched] = q
@@ -237,12 +255,12 @@ def _propagate(
         final[i] = True
         for slot in range(wedge_start[i], wedge_start[i + 1]):
             f, c = wedge_face[slot], wedge_corner[slot]
-            longest = max(opposite[f, 0], opposite[f, 1], opposite[f, 2])
-            if key <= r0 + _CIRCUMRADIUS * longest:
-                bound = max(bound, key + longest)
+            relevant = reach[f, c] >= 0.0 and key <= r0 + min(reach[f, c], extension)
             for side in range(2):
                 ct = (c + 1 + side) % 3  # the target corner
                 co = (c + 2 - side) % 3  # the other corner
+                if relevant:
+                    bound = max(bound, min(key + opposite[f, co], r0 + min(reach[f, ct], extension)))
                 target, other = faces[f, ct], faces[f, co]
                 if exact[target]:
                     continue
