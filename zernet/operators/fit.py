@@ -21,7 +21,7 @@ padding. A vertex with no sample gets all-zero rows.
 typical eigenvalue of a full interior patch (≈ n_p / π for samples spread over the unit disk).
 
 The fit is computed in groups of patches with the same number of samples (no padding enters the
-products); the result is returned padded to the widest patch.
+products): :func:`fit_groups`; :func:`fit_patches` pads the result to the widest patch.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import numpy as np
 
 from zernet.zernike import index_to_nm, num_bases, zernike_basis
 
-__all__ = ["degree_weights", "fit_patches"]
+__all__ = ["degree_weights", "fit_groups", "fit_patches"]
 
 
 def degree_weights(n_max: int) -> np.ndarray:
@@ -40,8 +40,8 @@ def degree_weights(n_max: int) -> np.ndarray:
     return degree * (degree + 2) / max(n_max * (n_max + 2), 1)
 
 
-def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float) -> tuple[np.ndarray, float]:
-    """Fit matrices of every patch.
+def fit_groups(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float) -> tuple[list, float]:
+    """Fit matrices of every non-empty patch, in groups of equal patch size.
 
     Args:
         radius: (N, n) normalised radii ``r / r0``; the samples of patch ``p`` are its first ``counts[p]``
@@ -52,27 +52,40 @@ def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max
         ridge: relative ridge (module docstring), > 0.
 
     Returns:
-        ``(P, lam)``: (N, k, n) fit matrices, zero in the padding columns and for empty patches, and the
-        absolute λ.
+        ``(groups, lam)``: a list of ``(rows, fit)`` with ``rows`` the (g,) vertices of one patch size
+        ``n`` and ``fit`` their (g, k, n) fit matrices, and the absolute λ.
     """
-    n_vertices, width = radius.shape
     k = num_bases(n_max)
     counts = np.asarray(counts, dtype=np.int64)
     groups = [(size, np.flatnonzero(counts == size)) for size in np.unique(counts) if size > 0]
     bases, grams, traces = [], [], []
     for size, rows in groups:
-        basis = zernike_basis(radius[rows, :size], angle[rows, :size], n_max)  # (g, size, k)
-        gram = np.einsum("gsi,gsj->gij", basis, basis)
-        bases.append(basis)
+        basis_t = np.ascontiguousarray(zernike_basis(radius[rows, :size], angle[rows, :size], n_max).transpose(0, 2, 1))
+        gram = basis_t @ basis_t.transpose(0, 2, 1)  # (g, k, k)
+        bases.append(basis_t)
         grams.append(gram)
         traces.append(np.trace(gram, axis1=1, axis2=2))
     scale = float(np.median(np.concatenate(traces)) / k) if traces else 1.0
     lam = ridge * max(scale, 1e-12)
     penalty = lam * degree_weights(n_max)
-    fit = np.zeros((n_vertices, k, width))
     diagonal = np.arange(k)
-    for (size, rows), basis, gram in zip(groups, bases, grams):
+    fits = []
+    for (size, rows), basis_t, gram in zip(groups, bases, grams):
         gram[:, diagonal, diagonal] += penalty
         # One k × k solve per patch with its n samples as right-hand sides; symmetric positive definite.
-        fit[rows, :, :size] = np.linalg.solve(gram, basis.transpose(0, 2, 1))
+        fits.append((rows, np.linalg.solve(gram, basis_t)))
+    return fits, lam
+
+
+def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float) -> tuple[np.ndarray, float]:
+    """The fit matrices of :func:`fit_groups` padded into one array.
+
+    Returns:
+        ``(P, lam)``: (N, k, n) fit matrices, zero in the padding columns and for empty patches, and the
+        absolute λ.
+    """
+    groups, lam = fit_groups(radius, angle, counts, n_max, ridge)
+    fit = np.zeros((radius.shape[0], num_bases(n_max), radius.shape[1]))
+    for rows, block in groups:
+        fit[rows, :, : block.shape[2]] = block
     return fit, lam

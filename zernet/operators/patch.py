@@ -56,7 +56,7 @@ from .cache import (
     unpack_payload,
     write_payload,
 )
-from .fit import degree_weights, fit_patches
+from .fit import degree_weights, fit_groups, fit_patches
 from .sparse import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
 
 __all__ = [
@@ -427,29 +427,29 @@ def assemble_operator(center, sample, radius, angle, frames, interpolation, conf
     n = frames.shape[0]
     k = config.k
     index, r, theta = select_patches(center, sample, radius, angle, n, config)
-    mask = index >= 0
-    fit, lam = fit_patches(r, theta, mask.sum(axis=1), config.n_max, config.ridge)  # (N, k, n)
+    counts = (index >= 0).sum(axis=1)
+    groups, lam = fit_groups(r, theta, counts, config.n_max, config.ridge)
 
-    # Rows p*k + i, columns = patch sample ids; then one sparse product carries samples to vertices.
+    # Rows p*k + i, columns = patch sample ids; then one sparse product carries samples to vertices. The
+    # k rows of vertex p are contiguous in CSR order, so each group's (g, k, n) block is written in place.
     # With subtract_center the vertex itself is an extra pseudo-sample (column M + p) of weight -Σ_j P_p[i, j].
     m_samples = interpolation.shape[0]
-    counts = mask.sum(axis=1)
-    row_lengths = np.repeat(counts, k) + (1 if config.subtract_center else 0)
+    extra = 1 if config.subtract_center else 0
+    row_lengths = np.repeat(np.where(counts > 0, counts + extra, 0), k)
     indptr = np.concatenate([[0], np.cumsum(row_lengths)])
-    cols = np.broadcast_to(index[:, None, :], fit.shape)[np.broadcast_to(mask[:, None, :], fit.shape)]
-    vals = fit[np.broadcast_to(mask[:, None, :], fit.shape)]
-    if config.subtract_center:
-        # Append the centre entry at the end of every row (row-major order is kept by a stable scatter).
-        total = indptr[-1]
-        all_cols = np.empty(total, dtype=np.int64)
-        all_vals = np.empty(total)
-        is_center = np.zeros(total, dtype=bool)
-        is_center[indptr[1:] - 1] = True
-        all_cols[~is_center] = cols
-        all_vals[~is_center] = vals
-        all_cols[is_center] = m_samples + np.repeat(np.arange(n), k)
-        all_vals[is_center] = -fit.sum(axis=2).ravel()
-        cols, vals = all_cols, all_vals
+    cols = np.empty(indptr[-1], dtype=np.int64)
+    vals = np.empty(indptr[-1])
+    for rows, block in groups:
+        size = block.shape[2]
+        columns = np.broadcast_to(index[rows, None, :size], block.shape)
+        if extra:
+            block = np.concatenate([block, -block.sum(axis=2, keepdims=True)], axis=2)
+            centre = np.broadcast_to((m_samples + rows)[:, None, None], (len(rows), k, 1))
+            columns = np.concatenate([columns, centre], axis=2)
+        where = indptr[rows * k][:, None] + np.arange(k * (size + extra))[None, :]
+        cols[where] = columns.reshape(len(rows), -1)
+        vals[where] = block.reshape(len(rows), -1)
+    if extra:
         carry = scipy.sparse.vstack([interpolation, scipy.sparse.identity(n, format="csr")], format="csr")
     else:
         carry = interpolation
