@@ -26,11 +26,12 @@ products): :func:`fit_groups`; :func:`fit_patches` pads the result to the widest
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from zernet.zernike import index_to_nm, num_bases, zernike_basis
 
-__all__ = ["degree_weights", "fit_groups", "fit_patches"]
+__all__ = ["degree_weights", "fit_groups", "fit_patches", "carry_to_vertices"]
 
 
 def degree_weights(n_max: int) -> np.ndarray:
@@ -89,3 +90,95 @@ def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max
     for rows, block in groups:
         fit[rows, :, : block.shape[2]] = block
     return fit, lam
+
+
+def carry_to_vertices(rows, block, sample_index, interpolation, subtract_center: bool):
+    """The fit of a group of patches carried from samples to mesh vertices: ``P_p · Interp[patch p]``.
+
+    Args:
+        rows: (g,) vertices of the group.
+        block: (g, k, n) their fit matrices.
+        sample_index: (g, n) their sample ids.
+        interpolation: (M, N) CSR, vertex values -> sample values.
+        subtract_center: also subtract ``(P_p 1) f(p)`` (the fit of ``f - f(p)``).
+
+    Returns:
+        ``(width, columns, values)``: (g,) number of distinct vertices of each patch, and per patch its
+        vertex ids (ascending) and its (k, width) row-major values, concatenated over the group.
+    """
+    return _carry(
+        rows.astype(np.int64), np.ascontiguousarray(block), np.ascontiguousarray(sample_index, dtype=np.int64),
+        interpolation.indptr.astype(np.int64), interpolation.indices.astype(np.int64), interpolation.data,
+        interpolation.shape[1], subtract_center,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _carry(rows, block, sample_index, indptr, indices, data, n_vertices, subtract_center):
+    """Compiled :func:`carry_to_vertices`: a dense scatter per patch into a slot per touched vertex."""
+    g, k, n = block.shape
+    slot = np.full(n_vertices, -1, dtype=np.int64)
+    width = np.zeros(g, dtype=np.int64)
+    total = 0
+    for a in range(g):  # pass 1: the distinct vertices of each patch
+        count = 0
+        for j in range(n):
+            s = sample_index[a, j]
+            for t in range(indptr[s], indptr[s + 1]):
+                v = indices[t]
+                if slot[v] < 0:
+                    slot[v] = 1
+                    count += 1
+        if subtract_center and slot[rows[a]] < 0:
+            count += 1
+        width[a] = count
+        total += count * k
+        for j in range(n):  # reset
+            s = sample_index[a, j]
+            for t in range(indptr[s], indptr[s + 1]):
+                slot[indices[t]] = -1
+    columns = np.empty(total // k if k > 0 else 0, dtype=np.int64)
+    values = np.zeros(total)
+    column_at = 0
+    value_at = 0
+    members = np.empty(n_vertices if n_vertices < 4096 else 4096, dtype=np.int64)
+    for a in range(g):  # pass 2: vertex ids (ascending) and the k × width values
+        w = width[a]
+        if members.shape[0] < w:
+            members = np.empty(2 * w, dtype=np.int64)
+        count = 0
+        for j in range(n):
+            s = sample_index[a, j]
+            for t in range(indptr[s], indptr[s + 1]):
+                v = indices[t]
+                if slot[v] < 0:
+                    slot[v] = 0
+                    members[count] = v
+                    count += 1
+        if subtract_center and slot[rows[a]] < 0:
+            slot[rows[a]] = 0
+            members[count] = rows[a]
+            count += 1
+        ordered = np.sort(members[:count])
+        for c in range(count):
+            slot[ordered[c]] = c
+            columns[column_at + c] = ordered[c]
+        for j in range(n):
+            s = sample_index[a, j]
+            for t in range(indptr[s], indptr[s + 1]):
+                c = slot[indices[t]]
+                weight = data[t]
+                for i in range(k):
+                    values[value_at + i * w + c] += block[a, i, j] * weight
+        if subtract_center:
+            c = slot[rows[a]]
+            for i in range(k):
+                row_sum = 0.0
+                for j in range(n):
+                    row_sum += block[a, i, j]
+                values[value_at + i * w + c] -= row_sum
+        for c in range(count):
+            slot[ordered[c]] = -1
+        column_at += w
+        value_at += k * w
+    return width, columns, values

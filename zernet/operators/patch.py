@@ -56,7 +56,7 @@ from .cache import (
     unpack_payload,
     write_payload,
 )
-from .fit import degree_weights, fit_groups, fit_patches
+from .fit import carry_to_vertices, degree_weights, fit_groups, fit_patches
 from .sparse import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
 
 __all__ = [
@@ -430,32 +430,27 @@ def assemble_operator(center, sample, radius, angle, frames, interpolation, conf
     counts = (index >= 0).sum(axis=1)
     groups, lam = fit_groups(r, theta, counts, config.n_max, config.ridge)
 
-    # Rows p*k + i, columns = patch sample ids; then one sparse product carries samples to vertices. The
-    # k rows of vertex p are contiguous in CSR order, so each group's (g, k, n) block is written in place.
-    # With subtract_center the vertex itself is an extra pseudo-sample (column M + p) of weight -Σ_j P_p[i, j].
-    m_samples = interpolation.shape[0]
-    extra = 1 if config.subtract_center else 0
-    row_lengths = np.repeat(np.where(counts > 0, counts + extra, 0), k)
-    indptr = np.concatenate([[0], np.cumsum(row_lengths)])
+    # Rows p*k + i, columns = the mesh vertices the patch's samples interpolate from (and p itself with
+    # subtract_center). The k rows of vertex p are contiguous in CSR order and share their columns, so each
+    # group's (k, width) blocks are written in place.
+    carried = [(rows, *carry_to_vertices(rows, block, index[rows, : block.shape[2]], interpolation, config.subtract_center))
+               for rows, block in groups]
+    width = np.zeros(n, dtype=np.int64)
+    for rows, group_width, _, _ in carried:
+        width[rows] = group_width
+    indptr = np.concatenate([[0], np.cumsum(np.repeat(width, k))])
     cols = np.empty(indptr[-1], dtype=np.int64)
     vals = np.empty(indptr[-1])
-    for rows, block in groups:
-        size = block.shape[2]
-        columns = np.broadcast_to(index[rows, None, :size], block.shape)
-        if extra:
-            block = np.concatenate([block, -block.sum(axis=2, keepdims=True)], axis=2)
-            centre = np.broadcast_to((m_samples + rows)[:, None, None], (len(rows), k, 1))
-            columns = np.concatenate([columns, centre], axis=2)
-        where = indptr[rows * k][:, None] + np.arange(k * (size + extra))[None, :]
-        cols[where] = columns.reshape(len(rows), -1)
-        vals[where] = block.reshape(len(rows), -1)
-    if extra:
-        carry = scipy.sparse.vstack([interpolation, scipy.sparse.identity(n, format="csr")], format="csr")
-    else:
-        carry = interpolation
-    blocks = scipy.sparse.csr_matrix((vals, cols, indptr), shape=(n * k, carry.shape[0]))
-    matrix = (blocks @ carry).tocsr()
-    matrix.sum_duplicates()
+    for rows, group_width, columns, values in carried:
+        starts = indptr[rows * k]
+        lengths = k * group_width
+        where = np.repeat(starts - np.concatenate([[0], np.cumsum(lengths)[:-1]]), lengths) + np.arange(lengths.sum())
+        column_starts = np.concatenate([[0], np.cumsum(group_width)[:-1]])
+        # per patch: its width columns repeated for each of the k rows
+        local = np.arange(lengths.sum()) - np.repeat(np.concatenate([[0], np.cumsum(lengths)[:-1]]), lengths)
+        cols[where] = columns[np.repeat(column_starts, lengths) + local % np.repeat(group_width, lengths)]
+        vals[where] = values
+    matrix = scipy.sparse.csr_matrix((vals, cols, indptr), shape=(n * k, n))
     matrix.eliminate_zeros()
     return PatchOperator(
         matrix=matrix,
