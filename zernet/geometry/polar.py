@@ -5,9 +5,11 @@ coordinates ``(r, θ)`` of ``j`` in ``p``'s tangent plane (a discrete logarithmi
 distance and ``θ`` the angle of the initial direction of the geodesic, measured from ``p``'s reference
 direction ``e1`` towards ``e2 = n × e1`` (so ``(e1, e2, n)`` is right-handed).
 
-Three backends (their speed and accuracy are measured by ``benchmarks/bench_operator.py``):
+Three backends (their speed and accuracy against exact geodesics are measured by
+``benchmarks/bench_geodesics.py`` and ``benchmarks/bench_operator.py``). The default (``backend=None``,
+:func:`resolve_backend`) is ``"front"`` for a mesh and ``"fast"`` for a point cloud.
 
-``"fast"`` (default, :mod:`zernet.geometry.polar_fast`)
+``"fast"`` (the default for point clouds, :mod:`zernet.geometry.polar_fast`)
     One k-d tree ball query of the samples around all vertices, then closed-form corrections, all
     vectorised:
 
@@ -35,11 +37,12 @@ Three backends (their speed and accuracy are measured by ``benchmarks/bench_oper
     lengths instead (distance is continuous across the cut) and only the angle from the vectors.
     Samples on other connected components (potpourri returns NaN there) are dropped.
 
-``"front"`` (:mod:`zernet.geometry.front`, meshes only)
+``"front"`` (the default for meshes, :mod:`zernet.geometry.front`)
     Local front propagation from every vertex over the triangles, bounded by ``r0`` (the geodesic polar
     coordinates update of Melvær and Reimers 2012), compiled with numba: distances are surface distances,
     so the far side of a fold (between fingers, across an armpit or the crotch) is never reached through
-    the air, and a thin tube is measured the shorter way round. The angle is carried along the front.
+    the air, and a thin tube is measured the shorter way round. The angle is carried along the front as
+    an intrinsic fan angle (:mod:`zernet.geometry.fans`) and mapped back to the tangent plane.
 
 All backends consider only samples within Euclidean distance ``r0`` (geodesic distance is never
 shorter) and keep those with radius ``<= r0``.
