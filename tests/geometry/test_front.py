@@ -187,7 +187,7 @@ def test_fan_angles_scale_the_corner_angles_around_a_cone_apex():
         edge = vertices[a] - vertices[0]
         expected = np.arctan2(edge @ frames[0, 1], edge @ frames[0, 0])
         mapped = tangent_angle_of(0, fans.start_angle[w], vertices, faces, frames, fans.wedge_start, fans.wedge_face,
-                                  fans.wedge_corner, fans.start_angle, fans.scale, fans.corner)
+                                  fans.wedge_corner, fans.start_angle, fans.scale, fans.corner, fans.reversed)
         assert abs(wrap(mapped - expected)) < 1e-9
     steps = np.sort(wrap(fans.start_angle[wedges] - fans.start_angle[wedges[0]]) % (2 * np.pi))
     np.testing.assert_allclose(np.diff(steps), 2 * np.pi / around, atol=1e-9)  # equal corners, evenly spread
@@ -207,3 +207,28 @@ def test_faces_with_edges_longer_than_r0_keep_their_samples():
     found = set(zip(center.tolist(), sample.tolist()))
     assert expected and expected <= found
     np.testing.assert_allclose(radius, distance[center, sample], atol=1e-12)
+
+
+def test_a_flipped_face_falls_back_to_tangent_angles_and_plane_angles_stay_exact():
+    # A flat grid with one face's orientation flipped: the fans of its corners are no single ordered walk
+    # and fall back to tangent-plane wedges; on a plane every angle must still be the exact planar angle.
+    from zernet.geometry.fans import vertex_fans
+
+    vertices, faces = grid_mesh(9, 9, spacing=0.5, jitter=0.1, seed=5)
+    faces = faces.copy()
+    faces[27] = faces[27, [0, 2, 1]]  # a face next to the centre vertex
+    surface = Surface(vertices, faces)
+    frames = tangent_frames(surface)
+    frames[:, 2] = [0.0, 0.0, 1.0]  # one consistent up direction, whatever the flipped face did to the normals
+    frames[:, 1] = np.cross(frames[:, 2], frames[:, 0])
+    fans = vertex_fans(vertices, faces, frames)
+    assert not fans.ordered[faces[27]].any() and fans.ordered.sum() >= len(vertices) - 3
+    samples = sample_surface(surface, 800, seed=2)
+    center, sample, radius, angle = front_polar(surface, samples, frames, 1.2)
+    inner = np.abs(vertices[center, :2]).max(axis=1) < 2.0 - 1.3  # a jittered border is not convex
+    center, sample, radius, angle = center[inner], sample[inner], radius[inner], angle[inner]
+    assert np.isin(faces[27], center).all()
+    offset = samples.points[sample] - vertices[center]
+    np.testing.assert_allclose(radius, np.linalg.norm(offset, axis=1), atol=1e-9)
+    expected = np.arctan2(np.einsum("pi,pi->p", offset, frames[center, 1]), np.einsum("pi,pi->p", offset, frames[center, 0]))
+    assert np.abs(wrap(angle - expected))[radius > 0.05].max() < 1e-6

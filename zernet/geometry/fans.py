@@ -20,8 +20,9 @@ intrinsic angle back to the tangent-plane angle of the same direction (the direc
 projected to the tangent plane), the convention of the frames and of the transport angles.
 
 A vertex whose fan is not one ordered walk (non-manifold, inconsistently oriented faces) gets wedges
-whose start angles are the tangent-plane angles of their edges ``v → a`` and whose scale makes ``v → b``
-land on its own tangent-plane angle: still continuous inside each wedge, no longer exact on a cone.
+that start at the tangent-plane angle of whichever of their edges comes first counterclockwise (a wedge
+of a flipped face is *reversed*: it runs from ``v → b`` to ``v → a``), with one scale per vertex: still
+continuous inside each wedge, no longer exact on a cone.
 """
 
 from __future__ import annotations
@@ -43,9 +44,10 @@ class VertexFans:
         scale: (N,) intrinsic angle per unit of unfolded angle at each vertex.
         corner: (F, 3) corner angles of every face.
         ordered: (N,) True where the fan is one ordered walk (exact on a cone).
+        reversed: (W,) True for a wedge that runs from ``v → b`` to ``v → a`` (only where not ordered).
     """
 
-    def __init__(self, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, ordered):
+    def __init__(self, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, ordered, reversed_):
         self.wedge_start = wedge_start
         self.wedge_face = wedge_face
         self.wedge_corner = wedge_corner
@@ -53,6 +55,7 @@ class VertexFans:
         self.scale = scale
         self.corner = corner
         self.ordered = ordered
+        self.reversed = reversed_
 
 
 def corner_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -84,11 +87,11 @@ def vertex_fans(vertices: np.ndarray, faces: np.ndarray, frames: np.ndarray) -> 
     wedge_face = (order // 3).astype(np.int64)
     wedge_corner = (order % 3).astype(np.int64)
     corner = corner_angles(vertices, faces)
-    start_angle, scale, ordered = _walk_fans(
+    start_angle, scale, ordered, reversed_ = _walk_fans(
         np.ascontiguousarray(vertices, dtype=np.float64), np.ascontiguousarray(faces, dtype=np.int64),
         np.ascontiguousarray(frames, dtype=np.float64), wedge_start, wedge_face, wedge_corner, corner,
     )  # fmt: skip
-    return VertexFans(wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, ordered)
+    return VertexFans(wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, ordered, reversed_)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -110,6 +113,7 @@ def _walk_fans(vertices, faces, frames, wedge_start, wedge_face, wedge_corner, c
     start_angle = np.zeros(n_wedges)
     scale = np.ones(n)
     ordered = np.zeros(n, dtype=np.bool_)
+    reversed_ = np.zeros(n_wedges, dtype=np.bool_)
     visited = np.zeros(n_wedges, dtype=np.bool_)
     for v in range(n):
         lo, hi = wedge_start[v], wedge_start[v + 1]
@@ -154,29 +158,29 @@ def _walk_fans(vertices, faces, frames, wedge_start, wedge_face, wedge_corner, c
             offset = _projected_angle(vertices, frames, v, faces[wedge_face[first], (wedge_corner[first] + 1) % 3])
             for x in range(lo, hi):
                 start_angle[x] = offset + scale[v] * start_angle[x]
-        else:  # not one walk: each wedge on its own, spanning its edges' tangent-plane angles
-            for x in range(lo, hi):
-                f, c = wedge_face[x], wedge_corner[x]
-                start_angle[x] = _projected_angle(vertices, frames, v, faces[f, (c + 1) % 3])
-                visited[x] = True
-            # one scale per vertex: the mean ratio of tangent-plane span to corner angle
+        else:  # not one walk: each wedge on its own, from its counterclockwise-first edge
             ratio, weight = 0.0, 0.0
             for x in range(lo, hi):
                 f, c = wedge_face[x], wedge_corner[x]
+                begin = _projected_angle(vertices, frames, v, faces[f, (c + 1) % 3])
                 end = _projected_angle(vertices, frames, v, faces[f, (c + 2) % 3])
-                span = (end - start_angle[x] + np.pi) % (2.0 * np.pi) - np.pi
+                span = (end - begin + np.pi) % (2.0 * np.pi) - np.pi
+                reversed_[x] = span < 0.0
+                start_angle[x] = end if span < 0.0 else begin
+                visited[x] = True
                 ratio += abs(span)
                 weight += corner[f, c]
             scale[v] = ratio / weight if weight > 0.0 else 1.0
-    return start_angle, scale, ordered
+    return start_angle, scale, ordered, reversed_
 
 
 @numba.njit(cache=True, nogil=True)
-def tangent_angle_of(v, theta, vertices, faces, frames, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner):
+def tangent_angle_of(v, theta, vertices, faces, frames, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner,
+                     reversed_):
     """The tangent-plane angle at vertex ``v`` of the direction with intrinsic angle ``theta``.
 
     The wedge holding ``theta`` is found, the direction is rebuilt inside that face (at unfolded angle
-    ``(theta - start) / scale`` from its edge ``v → a``) and projected to ``v``'s tangent plane. An angle
+    ``(theta - start) / scale`` from its first edge, ``v → a``, or ``v → b`` when reversed) and projected to ``v``'s tangent plane. An angle
     in the gap of an open fan goes to the nearer boundary edge.
     """
     best_gap, best_w, best_t = np.inf, -1, 0.0
@@ -198,6 +202,8 @@ def tangent_angle_of(v, theta, vertices, faces, frames, wedge_start, wedge_face,
         return theta
     f, c = wedge_face[best_w], wedge_corner[best_w]
     a, b = faces[f, (c + 1) % 3], faces[f, (c + 2) % 3]
+    if reversed_[best_w]:
+        a, b = b, a
     ux = vertices[a, 0] - vertices[v, 0]
     uy = vertices[a, 1] - vertices[v, 1]
     uz = vertices[a, 2] - vertices[v, 2]

@@ -92,7 +92,7 @@ def front_polar(
     reach = _sample_reach(corners, samples.points, samples.face_index)
     arguments = (
         points, faces, fans.wedge_start, fans.wedge_face, fans.wedge_corner, fans.start_angle, fans.scale,
-        fans.corner, opposite, reach, face_sample_start, face_samples,
+        fans.corner, fans.reversed, opposite, reach, face_sample_start, face_samples,
         np.ascontiguousarray(samples.points, dtype=np.float64), frames, float(r0),
         _EXTENSION_EDGES * float(np.median(opposite.max(axis=1))),
     )  # fmt: skip
@@ -134,8 +134,8 @@ def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.
 # ====================================================================== compiled kernel
 @numba.njit(cache=True, nogil=True)
 def _front_chunk(
-    sources, points, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, opposite, reach,
-    face_sample_start, face_samples, sample_points, frames, r0, extension,
+    sources, points, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite,
+    reach, face_sample_start, face_samples, sample_points, frames, r0, extension,
 ):  # fmt: skip
     """Front propagation from each of ``sources``; returns the (center, sample, radius, angle) pairs."""
     n = points.shape[0]
@@ -155,8 +155,8 @@ def _front_chunk(
     count = 0
     for p in sources:
         n_touched, heap_key, heap_vertex = _propagate(
-            p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, opposite, reach, r0,
-            extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
+            p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite, reach,
+            r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
         )  # fmt: skip
         for t in range(n_touched):
             v = touched[t]
@@ -184,7 +184,7 @@ def _front_chunk(
                             continue
                         theta = tangent_angle_of(
                             p, theta, points, faces, frames, wedge_start, wedge_face, wedge_corner, start_angle,
-                            scale, corner,
+                            scale, corner, reversed_,
                         )  # fmt: skip
                     if r > r0:
                         continue
@@ -205,7 +205,7 @@ def _front_chunk(
 
 @numba.njit(cache=True, nogil=True)
 def _propagate(
-    p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, opposite, reach, r0,
+    p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite, reach, r0,
     extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
 ):  # fmt: skip
     """Run the front from vertex ``p``; fills ``distance``, ``angle`` (intrinsic, see
@@ -243,7 +243,8 @@ def _propagate(
             touched[n_touched] = q
             n_touched += 1
             distance[q] = opposite[f, (c + 2 - side) % 3]
-            angle[q] = start_angle[slot] + side * scale[p] * corner[f, c]
+            at_end = side == 1 if not reversed_[slot] else side == 0  # q is the wedge's last edge
+            angle[q] = start_angle[slot] + (scale[p] * corner[f, c] if at_end else 0.0)
             exact[q] = True
             heap_size, heap_key, heap_vertex = _heap_push(heap_key, heap_vertex, heap_size, distance[q], q)
     while heap_size > 0:
