@@ -11,8 +11,21 @@ samples as in the paper's FAUST settings, plus any mesh passed with ``--mesh PAT
 
 Per backend: kept pairs whose exact distance exceeds 1.1 r0 (a fold crossed), true pairs (exact < 0.95 r0)
 dropped, radius error median / p95 in % of r0, angle error p95 (rad, r > 0.1 r0, after removing each
-centre's median offset), and the time for all vertices. Prints a table, writes
-``benchmarks/results/bench_geodesics.json``.
+centre's circular-mean offset), and the time for all vertices.
+
+Patch fit (the default :class:`~zernet.operators.PatchConfig`: every sample within r0, degree-weighted
+ridge, backend front on meshes), on the vertices farther than r0 (Euclidean, so at least r0 along the
+surface) from any boundary:
+
+* constant field (``subtract_center`` off): piston error in % of its exact unit-disk value ``√π`` (p95)
+  and the largest other coefficient in % of the piston (p95);
+* linear field ``f(x) = g·x`` (random unit ``g``): the fit reconstructed at the patch samples, relative
+  residual ``‖B a − f‖ / ‖f − f(p)‖`` per patch (median, p95), at ``n_max`` 5 and, to tell the Zernike
+  truncation of curved patches from coordinate errors, at ``n_max`` 8 on the same coordinates;
+* operator build time (sampling, polar coordinates, fit, assembly) in seconds per 1000 vertices: the
+  first build in this process (compiled kernels loaded from numba's disk cache) and a second one.
+
+Prints a table, writes ``benchmarks/results/bench_geodesics.json``.
 """
 
 from __future__ import annotations
@@ -23,11 +36,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from zernet.data.bodies import generate_bodies
 from zernet.geometry import Surface, compute_polar, load_surface, normalize_area, sample_surface, tangent_frames
 from zernet.geometry.exact import ExactGeodesics
 from zernet.io_utils import atomic_write_bytes
+from zernet.operators import PatchConfig, assemble_operator, build_patch_operator
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_geodesics.json"
 
@@ -69,18 +84,96 @@ def score(polar, exact, centres, r0) -> dict:
             "angle_p95_rad": float(np.percentile(angle_error, 95)) if angle_error else None}
 
 
+def interior_vertices(surface: Surface, r0: float) -> np.ndarray:
+    """Vertices farther than ``r0`` (Euclidean) from every boundary vertex (all of them on a closed mesh)."""
+    edges = np.sort(np.concatenate([surface.faces[:, [0, 1]], surface.faces[:, [1, 2]], surface.faces[:, [2, 0]]]), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    boundary = np.unique(unique[counts == 1])
+    if len(boundary) == 0:
+        return np.arange(surface.n_vertices)
+    distance, _ = cKDTree(surface.vertices[boundary]).query(surface.vertices)
+    return np.flatnonzero(distance > r0)
+
+
+def fit_residuals(operator, field_at_samples, field_at_vertices, vertices) -> np.ndarray:
+    """Per vertex ``‖B a − f‖ / ‖f − f(p)‖`` over its patch samples."""
+    coefficients = (operator.matrix @ field_at_vertices).reshape(operator.n_vertices, operator.k)[vertices]
+    index = operator.patch_sample_index[vertices]
+    values = np.where(index >= 0, field_at_samples[np.maximum(index, 0)], 0.0)
+    fitted = np.einsum("vnk,vk->vn", operator.patch_basis[vertices], coefficients)
+    variation = np.where(index >= 0, values - field_at_vertices[vertices, None], 0.0)
+    residual = np.where(index >= 0, fitted - values, 0.0)
+    return np.linalg.norm(residual, axis=1) / np.maximum(np.linalg.norm(variation, axis=1), 1e-300)
+
+
+def patch_fit(surface, polar, samples, config, seed) -> dict:
+    """The patch-fit columns (module docstring) on the coordinates ``polar``."""
+    operator = assemble_operator(polar.center, polar.sample, polar.radius, polar.angle, polar.frames,
+                                 samples.interpolation, config)
+    inside = interior_vertices(surface, config.r0)
+    coefficients = (operator.matrix @ np.ones(surface.n_vertices)).reshape(-1, operator.k)[inside]
+    piston = np.sqrt(np.pi)  # ∫ Z_0 over the unit disk for f = 1
+    piston_error = np.abs(coefficients[:, 0] - piston) / piston
+    others = np.abs(coefficients[:, 1:]).max(axis=1) / np.abs(coefficients[:, 0])
+    direction = np.random.default_rng(seed).normal(size=3)
+    field = surface.vertices @ (direction / np.linalg.norm(direction))
+    at_samples = samples.interpolation @ field
+    residual = fit_residuals(operator, at_samples, field, inside)
+    high = assemble_operator(polar.center, polar.sample, polar.radius, polar.angle, polar.frames,
+                             samples.interpolation, PatchConfig(**{**config.to_dict(), "n_max": 8}))
+    residual_high = fit_residuals(high, at_samples, field, inside)
+    counts = (operator.patch_sample_index[inside] >= 0).sum(axis=1)
+    return {"vertices_scored": int(len(inside)), "samples_per_patch_median": float(np.median(counts)),
+            "piston_error_p95_percent": 100.0 * float(np.percentile(piston_error, 95)),
+            "other_coefficients_p95_percent_of_piston": 100.0 * float(np.percentile(others, 95)),
+            "linear_residual_median_percent": 100.0 * float(np.median(residual)),
+            "linear_residual_p95_percent": 100.0 * float(np.percentile(residual, 95)),
+            "linear_residual_nmax8_median_percent": 100.0 * float(np.median(residual_high))}
+
+
+def build_seconds(surface, config) -> tuple[float, float]:
+    """Seconds of the first and of a second full operator build in this process."""
+    times = []
+    for _ in range(2):
+        started = time.perf_counter()
+        build_patch_operator(surface, config)
+        times.append(time.perf_counter() - started)
+    return times[0], times[1]
+
+
 def measure(surface, r0, n_samples, n_centres, backends, seed) -> dict:
+    config = PatchConfig(r0=r0, n_samples=n_samples, seed=seed)
+    first, second = build_seconds(surface, config)  # first: before anything else in this process
     samples = sample_surface(surface, n_samples, seed=seed)
     frames = tangent_frames(surface)
-    centres = np.sort(np.random.default_rng(seed).choice(surface.n_vertices, n_centres, replace=False))
+    centres = np.sort(np.random.default_rng(seed).choice(surface.n_vertices, min(n_centres, surface.n_vertices), replace=False))
     started = time.perf_counter()
     exact = exact_reference(surface, samples, frames, centres, r0)
     rows = {"surface": surface.name, "vertices": surface.n_vertices, "r0": r0, "samples": n_samples,
-            "centres": n_centres, "reference_seconds": time.perf_counter() - started, "backends": {}}
+            "centres": int(len(centres)), "reference_seconds": time.perf_counter() - started, "backends": {},
+            "build_first_seconds_per_1000_vertices": 1000.0 * first / surface.n_vertices,
+            "build_second_seconds_per_1000_vertices": 1000.0 * second / surface.n_vertices}
     for backend in backends:
         polar = compute_polar(surface, samples, r0, backend=backend)
-        rows["backends"][backend] = {"seconds_all_vertices": polar.seconds, **score(polar, exact, centres, r0)}
+        rows["backends"][backend] = {"seconds_all_vertices": polar.seconds, **score(polar, exact, centres, r0),
+                                     **patch_fit(surface, polar, samples, PatchConfig(**{**config.to_dict(), "backend": backend}), seed)}
     return rows
+
+
+def print_rows(row) -> None:
+    print(f"\n{row['surface']}: {row['vertices']} vertices, r0 {row['r0']}, {row['samples']} samples, "
+          f"{row['centres']} centres (exact reference {row['reference_seconds']:.0f} s); operator build (default "
+          f"config) {row['build_first_seconds_per_1000_vertices']:.2f} s / 1000 vertices first, "
+          f"{row['build_second_seconds_per_1000_vertices']:.2f} second")
+    print(f"{'backend':8} {'>1.1r0 %':>9} {'dropped %':>10} {'r med %':>8} {'r p95 %':>8} {'θ p95':>7} {'time s':>7}"
+          f" {'piston p95 %':>13} {'others p95 %':>13} {'lin med %':>10} {'lin p95 %':>10} {'lin n8 %':>9}")
+    for name, b in row["backends"].items():
+        angle = "-" if b["angle_p95_rad"] is None else f"{b['angle_p95_rad']:.3f}"
+        print(f"{name:8} {b['kept_beyond_1.1r0_percent']:9.2f} {b['true_dropped_percent']:10.2f} "
+              f"{b['radius_median_percent_r0']:8.3f} {b['radius_p95_percent_r0']:8.2f} {angle:>7} "
+              f"{b['seconds_all_vertices']:7.2f} {b['piston_error_p95_percent']:13.4f} "
+              f"{b['other_coefficients_p95_percent_of_piston']:13.4f} {b['linear_residual_median_percent']:10.2f} "
+              f"{b['linear_residual_p95_percent']:10.2f} {b['linear_residual_nmax8_median_percent']:9.2f}")
 
 
 def main() -> None:
@@ -92,23 +185,17 @@ def main() -> None:
     parser.add_argument("--centres", type=int, default=100)
     parser.add_argument("--backends", nargs="+", default=["fast", "front"])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-body", action="store_true", help="only the meshes passed with --mesh")
+    parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args()
-    surfaces = [body_surface(args.seed)] + [load_surface(path) for path in args.mesh]
+    surfaces = ([] if args.no_body else [body_surface(args.seed)]) + [load_surface(path) for path in args.mesh]
     results = []
     for surface in surfaces:
         surface, _ = normalize_area(surface, args.area)
         results.append(measure(surface, args.r0, args.samples, args.centres, args.backends, args.seed))
-        row = results[-1]
-        print(f"\n{row['surface']}: {row['vertices']} vertices, r0 {row['r0']}, {row['samples']} samples, "
-              f"{row['centres']} centres (exact reference {row['reference_seconds']:.0f} s)")
-        print(f"{'backend':8} {'>1.1r0 %':>9} {'dropped %':>10} {'r med %':>8} {'r p95 %':>8} {'θ p95':>7} {'time s':>7}")
-        for name, b in row["backends"].items():
-            angle = "-" if b["angle_p95_rad"] is None else f"{b['angle_p95_rad']:.3f}"
-            print(f"{name:8} {b['kept_beyond_1.1r0_percent']:9.2f} {b['true_dropped_percent']:10.2f} "
-                  f"{b['radius_median_percent_r0']:8.3f} {b['radius_p95_percent_r0']:8.2f} {angle:>7} "
-                  f"{b['seconds_all_vertices']:7.2f}")
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(RESULTS, json.dumps(results, indent=2).encode())
+        print_rows(results[-1])
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(args.output, json.dumps(results, indent=2).encode())
 
 
 if __name__ == "__main__":

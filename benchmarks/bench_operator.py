@@ -1,24 +1,29 @@
-"""Benchmark of the patch operator: polar-coordinate backends (time, accuracy) and operator apply time.
+"""Benchmark of the patch operator: build time and accuracy of each polar backend against exact geodesics,
+and the operator's apply time.
 
 Prints a table and writes ``benchmarks/results/bench_operator.json``.
 
 Surfaces:
-* a procedural "mannequin" with human proportions at area 15000 (FAUST cannot be shipped): torso, head,
-  arms, legs and four thin fingers as capsules, 10 closed components a few units apart, ~6,900 vertices,
-  well-shaped triangles. It has thin parts (fingers, circumference ≈ r0) and sheets of other parts
-  within r0 (legs 3.5 units apart, fingers 0.4 apart), but no limb-torso junctions.
-* the aneurysm meshes of ``--aneurysms DIR`` (default ``data/aneurysm``) when that folder exists (area 100, r0 = 0.6 as in
-  the paper's regression experiment, 12,000 samples).
+* a posed human body generated with ``anny`` (``zernet.data.bodies``, the FAUST-sized topology, 6,890
+  vertices, fingers, armpits and crotch) at area 15000, r0 = 5.5, 12,000 samples;
+* the aneurysm meshes of ``--aneurysms DIR`` (default ``data/aneurysm``, your copy) when that folder
+  exists (area 100, r0 = 0.6 as in the paper's regression experiment, 12,000 samples).
 
-Accuracy of a backend is measured against the accurate backend (potpourri3d log map, AffineLocal) on the
-(vertex, sample) pairs both keep: radius error in % of r0 (median, p95), and angle error p95 after
-removing each vertex's constant frame offset (the circular mean of its angle differences), over pairs
-with radius > 0.1 r0 (the angle of a sample almost at the vertex is ill-defined).
+Accuracy is measured against exact polyhedral geodesics (MMP, :mod:`zernet.geometry.exact`, the samples
+inserted as vertices) on ``--centres`` random vertices, with the columns of ``bench_geodesics.py``: kept
+pairs from beyond 1.1 r0, true pairs dropped, radius error median / p95 (% of r0), angle error p95 (rad,
+r > 0.1 r0, after each centre's constant offset). The build time is the whole
+:func:`~zernet.operators.build_patch_operator` (sampling, polar coordinates, fit, assembly), best of
+``repeats``. The apply time is measured on the default operator of the body.
+
+The procedural :func:`mannequin` (capsules, no limb-torso junctions; it cannot show the far-side failure
+of folds) is kept as the stand-in operator of ``bench_layers.py --real``.
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_operator.py            # full run (accurate backend on everything)
-    .venv/bin/python benchmarks/bench_operator.py --quick    # smaller meshes, one aneurysm
+    .venv/bin/python benchmarks/bench_operator.py                       # fast and front
+    .venv/bin/python benchmarks/bench_operator.py --backends fast front accurate --centres 50
+    .venv/bin/python benchmarks/bench_operator.py --quick               # fewer centres and repeats
 """
 
 from __future__ import annotations
@@ -34,9 +39,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from zernet.operators import PatchConfig, assemble_operator, build_patch_operator
-from zernet.geometry import compute_polar
-from zernet.geometry import Surface, load_surface, sample_surface
+from zernet.geometry import Surface, compute_polar, load_surface, normalize_area, sample_surface, tangent_frames
+from zernet.operators import PatchConfig, build_patch_operator
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_geodesics import body_surface, exact_reference, score  # noqa: E402  (the shared scoring)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_operator.json"
 ANEURYSMS = Path("data/aneurysm")  # your copy of the aneurysm data set
@@ -105,51 +112,21 @@ def _best_time(function, repeats: int) -> tuple[float, object]:
     return best, result
 
 
-def compare(reference, candidate, r0: float) -> dict:
-    """Radius and angle errors of ``candidate`` against ``reference`` on their common pairs."""
-    n_samples = int(max(reference.sample.max(), candidate.sample.max())) + 1
-    key_ref = reference.center * n_samples + reference.sample
-    key_new = candidate.center * n_samples + candidate.sample
-    common, i_ref, i_new = np.intersect1d(key_ref, key_new, assume_unique=True, return_indices=True)
-    radius_error = np.abs(candidate.radius[i_new] - reference.radius[i_ref]) / r0 * 100
-    centers = reference.center[i_ref]
-    usable = reference.radius[i_ref] > 0.1 * r0
-    difference = np.angle(np.exp(1j * (candidate.angle[i_new] - reference.angle[i_ref])))[usable]
-    centers = centers[usable]
-    # Per-vertex constant frame offset: circular mean of the differences.
-    mean_vector = np.zeros(reference.frames.shape[0], dtype=complex)
-    np.add.at(mean_vector, centers, np.exp(1j * difference))
-    residual = np.abs(np.angle(np.exp(1j * (difference - np.angle(mean_vector[centers])))))
-    return {
-        "pairs_reference": int(len(key_ref)),
-        "pairs_common_pct": 100.0 * len(common) / max(len(key_ref), 1),
-        "pairs_extra_pct": 100.0 * (len(key_new) - len(common)) / max(len(key_ref), 1),
-        "radius_error_median_pct_r0": float(np.median(radius_error)),
-        "radius_error_p95_pct_r0": float(np.percentile(radius_error, 95)),
-        "angle_error_p95_rad": float(np.percentile(residual, 95)),
-    }
-
-
-def bench_surface(surface: Surface, config: PatchConfig, n_jobs: int, repeats: int) -> dict:
-    """Build times of both backends and the fast backend's accuracy on one surface."""
+def bench_surface(surface: Surface, config: PatchConfig, backends, n_centres: int, n_jobs: int, repeats: int, seed: int) -> dict:
+    """Build time and accuracy against exact geodesics of each backend on one surface."""
     samples = sample_surface(surface, config.n_samples, seed=config.seed)
-    fast_build, _ = _best_time(lambda: build_patch_operator(surface, config), repeats)
-    fast_polar_time, fast = _best_time(lambda: compute_polar(surface, samples, config.r0, "fast"), repeats)
-    start = time.perf_counter()
-    accurate = compute_polar(surface, samples, config.r0, "accurate", n_jobs=n_jobs)
-    accurate_time = time.perf_counter() - start
-    start = time.perf_counter()
-    assemble_operator(accurate.center, accurate.sample, accurate.radius, accurate.angle, accurate.frames, samples.interpolation, config)
-    accurate_build = accurate_time + (time.perf_counter() - start)
-    return {
-        "name": surface.name,
-        "vertices": surface.n_vertices,
-        "area": surface.area,
-        "r0": config.r0,
-        "samples": config.n_samples,
-        "fast": {"operator_build_s": fast_build, "polar_s": fast_polar_time, **compare(accurate, fast, config.r0)},
-        "accurate": {"operator_build_s": accurate_build, "polar_s": accurate_time, "processes": n_jobs},
-    }
+    frames = tangent_frames(surface)
+    centres = np.sort(np.random.default_rng(seed).choice(surface.n_vertices, min(n_centres, surface.n_vertices), replace=False))
+    started = time.perf_counter()
+    exact = exact_reference(surface, samples, frames, centres, config.r0)
+    row = {"name": surface.name, "vertices": surface.n_vertices, "area": surface.area, "r0": config.r0,
+           "samples": config.n_samples, "centres": int(len(centres)), "reference_s": time.perf_counter() - started}
+    for backend in backends:
+        backend_config = PatchConfig(**{**config.to_dict(), "backend": backend})
+        build, _ = _best_time(lambda: build_patch_operator(surface, backend_config, n_jobs=n_jobs), 1 if backend == "accurate" else repeats)
+        polar = compute_polar(surface, samples, config.r0, backend=backend, n_jobs=n_jobs)
+        row[backend] = {"operator_build_s": build, "polar_s": polar.seconds, **score(polar, exact, centres, config.r0)}
+    return row
 
 
 def bench_apply(surface: Surface, config: PatchConfig, d: int, repeats: int) -> dict:
@@ -191,41 +168,45 @@ def bench_apply(surface: Surface, config: PatchConfig, d: int, repeats: int) -> 
 
 
 # ====================================================================== main
+def print_table(rows, backends) -> None:
+    header = (f"{'surface':<26}{'N':>6}{'r0':>5}  {'backend':<9}{'build s':>8}{'polar s':>8}{'>1.1r0 %':>9}"
+              f"{'drop %':>7}{'r med %':>8}{'r p95 %':>8}{'θ p95':>7}")
+    print(header)
+    print("-" * len(header))
+    for row in rows:
+        for i, backend in enumerate(backends):
+            b = row[backend]
+            label = f"{row['name'][:25]:<26}{row['vertices']:>6}{row['r0']:>5}" if i == 0 else " " * 37
+            angle = "-" if b["angle_p95_rad"] is None else f"{b['angle_p95_rad']:.3f}"
+            print(f"{label}  {backend:<9}{b['operator_build_s']:>8.2f}{b['polar_s']:>8.2f}{b['kept_beyond_1.1r0_percent']:>9.2f}"
+                  f"{b['true_dropped_percent']:>7.2f}{b['radius_median_percent_r0']:>8.3f}{b['radius_p95_percent_r0']:>8.2f}{angle:>7}")
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="smaller body, one aneurysm, fewer repeats")
+    parser.add_argument("--quick", action="store_true", help="fewer centres and repeats, one aneurysm")
+    parser.add_argument("--backends", nargs="+", default=["fast", "front"], help="fast, front, accurate")
+    parser.add_argument("--centres", type=int, default=100, help="centre vertices scored against exact geodesics")
     parser.add_argument("--jobs", type=int, default=2, help="processes for the accurate backend")
     parser.add_argument("--aneurysms", type=Path, default=ANEURYSMS, help="folder of the aneurysm .mat files")
+    parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
 
-    repeats = 2 if args.quick else 3
-    rows = []
-    body = mannequin(edge=3.0 if args.quick else 1.79)
+    repeats = 1 if args.quick else 3
+    centres = min(args.centres, 30) if args.quick else args.centres
+    body, _ = normalize_area(body_surface(args.seed), 15000.0)
     body_config = PatchConfig(r0=5.5, n_samples=12000)
-    rows.append(bench_surface(body, body_config, args.jobs, repeats))
-
+    rows = [bench_surface(body, body_config, args.backends, centres, args.jobs, repeats, args.seed)]
     if args.aneurysms.is_dir():
         files = sorted(args.aneurysms.glob("*.mat"), key=lambda p: p.stat().st_size)
         chosen = files[:1] if args.quick else [files[0], files[len(files) // 2], files[-1]]
         for path in chosen:
-            surface = load_surface(path)
-            surface = Surface(surface.vertices * np.sqrt(100.0 / surface.area), surface.faces, name=path.name)
-            rows.append(bench_surface(surface, PatchConfig(r0=0.6, n_samples=12000), args.jobs, repeats))
-
-    apply_body = body if not args.quick else mannequin(edge=1.79)
-    apply = bench_apply(apply_body, body_config, 128, 5 if args.quick else 10)
-
-    header = f"{'surface':<18}{'N':>6}{'r0':>5}  {'backend':<9}{'build s':>8}{'polar s':>8}{'r med %':>8}{'r p95 %':>8}{'θ p95 rad':>10}{'common %':>9}"
-    print(header)
-    print("-" * len(header))
-    for row in rows:
-        fast, acc = row["fast"], row["accurate"]
-        print(
-            f"{row['name']:<18}{row['vertices']:>6}{row['r0']:>5}  {'fast':<9}{fast['operator_build_s']:>8.2f}{fast['polar_s']:>8.2f}"
-            f"{fast['radius_error_median_pct_r0']:>8.3f}{fast['radius_error_p95_pct_r0']:>8.2f}{fast['angle_error_p95_rad']:>10.4f}{fast['pairs_common_pct']:>9.1f}"
-        )
-        print(f"{'':<18}{'':>6}{'':>5}  {'accurate':<9}{acc['operator_build_s']:>8.2f}{acc['polar_s']:>8.2f}{'(reference, ' + str(acc['processes']) + ' processes)':>35}")
+            surface, _ = normalize_area(load_surface(path), 100.0)
+            rows.append(bench_surface(surface, PatchConfig(r0=0.6, n_samples=12000), args.backends, centres,
+                                      args.jobs, repeats, args.seed))
+    apply = bench_apply(body, body_config, 128, 5 if args.quick else 10)
+    print_table(rows, args.backends)
     print()
     print(
         f"apply N={apply['vertices']} k={apply['k']} d={apply['d']} float32, nnz={apply['nnz']} ({apply['nnz_per_row']:.1f}/row): "

@@ -6,7 +6,7 @@ from zernet.operators.patch import (
     PatchOperator,
     assemble_operator,
     build_patch_operator,
-    fit_matrices,
+    fit_patches,
     select_patches,
 )
 from zernet.operators.sparse import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
@@ -16,7 +16,7 @@ __all__ = [
     "PatchOperator",
     "build_patch_operator",
     "select_patches",
-    "fit_matrices",
+    "fit_patches",
     "assemble_operator",
     "SparseApply",
     "to_torch_csr",

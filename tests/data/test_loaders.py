@@ -150,7 +150,7 @@ def test_loader_options_defaults_and_checks():
 
 def test_shape_cache_paths_are_unchanged():
     """Cache file names computed before the data package was restructured: existing caches stay valid."""
-    config = [PatchConfig(r0=4.0, n_samples=1000, patch_size=30, n_max=3)]
+    config = [PatchConfig(r0=4.0, n_samples=1000, patch_size=30, n_max=3, backend="fast")]
 
     def source(seed, task, exponent):
         key = json.dumps({"generator": 1, "seed": seed, "n": 300, "rotate": True, "task": task})

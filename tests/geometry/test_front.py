@@ -162,3 +162,73 @@ def test_front_agrees_with_the_exact_reference_on_a_fold():
     assert sum(key in front for key in true_pairs) >= 0.995 * len(true_pairs)
     errors = np.array([abs(front[key] - exact[key]) for key in true_pairs if key in front])
     assert np.median(errors) < 0.003 and np.percentile(errors, 95) < 0.02
+
+
+# ---------------------------------------------------------------------- fans and long edges
+def test_fan_angles_scale_the_corner_angles_around_a_cone_apex():
+    # A cone apex with total angle 5 (not 2π): intrinsic angles are corner angles × 2π / 5, and mapping
+    # an edge's intrinsic angle back gives that edge's tangent-plane angle.
+    from zernet.geometry.fans import tangent_angle_of, vertex_fans
+
+    around = 10
+    phi = np.linspace(0, 2 * np.pi, around, endpoint=False)
+    height = 0.8
+    vertices = np.vstack([[0.0, 0.0, height], np.c_[np.cos(phi), np.sin(phi), np.zeros(around)]])
+    faces = np.array([[0, 1 + i, 1 + (i + 1) % around] for i in range(around)])
+    surface = Surface(vertices, faces)
+    frames = tangent_frames(surface)
+    fans = vertex_fans(vertices, faces, frames)
+    total = fans.corner[:, 0].sum()
+    assert fans.ordered[0]
+    np.testing.assert_allclose(fans.scale[0], 2 * np.pi / total)
+    wedges = np.arange(fans.wedge_start[0], fans.wedge_start[1])
+    for w in wedges:
+        a = faces[fans.wedge_face[w], (fans.wedge_corner[w] + 1) % 3]
+        edge = vertices[a] - vertices[0]
+        expected = np.arctan2(edge @ frames[0, 1], edge @ frames[0, 0])
+        mapped = tangent_angle_of(0, fans.start_angle[w], vertices, faces, frames, fans.wedge_start, fans.wedge_face,
+                                  fans.wedge_corner, fans.start_angle, fans.scale, fans.corner, fans.reversed)
+        assert abs(wrap(mapped - expected)) < 1e-9
+    steps = np.sort(wrap(fans.start_angle[wedges] - fans.start_angle[wedges[0]]) % (2 * np.pi))
+    np.testing.assert_allclose(np.diff(steps), 2 * np.pi / around, atol=1e-9)  # equal corners, evenly spread
+
+
+def test_faces_with_edges_longer_than_r0_keep_their_samples():
+    # Four huge triangles (edges 10 and 14) and r0 = 1: every sample within r0 of a vertex lies in a face
+    # whose other corners are far beyond r0; all of them must be found, at their straight-line distance.
+    vertices = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0], [5, 5, 0]], dtype=float)
+    faces = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    surface = Surface(vertices, faces)
+    samples = sample_surface(surface, 4000, seed=0)
+    r0 = 1.0
+    center, sample, radius, angle = front_polar(surface, samples, tangent_frames(surface), r0)
+    distance = np.linalg.norm(samples.points[None] - vertices[:, None], axis=2)
+    expected = set(zip(*np.nonzero(distance <= r0 * (1 - 1e-9))))
+    found = set(zip(center.tolist(), sample.tolist()))
+    assert expected and expected <= found
+    np.testing.assert_allclose(radius, distance[center, sample], atol=1e-12)
+
+
+def test_a_flipped_face_falls_back_to_tangent_angles_and_plane_angles_stay_exact():
+    # A flat grid with one face's orientation flipped: the fans of its corners are no single ordered walk
+    # and fall back to tangent-plane wedges; on a plane every angle must still be the exact planar angle.
+    from zernet.geometry.fans import vertex_fans
+
+    vertices, faces = grid_mesh(9, 9, spacing=0.5, jitter=0.1, seed=5)
+    faces = faces.copy()
+    faces[27] = faces[27, [0, 2, 1]]  # a face next to the centre vertex
+    surface = Surface(vertices, faces)
+    frames = tangent_frames(surface)
+    frames[:, 2] = [0.0, 0.0, 1.0]  # one consistent up direction, whatever the flipped face did to the normals
+    frames[:, 1] = np.cross(frames[:, 2], frames[:, 0])
+    fans = vertex_fans(vertices, faces, frames)
+    assert not fans.ordered[faces[27]].any() and fans.ordered.sum() >= len(vertices) - 3
+    samples = sample_surface(surface, 800, seed=2)
+    center, sample, radius, angle = front_polar(surface, samples, frames, 1.2)
+    inner = np.abs(vertices[center, :2]).max(axis=1) < 2.0 - 1.3  # a jittered border is not convex
+    center, sample, radius, angle = center[inner], sample[inner], radius[inner], angle[inner]
+    assert np.isin(faces[27], center).all()
+    offset = samples.points[sample] - vertices[center]
+    np.testing.assert_allclose(radius, np.linalg.norm(offset, axis=1), atol=1e-9)
+    expected = np.arctan2(np.einsum("pi,pi->p", offset, frames[center, 1]), np.einsum("pi,pi->p", offset, frames[center, 0]))
+    assert np.abs(wrap(angle - expected))[radius > 0.05].max() < 1e-6

@@ -16,7 +16,7 @@ Modules, each with one job:
 
 from zernet.geometry.io import load_surface
 from zernet.geometry.membrane import membrane_stress
-from zernet.geometry.polar import BACKENDS, PolarCoordinates, compute_polar, tangent_frames, transport_angles
+from zernet.geometry.polar import BACKEND_VERSIONS, BACKENDS, PolarCoordinates, resolve_backend, compute_polar, tangent_frames, transport_angles
 from zernet.geometry.sampling import SurfaceSamples, normalize_area, sample_surface
 from zernet.geometry.surface import Surface, SurfaceError, SurfaceWarning
 from zernet.geometry.validate import validate_surface
@@ -31,6 +31,8 @@ __all__ = [
     "SurfaceSamples",
     "sample_surface",
     "BACKENDS",
+    "BACKEND_VERSIONS",
+    "resolve_backend",
     "PolarCoordinates",
     "compute_polar",
     "tangent_frames",

@@ -3,24 +3,28 @@
 From every vertex ``p`` a front is propagated over the triangles, in order of increasing distance (like
 Dijkstra's algorithm), until it passes ``r0``: the geodesic polar coordinates update of Melvær and
 Reimers (2012, "Geodesic polar coordinates on polygonal meshes"), a close relative of the discrete
-exponential map of Schmidt, Grimm and Wyvill (2006). Each vertex carries a distance ``U`` and an angle
-``θ``:
+exponential map of Schmidt, Grimm and Wyvill (2006). Each vertex carries a distance ``U`` and an
+*intrinsic* angle ``θ`` (:mod:`zernet.geometry.fans`: corner angles accumulated around ``p`` and scaled
+to 2π, so the angle is linear in the unfolded angle across every wedge and exact on a cone):
 
-* the one-ring of ``p`` is exact: ``U`` is the edge length and ``θ`` the angle of the edge projected to
-  ``p``'s tangent plane, from ``frames[p, 0]`` towards ``frames[p, 1]``;
-* a triangle ``(i, j, k)`` with ``i, j`` final updates ``k``: it is unfolded into the plane, the virtual
-  source ``s`` is the point at distances ``U_i, U_j`` from ``i, j`` on the far side of edge ``ij``, and if
-  the straight line from ``s`` to ``k`` crosses the edge, ``U_k = |k - s|`` and ``θ_k`` is interpolated
-  between ``θ_i`` and ``θ_j`` by the angle the line makes at ``s`` (exact on a plane). Otherwise the
-  geodesic passes through a vertex: ``U_k = U_i + |ik|`` with ``θ_k = θ_i`` (or through ``j``);
+* the one-ring of ``p`` is exact: ``U`` is the edge length and ``θ`` the fan angle of the edge;
+* a triangle ``(i, j, k)`` with ``i, j`` final updates ``k``: it is unfolded into the plane from its edge
+  lengths, the virtual source ``s`` is the point at distances ``U_i, U_j`` from ``i, j`` on the far side
+  of edge ``ij``, and if the straight line from ``s`` to ``k`` crosses the edge, ``U_k = |k - s|`` and
+  ``θ_k`` is interpolated between ``θ_i`` and ``θ_j`` by the angle the line makes at ``s`` (exact on a
+  plane or a cone). Otherwise the geodesic passes through a vertex: ``U_k = U_i + |ik|`` with
+  ``θ_k = θ_i`` (or through ``j``);
 * ``U_k`` keeps the smallest value offered, so a thin tube is measured the shorter way round.
 
 Then every sample in a triangle whose corners the front reached gets its ``(r, θ)`` the same way from
-the virtual source of each edge (the smallest distance wins), or exactly (the straight segment) when
-``p`` is a corner of its triangle. Because the front only moves across shared edges, it never jumps to
-the far side of a fold, to a touching limb or to another connected component, and it stops at open
-boundaries. The front is run until it passes ``r0`` plus the longest edge met, so every triangle holding
-a point within ``r0`` has all its corners final.
+the unfolded triangle at the edge whose virtual source is nearest (or the path through a corner), and its
+intrinsic angle is turned into the tangent-plane angle of the same direction
+(:func:`zernet.geometry.fans.tangent_angle_of`); a sample in a triangle around ``p`` gets the straight
+segment (exact). Because the front only moves across shared edges, it never jumps to the far side of a
+fold, to a touching limb or to another connected component, and it stops at open boundaries. The front
+runs until every triangle that can hold a sample within ``r0`` has all its corners final, whatever the
+length of its edges (longer than ``r0`` included, around ``p`` too), but at most one median longest edge
+past ``r0``: beyond that a corner keeps its tentative distance (see ``_propagate``).
 
 The kernel is compiled on first use and cached on disk (``numba.njit(cache=True)``), so later processes
 load it instead of compiling. Sources are split over threads (the kernel releases the GIL).
@@ -34,6 +38,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numba
 import numpy as np
 
+from zernet.geometry.fans import tangent_angle_of, vertex_fans
 from zernet.geometry.sampling import SurfaceSamples
 from zernet.geometry.surface import Surface, SurfaceError
 
@@ -41,6 +46,8 @@ __all__ = ["front_polar"]
 
 # Relative tolerance of the test that the line from the virtual source crosses the unfolded edge.
 _CROSSING_TOLERANCE = 1e-9
+# The front runs past r0 by at most this many median longest edges (see _propagate).
+_EXTENSION_EDGES = 1.5
 
 
 def front_polar(
@@ -76,22 +83,19 @@ def front_polar(
         raise SurfaceError(f"{surface.name}: frames have shape {frames.shape}, expected ({n}, 3, 3)")
     points = np.ascontiguousarray(surface.vertices, dtype=np.float64)
     faces = np.ascontiguousarray(surface.faces, dtype=np.int64)
-    vertex_face_start, vertex_faces = _vertex_faces(faces, n)
+    frames = np.ascontiguousarray(frames, dtype=np.float64)
+    fans = vertex_fans(points, faces, frames)
     face_sample_start, face_samples = _face_samples(samples.face_index, len(faces))
     corners = points[faces]
-    face_longest = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
+    # opposite[f, c]: length of the edge of face f opposite its corner c.
+    opposite = np.linalg.norm(np.roll(corners, -1, axis=1) - np.roll(corners, 1, axis=1), axis=2)
+    reach = _sample_reach(corners, samples.points, samples.face_index)
     arguments = (
-        points,
-        faces,
-        vertex_face_start,
-        vertex_faces,
-        face_sample_start,
-        face_samples,
-        np.ascontiguousarray(samples.points, dtype=np.float64),
-        np.ascontiguousarray(frames, dtype=np.float64),
-        face_longest,
-        float(r0),
-    )
+        points, faces, fans.wedge_start, fans.wedge_face, fans.wedge_corner, fans.start_angle, fans.scale,
+        fans.corner, fans.reversed, opposite, reach, face_sample_start, face_samples,
+        np.ascontiguousarray(samples.points, dtype=np.float64), frames, float(r0),
+        _EXTENSION_EDGES * float(np.median(opposite.max(axis=1))),
+    )  # fmt: skip
     if n_threads is None:
         n_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     chunks = [c for c in np.array_split(np.arange(n, dtype=np.int64), max(1, 4 * n_threads)) if len(c)]
@@ -108,12 +112,16 @@ def front_polar(
     return center[order], sample[order], radius[order], angle
 
 
-def _vertex_faces(faces: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """CSR of the faces around each vertex: ``faces_of_v = vertex_faces[start[v]:start[v + 1]]``."""
-    vertex = faces.ravel()
-    order = np.argsort(vertex, kind="stable")
-    start = np.searchsorted(vertex[order], np.arange(n + 1)).astype(np.int64)
-    return start, (order // 3).astype(np.int64)
+def _sample_reach(corners: np.ndarray, sample_points: np.ndarray, face_index: np.ndarray) -> np.ndarray:
+    """(F, 3) largest distance from each corner of a face to the samples in it (-1 for a face without samples).
+
+    A sample ``x`` in face ``f`` within ``r0`` of the source has every corner ``c`` within
+    ``r0 + |x - c| <= r0 + reach[f, c]`` (triangle inequality), which bounds how far the front must run.
+    """
+    reach = np.full(corners.shape[:2], -1.0)
+    distance = np.linalg.norm(sample_points[:, None, :] - corners[face_index], axis=2)  # (M, 3)
+    np.maximum.at(reach, face_index, distance)
+    return reach
 
 
 def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
@@ -126,8 +134,8 @@ def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.
 # ====================================================================== compiled kernel
 @numba.njit(cache=True, nogil=True)
 def _front_chunk(
-    sources, points, faces, vertex_face_start, vertex_faces, face_sample_start, face_samples,
-    sample_points, frames, face_longest, r0,
+    sources, points, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite,
+    reach, face_sample_start, face_samples, sample_points, frames, r0, extension,
 ):  # fmt: skip
     """Front propagation from each of ``sources``; returns the (center, sample, radius, angle) pairs."""
     n = points.shape[0]
@@ -147,23 +155,37 @@ def _front_chunk(
     count = 0
     for p in sources:
         n_touched, heap_key, heap_vertex = _propagate(
-            p, points, faces, vertex_face_start, vertex_faces, frames, face_longest, r0,
-            distance, angle, final, exact, touched, heap_key, heap_vertex,
+            p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite, reach,
+            r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
         )  # fmt: skip
         for t in range(n_touched):
             v = touched[t]
             if not final[v]:
                 continue
-            for slot in range(vertex_face_start[v], vertex_face_start[v + 1]):
-                f = vertex_faces[slot]
-                if face_stamp[f] == p:
+            for slot in range(wedge_start[v], wedge_start[v + 1]):
+                f = wedge_face[slot]
+                if face_stamp[f] == p or face_sample_start[f] == face_sample_start[f + 1]:
                     continue
                 face_stamp[f] = p
-                if not (final[faces[f, 0]] and final[faces[f, 1]] and final[faces[f, 2]]):
-                    continue
-                for b in range(face_sample_start[f], face_sample_start[f + 1]):
-                    s = face_samples[b]
-                    r, theta = _sample_polar(p, f, sample_points[s, 0], sample_points[s, 1], sample_points[s, 2], points, faces, frames, distance, angle)
+                a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+                if not (np.isfinite(distance[a]) and np.isfinite(distance[b]) and np.isfinite(distance[c])):
+                    continue  # a corner the front never reached
+                if distance[a] > r0 + reach[f, 0] or distance[b] > r0 + reach[f, 1] or distance[c] > r0 + reach[f, 2]:
+                    continue  # no sample of the face is within r0
+                adjacent = a == p or b == p or c == p
+                for slot_sample in range(face_sample_start[f], face_sample_start[f + 1]):
+                    s = face_samples[slot_sample]
+                    x, y, z = sample_points[s, 0], sample_points[s, 1], sample_points[s, 2]
+                    if adjacent:  # straight from the source
+                        r, theta = _distance(points, p, x, y, z), _tangent_angle(points, frames, p, x, y, z)
+                    else:
+                        r, theta = _sample_polar(f, x, y, z, points, faces, distance, angle)
+                        if r > r0:
+                            continue
+                        theta = tangent_angle_of(
+                            p, theta, points, faces, frames, wedge_start, wedge_face, wedge_corner, start_angle,
+                            scale, corner, reversed_,
+                        )  # fmt: skip
                     if r > r0:
                         continue
                     if count == out_center.shape[0]:
@@ -183,11 +205,21 @@ def _front_chunk(
 
 @numba.njit(cache=True, nogil=True)
 def _propagate(
-    p, points, faces, vertex_face_start, vertex_faces, frames, face_longest, r0,
-    distance, angle, final, exact, touched, heap_key, heap_vertex,
+    p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite, reach, r0,
+    extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
 ):  # fmt: skip
-    """Run the front from vertex ``p`` past ``r0`` (plus the longest edge met); fills ``distance``,
-    ``angle``, ``final`` for the touched vertices and returns their count and the (maybe grown) heap.
+    """Run the front from vertex ``p``; fills ``distance``, ``angle`` (intrinsic, see
+    :mod:`zernet.geometry.fans`), ``final`` for the touched vertices and returns their count and the
+    (maybe grown) heap.
+
+    Stopping rule: a sample ``x`` of face ``f`` within ``r0`` has every corner ``c`` within
+    ``r0 + reach[f, c]`` (``reach``: the largest corner-to-sample distance in the face). So when a corner
+    ``i`` of a face with samples is popped at a distance ``<= r0 + reach[f, i]``, the front is run on
+    until the face's other corners ``c`` are final: past ``min(U_i + |ic|, r0 + reach[f, c])``. Faces
+    without samples, and faces whose samples are all beyond ``r0``, do not extend it; long edges (even
+    longer than ``r0``, also around ``p`` itself) are handled. The extension past ``r0`` is capped at
+    ``extension`` (the mesh's median longest edge): a corner of a large face beyond it keeps the
+    tentative distance its final neighbours gave it (an upper bound, usually already the final value).
 
     Label-correcting: a final vertex offered a shorter distance (in an obtuse triangle a vertex can be
     reached before the corners of the triangle its geodesic crosses) is reopened and propagated again.
@@ -199,20 +231,22 @@ def _propagate(
     exact[p] = True
     final[p] = True
     heap_size = 0
-    for slot in range(vertex_face_start[p], vertex_face_start[p + 1]):
-        f = vertex_faces[slot]
-        for c in range(3):
-            q = faces[f, c]
+    bound = r0
+    for slot in range(wedge_start[p], wedge_start[p + 1]):
+        f, c = wedge_face[slot], wedge_corner[slot]
+        for side in range(2):
+            q = faces[f, (c + 1 + side) % 3]
+            if reach[f, c] >= 0.0:  # the face holds samples: its corners must be final
+                bound = max(bound, min(opposite[f, (c + 2 - side) % 3], r0 + min(reach[f, (c + 1 + side) % 3], extension)))
             if exact[q]:
                 continue
-            if not np.isfinite(distance[q]):
-                touched[n_touched] = q
-                n_touched += 1
-            distance[q] = _distance(points, p, points[q, 0], points[q, 1], points[q, 2])
-            angle[q] = _tangent_angle(points, frames, p, points[q, 0], points[q, 1], points[q, 2])
+            touched[n_touched] = q
+            n_touched += 1
+            distance[q] = opposite[f, (c + 2 - side) % 3]
+            at_end = side == 1 if not reversed_[slot] else side == 0  # q is the wedge's last edge
+            angle[q] = start_angle[slot] + (scale[p] * corner[f, c] if at_end else 0.0)
             exact[q] = True
             heap_size, heap_key, heap_vertex = _heap_push(heap_key, heap_vertex, heap_size, distance[q], q)
-    bound = r0
     while heap_size > 0:
         key, i, heap_size = _heap_pop(heap_key, heap_vertex, heap_size)
         if key > distance[i] or final[i]:
@@ -220,23 +254,29 @@ def _propagate(
         if key > bound:
             break
         final[i] = True
-        for slot in range(vertex_face_start[i], vertex_face_start[i + 1]):
-            f = vertex_faces[slot]
-            if key <= r0:
-                bound = max(bound, r0 + face_longest[f])
-            c = 0 if faces[f, 0] == i else (1 if faces[f, 1] == i else 2)
-            a, b = faces[f, (c + 1) % 3], faces[f, (c + 2) % 3]
-            for target, other in ((b, a), (a, b)):
+        for slot in range(wedge_start[i], wedge_start[i + 1]):
+            f, c = wedge_face[slot], wedge_corner[slot]
+            relevant = reach[f, c] >= 0.0 and key <= r0 + min(reach[f, c], extension)
+            for side in range(2):
+                ct = (c + 1 + side) % 3  # the target corner
+                co = (c + 2 - side) % 3  # the other corner
+                if relevant:
+                    bound = max(bound, min(key + opposite[f, co], r0 + min(reach[f, ct], extension)))
+                target, other = faces[f, ct], faces[f, co]
                 if exact[target]:
                     continue
-                x, y, z = points[target, 0], points[target, 1], points[target, 2]
-                via = distance[i] + _distance(points, i, x, y, z)
-                u, theta = via, angle[i]
+                to_target = opposite[f, co]
+                u = distance[i] + to_target
+                theta = angle[i]
                 if final[other]:  # otherwise the path through i is an upper bound until other is final
-                    u, theta = _virtual_source_polar(points, i, other, x, y, z, distance, angle)
-                    via_other = distance[other] + _distance(points, other, x, y, z)
-                    if via < u and via <= via_other:
-                        u, theta = via, angle[i]
+                    edge, other_to_target = opposite[f, ct], opposite[f, c]
+                    kx = (to_target * to_target - other_to_target * other_to_target + edge * edge) / (2.0 * edge) if edge > 0.0 else 0.0
+                    ky = np.sqrt(max(to_target * to_target - kx * kx, 0.0))
+                    through, sx, sy = _unfolded_distance(distance[i], distance[other], edge, kx, ky)
+                    via_other = distance[other] + other_to_target
+                    if through < u and through <= via_other:
+                        u = through
+                        theta = _unfolded_angle(angle[i], angle[other], edge, sx, sy, kx, ky)
                     elif via_other < u:
                         u, theta = via_other, angle[other]
                 if u < distance[target] * (1.0 - 1e-12):
@@ -273,58 +313,60 @@ def _wrap(angle):
 
 
 @numba.njit(cache=True, nogil=True)
-def _virtual_source_polar(points, i, j, x, y, z, distance, angle):
-    """Distance and angle at the point ``(x, y, z)`` from the virtual source of edge ``ij``.
-
-    The triangle of the edge and the point is unfolded with ``i`` at the origin, ``j`` on the positive
-    x axis and the point at y >= 0; the source is at distances ``distance[i], distance[j]`` from ``i, j``
-    at y <= 0. Returns ``inf`` when the straight line from the source to the point misses the edge or the
-    distances do not fit the edge.
-    """
-    ex, ey, ez = points[j, 0] - points[i, 0], points[j, 1] - points[i, 1], points[j, 2] - points[i, 2]
-    length = np.sqrt(ex * ex + ey * ey + ez * ez)
+def _unfolded_distance(ui, uj, length, kx, ky):
+    """Distance to the point ``(kx, ky)`` (``ky >= 0``) from the virtual source of an edge unfolded with
+    ``i`` at the origin and ``j`` at ``(length, 0)``: the source is at distances ``ui, uj`` from ``i, j``
+    at y <= 0. Returns ``(distance, sx, sy)``; the distance is ``inf`` when the straight line from the
+    source to the point misses the edge or the distances do not fit the edge."""
     if length <= 0.0:
-        return np.inf, 0.0
-    ox, oy, oz = x - points[i, 0], y - points[i, 1], z - points[i, 2]
-    kx = (ox * ex + oy * ey + oz * ez) / length
-    ky = np.sqrt(max(ox * ox + oy * oy + oz * oz - kx * kx, 0.0))
-    ui, uj = distance[i], distance[j]
+        return np.inf, 0.0, 0.0
     sx = (ui * ui - uj * uj + length * length) / (2.0 * length)
     height2 = ui * ui - sx * sx
     if height2 < 0.0:
-        return np.inf, 0.0
+        return np.inf, 0.0, 0.0
     sy = -np.sqrt(height2)
     dx, dy = kx - sx, ky - sy
     if dy <= 0.0:
-        return np.inf, 0.0
+        return np.inf, 0.0, 0.0
     crossing = sx - sy * dx / dy  # where the line from the source to the point meets the edge's line
     tolerance = _CROSSING_TOLERANCE * length
     if crossing < -tolerance or crossing > length + tolerance:
-        return np.inf, 0.0
-    # θ interpolated by the angle at the source (exact when the unfolded front comes from one point).
-    to_i = np.arctan2(-sy, -sx)
-    to_j = np.arctan2(-sy, length - sx)
-    to_x = np.arctan2(dy, dx)
-    span = to_i - to_j
-    ratio = (to_i - to_x) / span if abs(span) > 1e-12 else 0.0
-    ratio = min(max(ratio, 0.0), 1.0)
-    return np.sqrt(dx * dx + dy * dy), angle[i] + ratio * _wrap(angle[j] - angle[i])
+        return np.inf, 0.0, 0.0
+    return np.sqrt(dx * dx + dy * dy), sx, sy
 
 
 @numba.njit(cache=True, nogil=True)
-def _sample_polar(p, f, x, y, z, points, faces, frames, distance, angle):
-    """(r, θ) of the point ``(x, y, z)`` in face ``f``, whose corners are final."""
-    if faces[f, 0] == p or faces[f, 1] == p or faces[f, 2] == p:  # straight from the source
-        return _distance(points, p, x, y, z), _tangent_angle(points, frames, p, x, y, z)
+def _unfolded_angle(theta_i, theta_j, length, sx, sy, kx, ky):
+    """Intrinsic angle at ``(kx, ky)``: ``theta_i`` and ``theta_j`` interpolated by the angle the line from
+    the source makes at the source (exact when the unfolded front comes from one point)."""
+    to_i = np.arctan2(-sy, -sx)
+    to_j = np.arctan2(-sy, length - sx)
+    to_x = np.arctan2(ky - sy, kx - sx)
+    span = to_i - to_j
+    ratio = (to_i - to_x) / span if abs(span) > 1e-12 else 0.0
+    ratio = min(max(ratio, 0.0), 1.0)
+    return theta_i + ratio * _wrap(theta_j - theta_i)
+
+
+@numba.njit(cache=True, nogil=True)
+def _sample_polar(f, x, y, z, points, faces, distance, angle):
+    """(r, intrinsic θ) of the point ``(x, y, z)`` in face ``f`` (not around the source), whose corners are
+    final: the smallest distance over the virtual sources of its three edges and the paths through its
+    corners."""
     best, best_angle = np.inf, 0.0
     for c in range(3):
-        a, b = faces[f, c], faces[f, (c + 1) % 3]
-        r, theta = _virtual_source_polar(points, a, b, x, y, z, distance, angle)
+        i, j = faces[f, c], faces[f, (c + 1) % 3]
+        ex, ey, ez = points[j, 0] - points[i, 0], points[j, 1] - points[i, 1], points[j, 2] - points[i, 2]
+        length = np.sqrt(ex * ex + ey * ey + ez * ez)
+        ox, oy, oz = x - points[i, 0], y - points[i, 1], z - points[i, 2]
+        kx = (ox * ex + oy * ey + oz * ez) / length if length > 0.0 else 0.0
+        ky = np.sqrt(max(ox * ox + oy * oy + oz * oz - kx * kx, 0.0))
+        r, sx, sy = _unfolded_distance(distance[i], distance[j], length, kx, ky)
         if r < best:
-            best, best_angle = r, theta
-        via = distance[a] + _distance(points, a, x, y, z)
+            best, best_angle = r, _unfolded_angle(angle[i], angle[j], length, sx, sy, kx, ky)
+        via = distance[i] + _distance(points, i, x, y, z)
         if via < best:
-            best, best_angle = via, angle[a]
+            best, best_angle = via, angle[i]
     return best, best_angle
 
 

@@ -5,9 +5,11 @@ coordinates ``(r, θ)`` of ``j`` in ``p``'s tangent plane (a discrete logarithmi
 distance and ``θ`` the angle of the initial direction of the geodesic, measured from ``p``'s reference
 direction ``e1`` towards ``e2 = n × e1`` (so ``(e1, e2, n)`` is right-handed).
 
-Three backends (their speed and accuracy are measured by ``benchmarks/bench_operator.py``):
+Three backends (their speed and accuracy against exact geodesics are measured by
+``benchmarks/bench_geodesics.py`` and ``benchmarks/bench_operator.py``). The default (``backend=None``,
+:func:`resolve_backend`) is ``"front"`` for a mesh and ``"fast"`` for a point cloud.
 
-``"fast"`` (default, :mod:`zernet.geometry.polar_fast`)
+``"fast"`` (the default for point clouds, :mod:`zernet.geometry.polar_fast`)
     One k-d tree ball query of the samples around all vertices, then closed-form corrections, all
     vectorised:
 
@@ -35,11 +37,12 @@ Three backends (their speed and accuracy are measured by ``benchmarks/bench_oper
     lengths instead (distance is continuous across the cut) and only the angle from the vectors.
     Samples on other connected components (potpourri returns NaN there) are dropped.
 
-``"front"`` (:mod:`zernet.geometry.front`, meshes only)
+``"front"`` (the default for meshes, :mod:`zernet.geometry.front`)
     Local front propagation from every vertex over the triangles, bounded by ``r0`` (the geodesic polar
     coordinates update of Melvær and Reimers 2012), compiled with numba: distances are surface distances,
     so the far side of a fold (between fingers, across an armpit or the crotch) is never reached through
-    the air, and a thin tube is measured the shorter way round. The angle is carried along the front.
+    the air, and a thin tube is measured the shorter way round. The angle is carried along the front as
+    an intrinsic fan angle (:mod:`zernet.geometry.fans`) and mapped back to the tangent plane.
 
 All backends consider only samples within Euclidean distance ``r0`` (geodesic distance is never
 shorter) and keep those with radius ``<= r0``.
@@ -62,9 +65,12 @@ from zernet.geometry.polar_fast import fast_polar
 from zernet.geometry.sampling import SurfaceSamples
 from zernet.geometry.surface import Surface
 
-__all__ = ["PolarCoordinates", "tangent_frames", "compute_polar", "transport_angles", "wrap_angle", "BACKENDS"]
+__all__ = ["PolarCoordinates", "tangent_frames", "compute_polar", "transport_angles", "wrap_angle", "BACKENDS",
+           "BACKEND_VERSIONS", "resolve_backend"]
 
 BACKENDS = ("fast", "accurate", "front")
+#: Bumped when a backend's output changes, so cached operators built from the old output are rebuilt.
+BACKEND_VERSIONS = {"fast": 1, "accurate": 1, "front": 2}
 
 # A neighbour defines e1 only if its offset is mostly tangential (|tangent part| / |offset| above this).
 _FRAME_MIN_TANGENTIAL = 0.5
@@ -196,11 +202,19 @@ def wrap_angle(angle: np.ndarray) -> np.ndarray:
 
 
 # ====================================================================== entry point
+def resolve_backend(surface: Surface, backend: str | None) -> str:
+    """The backend used on ``surface``: ``backend``, or for ``None`` ``"front"`` on a mesh (surface
+    distances) and ``"fast"`` on a point cloud (the front needs triangles)."""
+    if backend is not None:
+        return backend
+    return "fast" if surface.is_point_cloud else "front"
+
+
 def compute_polar(
     surface: Surface,
     samples: SurfaceSamples,
     r0: float,
-    backend: str = "fast",
+    backend: str | None = None,
     n_jobs: int | None = None,
 ) -> PolarCoordinates:
     """Geodesic polar coordinates of the samples within ``r0`` of every vertex.
@@ -209,7 +223,8 @@ def compute_polar(
         surface: mesh or point cloud, N vertices.
         samples: M samples on it (:func:`zernet.geometry.sample_surface`).
         r0: patch radius (absolute units), > 0.
-        backend: ``"fast"``, ``"accurate"`` or ``"front"`` (see the module docstring).
+        backend: ``"fast"``, ``"accurate"``, ``"front"`` (see the module docstring) or ``None``
+            (:func:`resolve_backend`: front for a mesh, fast for a point cloud).
         n_jobs: worker processes for ``"accurate"`` (``None``: all available cores; ``1``: in this
             process). Ignored by ``"fast"``.
 
@@ -218,6 +233,7 @@ def compute_polar(
     """
     if not r0 > 0:
         raise ValueError(f"r0 must be positive, got {r0}")
+    backend = resolve_backend(surface, backend)
     if backend not in BACKENDS:
         raise ValueError(f"unknown polar backend {backend!r}; choose one of {BACKENDS}")
     if surface.is_point_cloud and samples.n_samples != surface.n_vertices:

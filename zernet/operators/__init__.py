@@ -11,7 +11,7 @@ the :class:`Geometry` a model receives.
 from .batch import Geometry
 from .cache import FORMAT_VERSION, CacheWarning, cache_key
 from .directional import DirectionalOperator, build_directional_operator
-from .patch import PatchConfig, PatchOperator, assemble_operator, build_patch_operator, fit_matrices, select_patches
+from .patch import PatchConfig, PatchOperator, assemble_operator, build_patch_operator, fit_patches, select_patches
 from .sparse import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
 
 __all__ = [
@@ -19,7 +19,7 @@ __all__ = [
     "PatchOperator",
     "build_patch_operator",
     "select_patches",
-    "fit_matrices",
+    "fit_patches",
     "assemble_operator",
     "SparseApply",
     "to_torch_csr",

@@ -1,7 +1,9 @@
 """The on-disk cache of patch operators: cache keys and the checked ``.npz`` file format.
 
 :func:`zernet.operators.build_patch_operator` with ``cache_dir`` stores one ``<key>.npz`` per (geometry,
-config), keyed by :func:`cache_key` = ``sha256(geometry_hash, config JSON, format version)``. The file holds
+config), keyed by :func:`cache_key` = ``sha256(geometry_hash, config JSON, polar backend used and its version, format
+version)``: a file written by another backend version, another fit or an older format gets another key
+(and a stale file under the same name is rejected by its stored version), so it is rebuilt, never misread. The file holds
 the patch geometry (sample ids, polar coordinates, frames, interpolation; ~10 MB for 6,890 vertices) rather
 than the assembled matrix (~100 MB); assembling from it takes a fraction of a second.
 
@@ -24,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse
 
+from zernet.geometry import BACKEND_VERSIONS, resolve_backend
 from zernet.io_utils import atomic_write_bytes
 
 __all__ = [
@@ -39,17 +42,21 @@ __all__ = [
     "read_payload",
 ]
 
-FORMAT_VERSION = 1
+#: Version 2: degree-weighted ridge, all samples within r0 by default, backend and its version in the key.
+FORMAT_VERSION = 2
 
 
 class CacheWarning(UserWarning):
     """A cached operator file could not be trusted (corrupt, truncated, stale) and is being rebuilt."""
 
 
-def cache_key(surface, config) -> str:
-    """sha256 of the surface's ``geometry_hash()``, the config (``to_dict()``, JSON with sorted keys) and
-    the format version."""
-    text = json.dumps({"geometry": surface.geometry_hash(), "config": config.to_dict(), "version": FORMAT_VERSION}, sort_keys=True)
+def cache_key(surface, config, backend: str | None = None) -> str:
+    """sha256 of the surface's ``geometry_hash()``, the config (``to_dict()``, JSON with sorted keys), the
+    polar backend used on this surface (``backend``, default :func:`zernet.geometry.resolve_backend` of
+    ``config.backend``) with its version (:data:`zernet.geometry.BACKEND_VERSIONS`) and the format version."""
+    backend = resolve_backend(surface, config.backend) if backend is None else backend
+    text = json.dumps({"geometry": surface.geometry_hash(), "config": config.to_dict(), "backend": backend,
+                       "backend_version": BACKEND_VERSIONS.get(backend), "version": FORMAT_VERSION}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()
 
 

@@ -1,29 +1,31 @@
 """The patch operator: one sparse linear map from per-vertex features to local Zernike coefficients.
 
 For vertex ``p`` with patch samples ``j`` at geodesic polar coordinates ``(r_j / r0, θ_j)``, the Zernike
-coefficients of a field ``f`` are the ridge least-squares fit ``a_p = P_p f(samples)`` with
-``P_p = (B_pᵀ B_p + λ I)⁻¹ B_pᵀ`` (``B_p``: n_p × k Zernike values). Samples carry vertex features by
-barycentric interpolation, so the whole map is ``A = blockrows_p(P_p · Interp[patch of p])``, an
-``(N·k) × N`` CSR matrix built once per surface and applied with a custom autograd function
-(:class:`SparseApply`) that keeps its transpose.
+coefficients of a field ``f`` are the degree-weighted ridge least-squares fit ``a_p = P_p f(samples)``
+with ``P_p = (B_pᵀ B_p + λ W)⁻¹ B_pᵀ`` (``B_p``: n_p × k Zernike values; ``W`` and λ in
+:mod:`zernet.operators.fit`). Samples carry vertex features by barycentric interpolation, so the whole
+map is ``A = blockrows_p(P_p · Interp[patch of p])``, an ``(N·k) × N`` CSR matrix built once per surface
+and applied with a custom autograd function (:class:`SparseApply`) that keeps its transpose.
 
-Patch selection: the ``patch_size`` nearest samples within ``r0`` (nearest by geodesic radius), leaving
-out those with ``r < inner_radius``.
+Patch selection (the sampling rule): by default (``patch_size=None``) a patch holds **every** sample
+within ``r0`` (leaving out those with ``r < inner_radius``), so the samples cover the whole disk and the
+fitted coefficients are the unit-disk Zernike coefficients (at 12,000 samples on area 15000 and r0 = 5.5
+that is ~76 samples; the 50 nearest reach only ~0.8 r0). ``patch_size=n`` keeps the ``n`` nearest samples
+(by geodesic radius) instead: ``patch_size=50`` is the paper's formulation.
 
-Regularisation and truncated patches (boundary vertices, vertices with fewer than k samples):
-    λ is one absolute number per surface, ``λ = ridge · median_p(trace(B_pᵀ B_p) / k)``: ``ridge`` times
-    the typical eigenvalue of a full interior patch (≈ n_p / π for samples spread over the unit disk).
-    Interior patches are thus fitted with a relative bias of order ``ridge``; on a truncated patch the
-    modes the samples cannot see (eigenvalues ≪ λ) shrink to 0 instead of exploding — the least-squares
-    counterpart of the paper's zero padding (the field is treated as 0 where the surface has no samples).
-    The regularised system's condition number is at most ``1 + σ_max² / λ`` (about 1e3–1e4 for the
-    default ridge; the raw ``B_pᵀ B_p`` of boundary patches reaches 1e12). A vertex with no sample within
-    ``r0`` (e.g. an isolated vertex) gets all-zero rows.
+The ridge does not bias a well-posed patch: the piston is not penalised (a constant field is fitted
+exactly), the higher degrees are penalised more. Truncated patches (boundary vertices, vertices with
+fewer than k samples) stay well-posed: the modes their samples cannot see shrink to 0 (the least-squares
+counterpart of the paper's zero padding). A vertex with no sample within ``r0`` gets all-zero rows.
+
+Polar backend: ``backend=None`` (default) takes ``"front"`` (surface distances by front propagation) for
+a mesh and ``"fast"`` for a point cloud (the front needs triangles).
 
 ``subtract_center``: the fit is of ``f(sample) − f(p)``, i.e. ``A_p ← A_p − (P_p 1) e_pᵀ`` (still linear).
 
 Cache: :func:`build_patch_operator` with ``cache_dir`` keeps one file per (geometry, config); the key and
-the checked file format are in :mod:`zernet.operators.cache`.
+the checked file format are in :mod:`zernet.operators.cache`; the key holds the backend actually used and
+its version, so an operator built by an older backend or fit is rebuilt, never reused.
 """
 
 from __future__ import annotations
@@ -40,8 +42,7 @@ import numpy as np
 import scipy.sparse
 import torch
 
-from zernet.geometry import BACKENDS, compute_polar
-from zernet.geometry import Surface, sample_surface
+from zernet.geometry import BACKENDS, Surface, compute_polar, resolve_backend, sample_surface
 from zernet.zernike import num_bases, zernike_basis
 
 from .cache import (
@@ -55,6 +56,7 @@ from .cache import (
     unpack_payload,
     write_payload,
 )
+from .fit import carry_to_vertices, degree_weights, fit_groups, fit_patches
 from .sparse import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
 
 __all__ = [
@@ -62,7 +64,7 @@ __all__ = [
     "PatchOperator",
     "build_patch_operator",
     "select_patches",
-    "fit_matrices",
+    "fit_patches",
     "assemble_operator",
 ]
 
@@ -74,36 +76,39 @@ class PatchConfig:
     Attributes:
         r0: patch radius (absolute units; 5.5 for bodies at area 15000).
         n_samples: number of area-uniform surface samples (ignored for point clouds: the points are used).
-        patch_size: at most this many nearest samples per patch.
+        patch_size: ``None`` (default): every sample within ``r0`` (the patch covers the disk, so the fit gives
+            the unit-disk coefficients); ``n``: the ``n`` nearest samples only (``50``: the paper's setting).
         n_max: highest Zernike degree (k = (n_max + 1)(n_max + 2) / 2; 5 -> 21).
         inner_radius: samples closer than this (absolute units) are left out.
         subtract_center: fit ``f(sample) - f(p)`` instead of ``f(sample)``.
-        ridge: regularisation relative to a full patch's typical eigenvalue (module docstring).
-        backend: polar-coordinate backend, ``"fast"``, ``"accurate"`` or ``"front"`` (surface distances; meshes).
+        ridge: regularisation relative to a full patch's typical eigenvalue, weighted by degree (the piston
+            is not penalised; :mod:`zernet.operators.fit`).
+        backend: polar-coordinate backend: ``None`` (default: ``"front"`` for meshes, ``"fast"`` for point
+            clouds), ``"front"`` (surface distances by front propagation; meshes), ``"fast"`` or ``"accurate"``.
         seed: seed of the surface sampling.
     """
 
     r0: float
     n_samples: int = 12000
-    patch_size: int = 50
+    patch_size: int | None = None
     n_max: int = 5
     inner_radius: float = 0.0
     subtract_center: bool = False
     ridge: float = 1e-3
-    backend: str = "fast"
+    backend: str | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
         if not self.r0 > 0:
             raise ValueError(f"PatchConfig.r0 must be positive, got {self.r0}")
-        if self.n_samples < 1 or self.patch_size < 1 or self.n_max < 0:
+        if self.n_samples < 1 or (self.patch_size is not None and self.patch_size < 1) or self.n_max < 0:
             raise ValueError(f"PatchConfig needs n_samples >= 1, patch_size >= 1, n_max >= 0: {self}")
         if not 0 <= self.inner_radius < self.r0:
             raise ValueError(f"PatchConfig.inner_radius must be in [0, r0), got {self.inner_radius}")
         if not self.ridge > 0:
             raise ValueError(f"PatchConfig.ridge must be positive (it keeps truncated patches well-posed), got {self.ridge}")
-        if self.backend not in BACKENDS:
-            raise ValueError(f"PatchConfig.backend must be one of {BACKENDS}, got {self.backend!r}")
+        if self.backend is not None and self.backend not in BACKENDS:
+            raise ValueError(f"PatchConfig.backend must be None (automatic) or one of {BACKENDS}, got {self.backend!r}")
 
     @property
     def k(self) -> int:
@@ -135,6 +140,7 @@ class PatchOperator:
         patch_angle: (N, n) float64 θ (0 where -1).
         interpolation: scipy CSR (M, N) vertex field -> samples.
         lam: the absolute ridge λ used.
+        ridge_weights: (k,) the diagonal of the ridge's degree weights ``W`` (:mod:`zernet.operators.fit`).
     """
 
     def __init__(
@@ -159,6 +165,7 @@ class PatchOperator:
         self.n_vertices = int(frames.shape[0])
         self.n_max = config.n_max
         self.k = config.k
+        self.ridge_weights = degree_weights(config.n_max)
         if self.matrix.shape != (self.n_vertices * self.k, self.n_vertices):
             raise ValueError(f"operator matrix has shape {self.matrix.shape}, expected {(self.n_vertices * self.k, self.n_vertices)}")
         self._transpose: scipy.sparse.csr_matrix | None = None  # built with the first torch tensors
@@ -354,7 +361,8 @@ def build_patch_operator(
     Returns:
         :class:`PatchOperator`.
     """
-    key = cache_key(surface, config)
+    backend = resolve_backend(surface, config.backend)
+    key = cache_key(surface, config, backend)
     path = None
     if cache_dir is not None:
         path = cache_path(cache_dir, key)
@@ -365,9 +373,9 @@ def build_patch_operator(
                 warnings.warn(f"rebuilding cached patch operator {path}: {error}", CacheWarning, stacklevel=2)
     start = time.perf_counter()
     samples = sample_surface(surface, config.n_samples, seed=config.seed)
-    polar = compute_polar(surface, samples, config.r0, backend=config.backend, n_jobs=n_jobs)
+    polar = compute_polar(surface, samples, config.r0, backend=backend, n_jobs=n_jobs)
     if progress:
-        print(f"{surface.name}: polar coordinates ({config.backend}) {polar.seconds:.2f} s, {polar.n_pairs} pairs")
+        print(f"{surface.name}: polar coordinates ({backend}) {polar.seconds:.2f} s, {polar.n_pairs} pairs")
     operator = assemble_operator(
         polar.center, polar.sample, polar.radius, polar.angle, polar.frames, samples.interpolation, config
     )
@@ -379,20 +387,20 @@ def build_patch_operator(
 
 
 def select_patches(center, sample, radius, angle, n_vertices: int, config: PatchConfig):
-    """The ``patch_size`` nearest samples of each vertex with ``inner_radius <= r <= r0``.
+    """The samples of each patch: all with ``inner_radius <= r <= r0``, or the ``patch_size`` nearest of them.
 
     Args:
         center, sample, radius, angle: (P,) pairs sorted by (center, radius), as in ``PolarCoordinates``.
 
     Returns:
         ``(index, r, theta)``, each (N, n): sample ids (-1 for padding), normalised radii r / r0 and angles
-        (0 for padding), nearest first. ``n`` is the longest patch (<= patch_size).
+        (0 for padding), nearest first. ``n`` is the longest patch.
     """
     keep = (radius >= config.inner_radius) & (radius <= config.r0)
     center, sample, radius, angle = center[keep], sample[keep], radius[keep], angle[keep]
     start = np.searchsorted(center, np.arange(n_vertices))
     rank = np.arange(len(center)) - start[center]
-    keep = rank < config.patch_size
+    keep = rank < (config.patch_size if config.patch_size is not None else len(rank) + 1)
     center, sample, radius, angle, rank = center[keep], sample[keep], radius[keep], angle[keep], rank[keep]
     width = int(rank.max()) + 1 if len(rank) else 1
     index = np.full((n_vertices, width), -1, dtype=np.int64)
@@ -402,34 +410,6 @@ def select_patches(center, sample, radius, angle, n_vertices: int, config: Patch
     r[center, rank] = radius / config.r0
     theta[center, rank] = angle
     return index, r, theta
-
-
-def fit_matrices(basis: np.ndarray, mask: np.ndarray, ridge: float) -> tuple[np.ndarray, float]:
-    """Batched ridge least-squares fit matrices.
-
-    Args:
-        basis: (N, n, k) Zernike values, zero rows at padding.
-        mask: (N, n) bool, True at real samples.
-        ridge: relative ridge (module docstring).
-
-    Returns:
-        ``(P, lam)``: (N, k, n) with ``P_p = (B_pᵀB_p + λI)⁻¹ B_pᵀ`` (zero columns at padding, zero for
-        empty patches) and the absolute λ.
-    """
-    basis_t = np.ascontiguousarray(basis.transpose(0, 2, 1))  # (N, k, n)
-    basis_t *= mask[:, None, :]
-    gram = basis_t @ basis_t.transpose(0, 2, 1)
-    k = basis.shape[-1]
-    trace = np.trace(gram, axis1=1, axis2=2)
-    populated = mask.any(axis=1)
-    scale = float(np.median(trace[populated]) / k) if populated.any() else 1.0
-    lam = ridge * max(scale, 1e-12)
-    gram[:, np.arange(k), np.arange(k)] += lam
-    # Inverting the k × k systems (k right-hand sides) is cheaper than solving for the n columns of Bᵀ;
-    # the systems are symmetric positive definite with condition number <= 1 + σ_max² / λ.
-    fit = np.linalg.inv(gram) @ basis_t
-    fit[~populated] = 0.0
-    return fit, lam
 
 
 def assemble_operator(center, sample, radius, angle, frames, interpolation, config: PatchConfig) -> PatchOperator:
@@ -447,36 +427,30 @@ def assemble_operator(center, sample, radius, angle, frames, interpolation, conf
     n = frames.shape[0]
     k = config.k
     index, r, theta = select_patches(center, sample, radius, angle, n, config)
-    mask = index >= 0
-    basis = zernike_basis(r, theta, config.n_max)
-    fit, lam = fit_matrices(basis, mask, config.ridge)  # (N, k, n)
+    counts = (index >= 0).sum(axis=1)
+    groups, lam = fit_groups(r, theta, counts, config.n_max, config.ridge)
 
-    # Rows p*k + i, columns = patch sample ids; then one sparse product carries samples to vertices.
-    # With subtract_center the vertex itself is an extra pseudo-sample (column M + p) of weight -Σ_j P_p[i, j].
-    m_samples = interpolation.shape[0]
-    counts = mask.sum(axis=1)
-    row_lengths = np.repeat(counts, k) + (1 if config.subtract_center else 0)
-    indptr = np.concatenate([[0], np.cumsum(row_lengths)])
-    cols = np.broadcast_to(index[:, None, :], fit.shape)[np.broadcast_to(mask[:, None, :], fit.shape)]
-    vals = fit[np.broadcast_to(mask[:, None, :], fit.shape)]
-    if config.subtract_center:
-        # Append the centre entry at the end of every row (row-major order is kept by a stable scatter).
-        total = indptr[-1]
-        all_cols = np.empty(total, dtype=np.int64)
-        all_vals = np.empty(total)
-        is_center = np.zeros(total, dtype=bool)
-        is_center[indptr[1:] - 1] = True
-        all_cols[~is_center] = cols
-        all_vals[~is_center] = vals
-        all_cols[is_center] = m_samples + np.repeat(np.arange(n), k)
-        all_vals[is_center] = -fit.sum(axis=2).ravel()
-        cols, vals = all_cols, all_vals
-        carry = scipy.sparse.vstack([interpolation, scipy.sparse.identity(n, format="csr")], format="csr")
-    else:
-        carry = interpolation
-    blocks = scipy.sparse.csr_matrix((vals, cols, indptr), shape=(n * k, carry.shape[0]))
-    matrix = (blocks @ carry).tocsr()
-    matrix.sum_duplicates()
+    # Rows p*k + i, columns = the mesh vertices the patch's samples interpolate from (and p itself with
+    # subtract_center). The k rows of vertex p are contiguous in CSR order and share their columns, so each
+    # group's (k, width) blocks are written in place.
+    carried = [(rows, *carry_to_vertices(rows, block, index[rows, : block.shape[2]], interpolation, config.subtract_center))
+               for rows, block in groups]
+    width = np.zeros(n, dtype=np.int64)
+    for rows, group_width, _, _ in carried:
+        width[rows] = group_width
+    indptr = np.concatenate([[0], np.cumsum(np.repeat(width, k))])
+    cols = np.empty(indptr[-1], dtype=np.int64)
+    vals = np.empty(indptr[-1])
+    for rows, group_width, columns, values in carried:
+        starts = indptr[rows * k]
+        lengths = k * group_width
+        where = np.repeat(starts - np.concatenate([[0], np.cumsum(lengths)[:-1]]), lengths) + np.arange(lengths.sum())
+        column_starts = np.concatenate([[0], np.cumsum(group_width)[:-1]])
+        # per patch: its width columns repeated for each of the k rows
+        local = np.arange(lengths.sum()) - np.repeat(np.concatenate([[0], np.cumsum(lengths)[:-1]]), lengths)
+        cols[where] = columns[np.repeat(column_starts, lengths) + local % np.repeat(group_width, lengths)]
+        vals[where] = values
+    matrix = scipy.sparse.csr_matrix((vals, cols, indptr), shape=(n * k, n))
     matrix.eliminate_zeros()
     return PatchOperator(
         matrix=matrix,

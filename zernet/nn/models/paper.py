@@ -35,19 +35,22 @@ from .zernet import ZerNet, ZernikeBlock
 __all__ = ["PaperZernikeConv", "PaperZerNet", "ridge_normal_matrix"]
 
 
-def ridge_normal_matrix(basis: Tensor, ridge: float) -> Tensor:
-    """Ridge-regularised normal matrices ``BᵀB + λ I`` of every patch's least-squares fit.
+def ridge_normal_matrix(basis: Tensor, ridge: float, weights=None) -> Tensor:
+    """Ridge-regularised normal matrices ``BᵀB + λ W`` of every patch's least-squares fit.
 
     Args:
         basis: ``(N, n, k)`` Zernike values at each patch's samples, zero rows for absent samples.
         ridge: ``λ``.
+        weights: ``(k,)`` diagonal of ``W``; ``None``: the identity (the release's plain ridge).
 
     Returns:
         ``(N, k, k)``.
     """
     gram = basis.transpose(1, 2) @ basis
-    eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
-    return gram + ridge * eye
+    k = gram.shape[-1]
+    diagonal = torch.ones(k, dtype=gram.dtype, device=gram.device) if weights is None else \
+        torch.as_tensor(weights, dtype=gram.dtype, device=gram.device)
+    return gram + ridge * torch.diag(diagonal)
 
 
 class _PatchTensors:
@@ -99,10 +102,12 @@ class PaperZernikeConv(RotatedKernelConv):
     The normal equations are built from ``operator.patch_basis`` and solved with
     :func:`torch.linalg.solve` in every forward pass, like the authors' release (which uses an absolute
     ``λ = 0.01``). By default ``λ`` is the absolute value the operator was built with (``operator.lam``:
-    ``zernet.operators.PatchOperator`` scales its relative ``config.ridge`` by the surface's typical patch eigenvalue), so
+    ``zernet.operators.PatchOperator`` scales its relative ``config.ridge`` by the surface's typical patch
+    eigenvalue) and ``I`` is replaced by the operator's degree weights ``W`` (``operator.ridge_weights``), so
     ``fit(x, op)`` equals ``op.apply(x)`` to rounding and this layer equals
     :class:`~zernet.nn.conv.ZernikeConv` (same ``weight`` and ``bias``, ``pooling="max"``); pass
-    ``ridge=0.01`` for the release's absolute value. A block-diagonal operator of several surfaces
+    ``ridge=0.01`` for the release's absolute value with ``I``. Build the operator with ``patch_size=50``
+    (50 nearest samples) for the paper's formulation; zernet's default is every sample within ``r0``. A block-diagonal operator of several surfaces
     (``PatchOperator.concatenate``) carries a single ``lam`` (the first surface's), so in a batch of
     surfaces whose ``λ`` differ the fit of the others differs from their precomputed operator by a
     relative ``O(Δλ / eigenvalue)`` (about ``1e-3`` at most).
@@ -176,8 +181,10 @@ class PaperZernikeConv(RotatedKernelConv):
         # Vertex features -> values at each patch's samples (barycentric interpolation), (N, n, C).
         values = SparseApply.apply(x.contiguous(), patches.gather, patches.gather_t)
         values = values.view(patches.n_vertices, patches.width, x.shape[1])
-        ridge = operator.lam if self.ridge is None else self.ridge
-        normal = ridge_normal_matrix(patches.basis, float(ridge))  # (N, k, k)
+        if self.ridge is None:  # the operator's own fit: its λ and its degree weights
+            normal = ridge_normal_matrix(patches.basis, float(operator.lam), getattr(operator, "ridge_weights", None))
+        else:  # the release's plain ridge λ I
+            normal = ridge_normal_matrix(patches.basis, float(self.ridge))
         rhs = patches.basis.transpose(1, 2) @ values  # (N, k, C)
         return torch.linalg.solve(normal, rhs)
 

@@ -1,0 +1,184 @@
+"""The least-squares fit of Zernike coefficients to the samples of each patch: a degree-weighted ridge.
+
+For vertex ``p`` with ``n_p`` patch samples at normalised polar coordinates ``(r_j, θ_j)`` and Zernike
+values ``B_p`` (``n_p × k``), the fit matrix is
+
+    ``P_p = (B_pᵀ B_p + λ W)⁻¹ B_pᵀ``,   ``W = diag(w_j)``,  ``w_j = n_j (n_j + 2) / (n_max (n_max + 2))``,
+
+where ``n_j`` is the radial degree of basis ``j`` (the eigenvalue of the disk Laplacian grows like
+``n (n + 2)``, so the penalty is a smoothness prior, 0 for the piston and 1 at the highest degree).
+
+Why degree weights: a plain ridge ``λ I`` shrinks every coefficient, the piston included, so a constant
+field comes out low by about ``λ / eigenvalue`` — a bias that grows where a patch covers less of the disk.
+With ``w_0 = 0`` a constant field is fitted exactly on every non-empty patch (``W a = 0`` for a pure
+piston, so ``P_p B_p a = a``): its piston is exact and every other coefficient 0, whatever the coverage.
+``B_pᵀB_p + λW`` is still positive definite for any non-empty patch (the piston column of ``B_p`` is a
+non-zero constant), so truncated boundary patches stay well-posed: the modes the samples cannot see
+(eigenvalues ≪ λ) shrink to 0 instead of exploding, the least-squares counterpart of the paper's zero
+padding. A vertex with no sample gets all-zero rows.
+
+λ is one absolute number per surface: ``λ = ridge · median_p(trace(B_pᵀB_p) / k)``, ``ridge`` times the
+typical eigenvalue of a full interior patch (≈ n_p / π for samples spread over the unit disk).
+
+The fit is computed in groups of patches with the same number of samples (no padding enters the
+products): :func:`fit_groups`; :func:`fit_patches` pads the result to the widest patch.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from zernet.zernike import index_to_nm, num_bases, zernike_basis
+
+__all__ = ["degree_weights", "fit_groups", "fit_patches", "carry_to_vertices"]
+
+
+def degree_weights(n_max: int) -> np.ndarray:
+    """(k,) ridge weights ``n (n + 2) / (n_max (n_max + 2))`` of the Zernike bases, in single-index order
+    (0 for the piston, 1 at degree ``n_max``)."""
+    degree = np.array([index_to_nm(j)[0] for j in range(num_bases(n_max))], dtype=np.float64)
+    return degree * (degree + 2) / max(n_max * (n_max + 2), 1)
+
+
+def fit_groups(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float) -> tuple[list, float]:
+    """Fit matrices of every non-empty patch, in groups of equal patch size.
+
+    Args:
+        radius: (N, n) normalised radii ``r / r0``; the samples of patch ``p`` are its first ``counts[p]``
+            columns (the rest is padding and is ignored).
+        angle: (N, n) angles.
+        counts: (N,) number of samples of each patch.
+        n_max: highest Zernike degree (k bases).
+        ridge: relative ridge (module docstring), > 0.
+
+    Returns:
+        ``(groups, lam)``: a list of ``(rows, fit)`` with ``rows`` the (g,) vertices of one patch size
+        ``n`` and ``fit`` their (g, k, n) fit matrices, and the absolute λ.
+    """
+    k = num_bases(n_max)
+    counts = np.asarray(counts, dtype=np.int64)
+    groups = [(size, np.flatnonzero(counts == size)) for size in np.unique(counts) if size > 0]
+    bases, grams, traces = [], [], []
+    for size, rows in groups:
+        basis_t = np.ascontiguousarray(zernike_basis(radius[rows, :size], angle[rows, :size], n_max).transpose(0, 2, 1))
+        gram = basis_t @ basis_t.transpose(0, 2, 1)  # (g, k, k)
+        bases.append(basis_t)
+        grams.append(gram)
+        traces.append(np.trace(gram, axis1=1, axis2=2))
+    scale = float(np.median(np.concatenate(traces)) / k) if traces else 1.0
+    lam = ridge * max(scale, 1e-12)
+    penalty = lam * degree_weights(n_max)
+    diagonal = np.arange(k)
+    fits = []
+    for (size, rows), basis_t, gram in zip(groups, bases, grams):
+        gram[:, diagonal, diagonal] += penalty
+        # One k × k solve per patch with its n samples as right-hand sides; symmetric positive definite.
+        fits.append((rows, np.linalg.solve(gram, basis_t)))
+    return fits, lam
+
+
+def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float) -> tuple[np.ndarray, float]:
+    """The fit matrices of :func:`fit_groups` padded into one array.
+
+    Returns:
+        ``(P, lam)``: (N, k, n) fit matrices, zero in the padding columns and for empty patches, and the
+        absolute λ.
+    """
+    groups, lam = fit_groups(radius, angle, counts, n_max, ridge)
+    fit = np.zeros((radius.shape[0], num_bases(n_max), radius.shape[1]))
+    for rows, block in groups:
+        fit[rows, :, : block.shape[2]] = block
+    return fit, lam
+
+
+def carry_to_vertices(rows, block, sample_index, interpolation, subtract_center: bool):
+    """The fit of a group of patches carried from samples to mesh vertices: ``P_p · Interp[patch p]``.
+
+    Args:
+        rows: (g,) vertices of the group.
+        block: (g, k, n) their fit matrices.
+        sample_index: (g, n) their sample ids.
+        interpolation: (M, N) CSR, vertex values -> sample values.
+        subtract_center: also subtract ``(P_p 1) f(p)`` (the fit of ``f - f(p)``).
+
+    Returns:
+        ``(width, columns, values)``: (g,) number of distinct vertices of each patch, and per patch its
+        vertex ids (ascending) and its (k, width) row-major values, concatenated over the group.
+    """
+    return _carry(
+        rows.astype(np.int64), np.ascontiguousarray(block), np.ascontiguousarray(sample_index, dtype=np.int64),
+        interpolation.indptr.astype(np.int64), interpolation.indices.astype(np.int64), interpolation.data,
+        interpolation.shape[1], subtract_center,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _carry(rows, block, sample_index, indptr, indices, data, n_vertices, subtract_center):
+    """Compiled :func:`carry_to_vertices`: a dense scatter per patch into a slot per touched vertex."""
+    g, k, n = block.shape
+    slot = np.full(n_vertices, -1, dtype=np.int64)
+    width = np.zeros(g, dtype=np.int64)
+    total = 0
+    for a in range(g):  # pass 1: the distinct vertices of each patch
+        count = 0
+        for j in range(n):
+            s = sample_index[a, j]
+            for t in range(indptr[s], indptr[s + 1]):
+                v = indices[t]
+                if slot[v] < 0:
+                    slot[v] = 1
+                    count += 1
+        if subtract_center and slot[rows[a]] < 0:
+            count += 1
+        width[a] = count
+        total += count * k
+        for j in range(n):  # reset
+            s = sample_index[a, j]
+            for t in range(indptr[s], indptr[s + 1]):
+                slot[indices[t]] = -1
+    columns = np.empty(total // k if k > 0 else 0, dtype=np.int64)
+    values = np.zeros(total)
+    column_at = 0
+    value_at = 0
+    members = np.empty(n_vertices if n_vertices < 4096 else 4096, dtype=np.int64)
+    for a in range(g):  # pass 2: vertex ids (ascending) and the k × width values
+        w = width[a]
+        if members.shape[0] < w:
+            members = np.empty(2 * w, dtype=np.int64)
+        count = 0
+        for j in range(n):
+            s = sample_index[a, j]
+            for t in range(indptr[s], indptr[s + 1]):
+                v = indices[t]
+                if slot[v] < 0:
+                    slot[v] = 0
+                    members[count] = v
+                    count += 1
+        if subtract_center and slot[rows[a]] < 0:
+            slot[rows[a]] = 0
+            members[count] = rows[a]
+            count += 1
+        ordered = np.sort(members[:count])
+        for c in range(count):
+            slot[ordered[c]] = c
+            columns[column_at + c] = ordered[c]
+        for j in range(n):
+            s = sample_index[a, j]
+            for t in range(indptr[s], indptr[s + 1]):
+                c = slot[indices[t]]
+                weight = data[t]
+                for i in range(k):
+                    values[value_at + i * w + c] += block[a, i, j] * weight
+        if subtract_center:
+            c = slot[rows[a]]
+            for i in range(k):
+                row_sum = 0.0
+                for j in range(n):
+                    row_sum += block[a, i, j]
+                values[value_at + i * w + c] -= row_sum
+        for c in range(count):
+            slot[ordered[c]] = -1
+        column_at += w
+        value_at += k * w
+    return width, columns, values
