@@ -80,6 +80,7 @@ class DirectionalOperator:
         if self.pairs.shape[0] != self.angles.shape[0]:
             raise ValueError(f"{self.pairs.shape[0]} pairs but {self.angles.shape[0]} angles")
         self._entry_pair: np.ndarray | None = None
+        self._block: bool | None = None  # A's rows hold exactly each vertex's pairs (see _is_block)
         self._torch: dict = {}
 
     def __repr__(self) -> str:
@@ -93,10 +94,34 @@ class DirectionalOperator:
             a.sort_indices()
         return a
 
+    def _pair_layout(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per vertex ``p``: its number of pairs and the index of its first pair."""
+        per_vertex = np.bincount(self.pairs[:, 0], minlength=self.n_vertices) if len(self.pairs) else np.zeros(self.n_vertices, np.int64)
+        return per_vertex, np.concatenate([[0], np.cumsum(per_vertex)[:-1]]).astype(np.int64)
+
+    def _is_block(self, a: sp.csr_matrix) -> bool:
+        """Every row of vertex ``p`` holds exactly ``p``'s pairs, in pair order (a patch fit's layout)."""
+        per_vertex, first = self._pair_layout()
+        if not np.array_equal(np.diff(a.indptr).reshape(self.n_vertices, self.k), np.repeat(per_vertex[:, None], self.k, 1)):
+            return False
+        candidate = self._block_entry_pair(a, per_vertex, first)
+        if not np.array_equal(self.pairs[candidate, 1], a.indices):
+            return False
+        self._entry_pair = candidate
+        return True
+
+    def _block_entry_pair(self, a, per_vertex, first) -> np.ndarray:
+        row_len = np.diff(a.indptr)
+        vertex = np.repeat(np.arange(self.n_vertices * self.k, dtype=np.int64) // self.k, row_len)
+        return first[vertex] + np.arange(a.nnz) - np.repeat(a.indptr[:-1], row_len)
+
     def entry_pair(self) -> np.ndarray:
         """Index into :attr:`pairs` of every stored entry of ``A`` (CSR order), computed once."""
         if self._entry_pair is None:
             a = self._sorted_matrix()
+            self._block = self._is_block(a)
+            if self._block:
+                return self._entry_pair
             n, k = self.n_vertices, self.k
             centers = np.repeat(np.arange(n * k, dtype=np.int64) // k, np.diff(a.indptr))
             keys = centers * n + a.indices
@@ -110,37 +135,66 @@ class DirectionalOperator:
 
     def harmonic_matrix(self, harmonics: Sequence[int]) -> sp.csr_matrix:
         """The matrix of :meth:`apply_harmonic`: ``(N X, N (2L + 1))``, row ``p X + i`` for harmonic
-        ``harmonics[i] = j (2L + 1) + r``, column ``q (2L + 1) + r'``; float64, sorted indices."""
+        ``harmonics[i] = j (2L + 1) + r``, column ``q (2L + 1) + r'``; float64, sorted indices.
+
+        Row ``(p, i)`` holds, for every ``q`` of ``p``'s patch in order, ``A[(p, j), q]`` at ``r' = 0`` when
+        ``r = 0``, else the two transported entries at ``r' = 2ℓ - 1, 2ℓ``.
+        """
         a = self._sorted_matrix()
         n, k, d = self.n_vertices, self.k, fourier_dim(self.order)
         harmonics = [int(x) for x in harmonics]
         if any(not 0 <= x < k * d for x in harmonics):
             raise ValueError(f"harmonics must lie in [0, {k * d}) for k={k}, L={self.order}")
-        gamma = self.angles[self.entry_pair()] if any(x % d for x in harmonics) else None
-        row_len = np.diff(a.indptr).reshape(n, k)
+        block = False
+        if any(x % d for x in harmonics):  # transported harmonics need the pair of every entry
+            if self._block is None:
+                self._block = self._is_block(a)
+            self.entry_pair()
+            block = self._block
+        # each (source row, column) entry of the matrix, as arrays over "items" (pairs in the block layout,
+        # entries of A otherwise): item -> (vertex p, position t in p's row, column q, transport angle)
+        if block:
+            per_vertex, first = self._pair_layout()
+            vertex, column, gamma = self.pairs[:, 0], self.pairs[:, 1], self.angles
+            position = np.arange(len(self.pairs)) - first[vertex]
+            row_len = np.repeat(per_vertex[:, None], k, 1)
+        else:
+            row_len = np.diff(a.indptr).reshape(n, k)
+            vertex = column = position = gamma = None
         mult = np.asarray([1 if x % d == 0 else 2 for x in harmonics], dtype=np.int64)
         lengths = row_len[:, [x // d for x in harmonics]] * mult  # (N, X)
         indptr = np.zeros(n * len(harmonics) + 1, dtype=np.int64)
         np.cumsum(lengths.reshape(-1), out=indptr[1:])
-        indices = np.empty(indptr[-1], dtype=np.int64)
+        indices = np.empty(indptr[-1], dtype=np.int32 if n * d < 2**31 else np.int64)
         data = np.empty(indptr[-1], dtype=np.float64)
+        trig = {}
         for i, x in enumerate(harmonics):
             j, r = divmod(x, d)
-            counts = row_len[:, j]
-            starts = a.indptr[np.arange(n) * k + j]
-            total = int(counts.sum())
-            within = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
-            entries = np.repeat(starts, counts) + within
-            dest = np.repeat(indptr[np.arange(n) * len(harmonics) + i], counts) + within * (1 if r == 0 else 2)
-            q, value = a.indices[entries].astype(np.int64), a.data[entries]
+            if block:
+                entries = a.indptr[vertex * k + j] + position
+                dest = indptr[vertex * len(harmonics) + i] + position * mult[i]
+                q, angle = column, gamma
+            else:
+                counts = row_len[:, j]
+                within = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+                entries = np.repeat(a.indptr[np.arange(n) * k + j], counts) + within
+                dest = np.repeat(indptr[np.arange(n) * len(harmonics) + i], counts) + within * mult[i]
+                q, angle = a.indices[entries].astype(np.int64), None
+            value = a.data[entries]
             if r == 0:
                 indices[dest], data[dest] = q * d, value
                 continue
             ell = (r + 1) // 2
-            c, s = value * np.cos(ell * gamma[entries]), value * np.sin(ell * gamma[entries])
+            if block:
+                if ell not in trig:
+                    trig[ell] = (np.cos(ell * angle), np.sin(ell * angle))
+                cos, sin = trig[ell]
+            else:
+                phase = ell * self.angles[self._entry_pair[entries]]
+                cos, sin = np.cos(phase), np.sin(phase)
             indices[dest], indices[dest + 1] = q * d + 2 * ell - 1, q * d + 2 * ell
             # α_a = C_ℓ a - S_ℓ b (odd r), α_b = S_ℓ a + C_ℓ b (even r)
-            data[dest], data[dest + 1] = (c, -s) if r % 2 == 1 else (s, c)
+            data[dest], data[dest + 1] = (value * cos, -value * sin) if r % 2 == 1 else (value * sin, value * cos)
         matrix = sp.csr_matrix((data, indices, indptr), shape=(n * len(harmonics), n * d))
         matrix.has_sorted_indices = True
         return matrix
