@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import platform
 import sys
 import time
@@ -110,6 +111,28 @@ def time_models(operator, names: list[str], threads: int, steps: int) -> dict:
     return out
 
 
+def surface_preparation(operator) -> dict:
+    """Seconds of the per-surface work a step on a not-yet-prepared surface adds: the patch operator's
+    torch matrices (both models), the directional operator's pairs and transport angles, and the torch
+    matrices of the harmonics its layers ask for (L_out = 1 layers; the whole-response layer's)."""
+    from zernet.nn.directional_plan import directional_plan
+
+    out = {}
+    operator = pickle.loads(pickle.dumps(operator))  # a copy without torch matrices, as read from a cache
+    start = time.perf_counter()
+    operator.to("cpu")
+    out["patch_torch_matrices"] = time.perf_counter() - start
+    start = time.perf_counter()
+    directional = build_directional_operator(operator, 1)
+    out["directional_pairs_angles"] = time.perf_counter() - start
+    for name, plan in (("directional_matrices_order1", directional_plan(5, 1, out_order=1)),
+                       ("directional_matrices_full", directional_plan(5, 1, out_order=6))):
+        start = time.perf_counter()
+        directional.torch_matrices(plan.inputs, torch.float32, "cpu")
+        out[name] = time.perf_counter() - start
+    return out
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=7, help="timed steps per model and thread count")
@@ -123,12 +146,12 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     operator = build_patch_operator(surface, PATCH, cache_dir=Path(args.cache_dir) / "operators")
     operator_s = time.perf_counter() - start
-    start = time.perf_counter()
+    torch.set_num_threads(args.threads[0])
+    preparation = surface_preparation(operator)
     directional = build_directional_operator(operator, 1)
-    directional_s = time.perf_counter() - start
     results = {"surface": description, "n_vertices": operator.n_vertices, "nnz": operator.nnz,
                "pairs": int(len(directional.pairs)), "patch_operator_s": operator_s,
-               "directional_operator_s": directional_s, "widths": list(WIDTHS), "steps": args.steps,
+               "preparation_s": preparation, "widths": list(WIDTHS), "steps": args.steps,
                "models": {name: {"name": MODELS[name][0], **MODELS[name][1]} for name in args.models},
                "threads": {}, "torch": torch.__version__, "machine": platform.platform()}
     for threads in args.threads:
@@ -136,7 +159,7 @@ def main(argv=None) -> int:
 
     print(f"surface: {description}; N = {operator.n_vertices}, nnz = {operator.nnz}, "
           f"{len(directional.pairs)} vertex pairs")
-    print(f"directional operator (pairs + transport angles, once per surface): {directional_s:.2f} s")
+    print("per-surface preparation (s): " + ", ".join(f"{key} {value:.2f}" for key, value in preparation.items()))
     print(f"\n| threads | model | first step (s) | median step (s) | ratio to single |")
     print("|---|---|---|---|---|")
     for threads, by_model in results["threads"].items():

@@ -199,7 +199,10 @@ class DirectionalOperator:
         matrix.has_sorted_indices = True
         return matrix
 
-    def _tensors(self, harmonics: tuple, dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
+    def torch_matrices(self, harmonics: Sequence[int], dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
+        """The torch CSR matrix of :meth:`harmonic_matrix` and its transpose, built on first use and kept
+        (per harmonics, dtype and device)."""
+        harmonics = tuple(int(h) for h in harmonics)
         key = (harmonics, dtype, torch.device(device))
         if key not in self._torch:
             m = self.harmonic_matrix(harmonics)
@@ -243,7 +246,7 @@ class DirectionalOperator:
         if x.dim() != 3 or x.shape[0] != n or x.shape[1] != d:
             raise ValueError(f"expected directional input ({n}, {d}, C) for order {self.order}, got {tuple(x.shape)}")
         harmonics = tuple(int(h) for h in harmonics)
-        matrix, transpose = self._tensors(harmonics, x.dtype, x.device)
+        matrix, transpose = self.torch_matrices(harmonics, x.dtype, x.device)
         c = x.shape[2]
         out = SparseApply.apply(x.reshape(n * d, c).contiguous(), matrix, transpose)
         return out.view(n, len(harmonics), c)
@@ -269,7 +272,7 @@ class DirectionalOperator:
         kinds = {(harmonics, dtype) for harmonics, dtype, _ in self._torch}
         self._torch = {}
         for harmonics, dtype in kinds:
-            self._tensors(harmonics, dtype, device)
+            self.torch_matrices(harmonics, dtype, device)
         return self
 
     def __getstate__(self):
