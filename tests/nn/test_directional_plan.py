@@ -177,3 +177,21 @@ def test_continuous_max_degree_one_is_closed_form():
     h.requires_grad_(True)
     assert torch.autograd.gradcheck(continuous_max, (h,))
     assert torch.autograd.gradcheck(DirectionalPooling("continuous"), (h.detach().transpose(0, 1).clone().requires_grad_(True),))
+
+
+def test_a_batch_reuses_the_surfaces_matrices_and_matches_a_direct_build():
+    """Geometry.concatenate's directional operator stacks its surfaces' kept matrices block-diagonally;
+    values and gradients equal those of an operator built on the concatenated surfaces."""
+    ops = [_patch_like_operator(n=9, seed=6), _patch_like_operator(n=7, seed=7)]
+    parts = [build_directional_operator(op, 1) for op in ops]
+    batch = Geometry.concatenate([Geometry([op], directional=[d]) for op, d in zip(ops, parts)]).directional[0]
+    direct = build_directional_operator(MatrixOperator.concatenate(ops), 1)
+    harmonics = directional_plan(N_MAX, 1, out_order=1).inputs
+    x = torch.randn(16, 3, 2, dtype=torch.float64, requires_grad=True)
+    y_batch, y_direct = batch.apply_harmonic(x, harmonics), direct.apply_harmonic(x, harmonics)
+    torch.testing.assert_close(y_batch, y_direct, rtol=0, atol=1e-13)
+    g = torch.randn_like(y_batch)
+    (grad_batch,) = torch.autograd.grad(y_batch, x, g)
+    (grad_direct,) = torch.autograd.grad(y_direct, x, g)
+    torch.testing.assert_close(grad_batch, grad_direct, rtol=0, atol=1e-13)
+    assert all(any(key[0] == tuple(harmonics) for key in part._torch) for part in parts)  # kept on the surfaces

@@ -40,6 +40,7 @@ rebuilds its transpose: holding them instead would take the memory that limit ex
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -53,7 +54,7 @@ from zernet.zernike import n_max_for
 
 from .sparse import SparseApply, to_torch_csr
 
-__all__ = ["DirectionalOperator", "build_directional_operator", "patch_pairs"]
+__all__ = ["DirectionalOperator", "build_directional_operator", "patch_pairs", "block_diagonal_csr"]
 
 
 class DirectionalOperator:
@@ -90,6 +91,7 @@ class DirectionalOperator:
             raise ValueError(f"{self.pairs.shape[0]} pairs but {self.angles.shape[0]} angles")
         self._entry_pair: np.ndarray | None = None
         self._block: bool | None = None  # A's rows hold exactly each vertex's pairs (see _is_block)
+        self.parts: list[DirectionalOperator] = []  # the surfaces of a batch (set by concatenate)
         self._torch: dict = {}
 
     def __repr__(self) -> str:
@@ -214,8 +216,12 @@ class DirectionalOperator:
         harmonics = tuple(int(h) for h in harmonics)
         key = (harmonics, dtype, torch.device(device))
         if key not in self._torch:
-            m = self.harmonic_matrix(harmonics)
-            self._torch[key] = (to_torch_csr(m, dtype, device), to_torch_csr(m.T.tocsr(), dtype, device))
+            if self.parts:  # a batch: the surfaces' own matrices (kept on them), stacked block-diagonally
+                built = [part.torch_matrices(harmonics, dtype, device) for part in self.parts]
+                self._torch[key] = tuple(block_diagonal_csr([b[i] for b in built]) for i in (0, 1))
+            else:
+                m = self.harmonic_matrix(harmonics)
+                self._torch[key] = (to_torch_csr(m, dtype, device), to_torch_csr(m.T.tocsr(), dtype, device))
         return self._torch[key]
 
     @property
@@ -308,7 +314,31 @@ class DirectionalOperator:
             operator = type(ops[0].operator).concatenate([op.operator for op in ops])
         offsets = np.cumsum([0] + [op.n_vertices for op in ops])[:-1]
         pairs = np.concatenate([op.pairs + off for op, off in zip(ops, offsets)])
-        return DirectionalOperator(operator, ops[0].order, pairs, np.concatenate([op.angles for op in ops]))
+        batch = DirectionalOperator(operator, ops[0].order, pairs, np.concatenate([op.angles for op in ops]))
+        # Products reuse the surfaces' matrices (built once per surface and kept on it), stacked per step.
+        batch.parts = [part for op in ops for part in (op.parts or [op])]
+        return batch
+
+
+def block_diagonal_csr(matrices: Sequence[Tensor]) -> Tensor:
+    """Torch CSR matrices stacked block-diagonally (one copy of their arrays, no sorting)."""
+    if len(matrices) == 1:
+        return matrices[0]
+    nnz = sum(int(m.values().numel()) for m in matrices)
+    rows = sum(m.shape[0] for m in matrices)
+    cols = sum(m.shape[1] for m in matrices)
+    index_dtype = torch.int32 if max(nnz, rows, cols) < 2**31 - 1 else torch.int64
+    indptr, indices = [torch.zeros(1, dtype=index_dtype, device=matrices[0].device)], []
+    nnz_offset = col_offset = 0
+    for m in matrices:
+        indptr.append(m.crow_indices()[1:].to(index_dtype) + nnz_offset)
+        indices.append(m.col_indices().to(index_dtype) + col_offset)
+        nnz_offset += int(m.values().numel())
+        col_offset += m.shape[1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
+        return torch.sparse_csr_tensor(torch.cat(indptr), torch.cat(indices), torch.cat([m.values() for m in matrices]),
+                                       size=(rows, cols), check_invariants=False)
 
 
 def patch_pairs(matrix: sp.csr_matrix, k: int) -> np.ndarray:
