@@ -32,7 +32,8 @@ for every scale of a geometry), never inside a layer.
 pairs) the pairs and angles take about 0.5-1.3 s and the matrices of the ``L_out = 1`` layers (23 M
 non-zeros, with their transpose about 370 MB in float32) 1-2.3 s (``benchmarks/bench_directional.py``,
 idle to loaded machine). A data set held in memory keeps them on its records
-(:func:`zernet.training.batch.with_directional`), so they are built once per surface, in the first epoch. A
+(:func:`zernet.training.batch.with_directional`), so they are built once per surface, in the first epoch; a
+batch of several surfaces stacks its surfaces' kept matrices (:func:`block_diagonal_csr`) instead. A
 data set too large for memory (``zernet.data.preprocess.IN_MEMORY_VERTEX_LIMIT``) reads every record back
 from its cache on each access and so rebuilds them on every step, as it reloads the scalar operator and
 rebuilds its transpose: holding them instead would take the memory that limit exists to save.
