@@ -10,7 +10,8 @@ This is the harmonic layout of :mod:`zernet.nn.pooling` (there along the first a
 :func:`fourier_to_samples` / :func:`samples_to_fourier` convert to and from ``s`` samples at
 ``ψ_a = 2π a / s``; :func:`rotate_fourier` gives the coefficients of ``h(ψ + δ)`` (the same convention as
 :func:`zernet.zernike.rotate_coefficients`: each ``(a_ℓ, b_ℓ)`` turns by ``[[cos ℓδ, sin ℓδ], [-sin ℓδ,
-cos ℓδ]]``). The directional operators (:mod:`zernet.operators.directional`) and layers
+cos ℓδ]]``). :func:`harmonic_basis` is the change to complex exponentials ``e^{iℓψ}``, in which every
+rotation is diagonal. The directional operators (:mod:`zernet.operators.directional`) and layers
 (:mod:`zernet.nn.directional`) use these helpers.
 """
 
@@ -32,6 +33,7 @@ __all__ = [
     "samples_to_fourier",
     "fourier_rotation_matrix",
     "rotate_fourier",
+    "harmonic_basis",
 ]
 
 
@@ -164,3 +166,28 @@ def rotate_fourier(coeffs: Tensor, delta, dim: int = -2) -> Tensor:
     delta = torch.as_tensor(delta, dtype=x.dtype, device=x.device)
     q = fourier_rotation_matrix(delta, order)  # delta.shape + (d, d)
     return (q @ x.unsqueeze(-1)).squeeze(-1).movedim(-1, dim)
+
+
+def harmonic_basis(order: int) -> np.ndarray:
+    r"""Change of basis ``U`` from the real layout to complex exponentials: ``ĥ = U c``, complex128.
+
+    Row ``ℓ + L`` (``ℓ = -L..L``) gives ``ĥ_ℓ`` with ``h(ψ) = Σ_ℓ ĥ_ℓ e^{iℓψ}``: ``ĥ_0 = a_0``,
+    ``ĥ_{±ℓ} = (a_ℓ ∓ i b_ℓ) / 2``. In this basis a rotation is diagonal,
+    ``U Q(δ) U^{-1} = diag(e^{iℓδ})`` (:func:`fourier_rotation_matrix`), which is why a product of
+    harmonics of orders ``ℓ`` and ``m`` only reaches orders ``ℓ + m`` and ``ℓ - m``. ``U U^H = diag(w)``
+    with ``w_0 = 1`` and ``w_ℓ = 1/2`` otherwise, so ``U^{-1} = U^H diag(w)^{-1}``.
+
+    Args:
+        order: ``L``.
+
+    Returns:
+        ``(2L + 1, 2L + 1)`` complex matrix, rows ``ℓ = -L..L``, columns the real layout.
+    """
+    d = fourier_dim(order)
+    u = np.zeros((d, d), dtype=np.complex128)
+    u[order, 0] = 1.0
+    for ell in range(1, order + 1):
+        a, b = 2 * ell - 1, 2 * ell
+        u[order + ell, a], u[order + ell, b] = 0.5, -0.5j
+        u[order - ell, a], u[order - ell, b] = 0.5, 0.5j
+    return u

@@ -6,6 +6,8 @@
   ``evaluate_harmonics``, ``discrete_max``, ``continuous_max``).
 - ``directional.py``: the direction-preserving layers (``DirectionalZernikeConv``, ``DirectionalLifting``,
   ``DirectionalPooling``, ``DirectionalReLU``).
+- ``directional_plan.py``: which input harmonics a direction-preserving layer needs and how they couple to
+  its outputs (``directional_plan``, ``harmonic_weights``, ``plan_contraction``).
 - ``reference.py``: the rotated-kernel formulation (test reference) and ``MatrixOperator``.
 - ``models/``: ``build_model``, ``register_model`` and the model families.
 

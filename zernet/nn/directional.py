@@ -22,7 +22,8 @@ disk and the mean over the circle,
 (:func:`zernet.fourier.fourier_rotation_matrix`) and ``w = (1, 1/2, ..., 1/2)`` the mean of ``T_r^2``. ``o_p`` is a
 trigonometric polynomial in ``φ`` of degree ``<= n_max + L_in``; its Fourier coefficients up to
 ``L_out`` (or its values at ``s`` angles) are an exact, fixed linear function of ``G``. The layer
-precomputes that coupling once (float64, by an exact DFT) and contracts in one dense matmul.
+precomputes that coupling once (float64, by an exact DFT; :mod:`zernet.nn.directional_plan`), asks the
+directional operator for only the input harmonics the output needs, and contracts block by block.
 
 **Equivariance (sign conventions).** Turning ``p``'s frame by ``δ_p`` (``e1 ← cos δ e1 + sin δ e2``,
 ``e2 ← -sin δ e1 + cos δ e2``) changes its polar angles to ``θ - δ_p``, its operator rows to
@@ -40,22 +41,15 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
-from zernet.fourier import (
-    fourier_dim,
-    fourier_rotation_matrix,
-    fourier_to_samples,
-    sample_angles,
-    samples_to_fourier,
-    trig_table,
-)
+from zernet.fourier import fourier_dim, fourier_to_samples, samples_to_fourier
 from zernet.operators.directional import DirectionalOperator
-from zernet.zernike import num_bases, rotation_matrix
+from zernet.zernike import num_bases
 
 from .conv import float32_forward
+from .directional_plan import coupling_tensor, directional_plan, harmonic_weights, plan_contraction
 from .pooling import continuous_max, discrete_max
 
 __all__ = [
@@ -65,42 +59,6 @@ __all__ = [
     "DirectionalPooling",
     "DirectionalReLU",
 ]
-
-
-def _coupling(n_max: int, in_order: int, angles: np.ndarray) -> np.ndarray:
-    """``K[b, x, y] = w_r R(-φ_b)[j, j'] Q(-φ_b)[r, r']`` for ``x = (j, r)``, ``y = (j', r')``."""
-    rot = rotation_matrix(-angles, n_max)  # (B, k, k)
-    q = fourier_rotation_matrix(-angles, in_order)  # (B, d, d)
-    w = np.full(fourier_dim(in_order), 0.5)
-    w[0] = 1.0
-    k, d = rot.shape[-1], q.shape[-1]
-    kern = np.einsum("bjJ,brR,r->bjrJR", rot, q, w)
-    return kern.reshape(len(angles), k * d, k * d)
-
-
-def coupling_tensor(n_max: int, in_order: int, out_order: int | None = None, samples: int | None = None) -> np.ndarray:
-    """Fixed tensor ``E`` with ``o[t] = Σ_{x, y} α[x] G[y] E[x, y, t]`` (float64, exact).
-
-    ``x = j (2L_in + 1) + r`` indexes the input field's coefficients, ``y`` the kernel's, and ``t`` either
-    the output's real Fourier coefficients up to ``out_order`` or its values at ``samples`` angles
-    ``2π a / s`` (give exactly one of the two).
-
-    Returns:
-        ``(k (2L_in + 1), k (2L_in + 1), T)`` with ``T = 2 out_order + 1`` or ``samples``.
-    """
-    if (out_order is None) == (samples is None):
-        raise ValueError("give exactly one of out_order and samples")
-    if samples is not None:
-        return np.moveaxis(_coupling(n_max, in_order, sample_angles(samples)), 0, -1)
-    degree = max(n_max + in_order, out_order)
-    grid = 2 * degree + 1  # exact DFT of a trigonometric polynomial of this degree
-    values = _coupling(n_max, in_order, sample_angles(grid))  # (grid, X, Y)
-    table = trig_table(sample_angles(grid), out_order)  # (grid, T)
-    weights = np.full(fourier_dim(out_order), 2.0 / grid)
-    weights[0] = 1.0 / grid
-    out = np.einsum("bxy,bt->xyt", values, table * weights)
-    out[np.abs(out) < 1e-13] = 0.0
-    return out
 
 
 class DirectionalZernikeConv(nn.Module):
@@ -122,9 +80,9 @@ class DirectionalZernikeConv(nn.Module):
         y_p[t, o] = \sum_{x, c} α_p[x, c]\, W[x, c, t, o] + b[o]\,[t = 0],\qquad
         W[x, c, t, o] = \sum_y E[x, y, t]\, G[y, c, o]
 
-    with the fixed coupling ``E`` (:func:`coupling_tensor`), contracted block by block: output order ``μ``
-    only involves the inputs ``(j, r)`` with ``|m_j| ± ℓ_r = ±μ`` (about a quarter of a dense contraction
-    for the whole response). ``t`` runs over the output's real Fourier
+    with the fixed coupling ``E`` (:func:`coupling_tensor`), contracted block by block
+    (:mod:`zernet.nn.directional_plan`): output order ``μ`` only involves the inputs ``(j, r)`` with
+    ``|m_j| ± ℓ_r = ±μ``, and the operator computes only the inputs some output needs. ``t`` runs over the output's real Fourier
     coefficients up to ``out_order`` (``output="fourier"``: the next layer's directional channel, exactly
     equivariant) or over ``s`` angles ``φ_a = 2π a / s`` (``output="samples"``: the exact response of
     ``s`` rotated kernels). The bias is direction-independent.
@@ -177,37 +135,10 @@ class DirectionalZernikeConv(nn.Module):
         self.weight = nn.Parameter(torch.empty(self.k, d, self.in_channels, self.out_channels))
         self.bias = nn.Parameter(torch.empty(self.out_channels)) if bias else None
         if output == "fourier":
-            coupling = coupling_tensor(self.n_max, self.order, out_order=self.out_order)
+            self.plan = directional_plan(self.n_max, self.order, out_order=self.out_order)
         else:
-            coupling = coupling_tensor(self.n_max, self.order, samples=self.angular_resolution)
-        # Block structure: output order μ (Fourier) only sees the inputs x = (j, r) whose orders m_j ± ℓ_r
-        # reach ±μ, so the contraction is done per block (xs_b -> ts_b) instead of densely.
-        x_dim, y_dim, t_dim = coupling.shape
-        self.out_dim = t_dim
-        if output == "fourier":
-            ranges = [(0, 1)] + [(2 * mu - 1, 2 * mu + 1) for mu in range(1, self.out_order + 1)]
-        else:
-            ranges = [(0, t_dim)]
-        blocks, block_x, entry_pos, entry_y, entry_val = [], [], [], [], []
-        pos = x_count = 0
-        for t0, t1 in ranges:
-            sub = coupling[:, :, t0:t1]  # (X, Y, T_b)
-            xs = np.flatnonzero(np.abs(sub).sum(axis=(1, 2)) > 0)
-            ix, iy, it = np.nonzero(sub[xs])
-            blocks.append((x_count, len(xs), t0, t1, pos))
-            x_count += len(xs)
-            block_x.append(xs)
-            entry_pos.append(pos + ix * (t1 - t0) + it)
-            entry_y.append(iy)
-            entry_val.append(sub[xs][ix, iy, it])
-            pos += len(xs) * (t1 - t0)
-        self._blocks = blocks  # (x offset, n_b, t0, t1, W offset), python ints
-        self._weight_rows = pos
-        as_long = lambda parts: torch.from_numpy(np.concatenate(parts).astype(np.int64))  # noqa: E731
-        self.register_buffer("block_x", as_long(block_x), persistent=False)
-        self.register_buffer("entry_pos", as_long(entry_pos), persistent=False)
-        self.register_buffer("entry_y", as_long(entry_y), persistent=False)
-        self.register_buffer("entry_val", torch.from_numpy(np.concatenate(entry_val)), persistent=False)  # float64
+            self.plan = directional_plan(self.n_max, self.order, samples=self.angular_resolution)
+        self.out_dim = self.plan.out_dim
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -224,25 +155,20 @@ class DirectionalZernikeConv(nn.Module):
             nn.init.zeros_(self.bias)
 
     def block_weights(self) -> list[Tensor]:
-        """``W`` per output block ``b``: ``(n_b C_in, T_b C_out)``, rows ``(x ∈ xs_b, c)``, columns ``(t ∈ ts_b, o)``.
-
-        ``W[x, c, t, o] = Σ_y E[x, y, t] G[y, c, o]`` over the few non-zero couplings ``E`` only.
-        """
-        c_in, c_out = self.in_channels, self.out_channels
-        g = self.weight.reshape(-1, c_in * c_out)
-        contribution = self.entry_val.to(g.dtype)[:, None] * g.index_select(0, self.entry_y)
-        w_all = g.new_zeros(self._weight_rows, c_in * c_out).index_add(0, self.entry_pos, contribution)
-        out = []
-        for _, nx, t0, t1, p0 in self._blocks:
-            tb = t1 - t0
-            w = w_all[p0 : p0 + nx * tb].view(nx, tb, c_in, c_out).permute(0, 2, 1, 3)
-            out.append(w.reshape(nx * c_in, tb * c_out))
-        return out
+        """``W`` per output block of :attr:`plan` (:func:`~zernet.nn.directional_plan.harmonic_weights`)."""
+        return harmonic_weights(self.weight, self.plan)
 
     def fit(self, x: Tensor, operator) -> Tensor:
         """Transported Zernike coefficients ``α``: ``(N, 2 L_in + 1, C_in)`` -> ``(N, k, 2 L_in + 1, C_in)``."""
         if x.dim() == 2 and self.order == 0:
             x = x.unsqueeze(1)
+        self.fit_check(x, operator)
+        if self.order == 0 and not isinstance(operator, DirectionalOperator):
+            return operator.apply(x[:, 0]).unsqueeze(2)  # no transport for scalars: the plain operator
+        return operator.apply(x)
+
+    def fit_check(self, x: Tensor, operator) -> None:
+        """``ValueError`` unless ``x`` and ``operator`` fit this layer (naming the fix)."""
         d = fourier_dim(self.order)
         if x.dim() != 3 or x.shape[1] != d or x.shape[2] != self.in_channels:
             raise ValueError(
@@ -251,7 +177,7 @@ class DirectionalZernikeConv(nn.Module):
         if operator.k != self.k:
             raise ValueError(f"layer has k={self.k} Zernike bases (n_max={self.n_max}) but the operator has k={operator.k}")
         if self.order == 0 and not isinstance(operator, DirectionalOperator):
-            return operator.apply(x[:, 0]).unsqueeze(2)  # no transport for scalars: the plain operator
+            return
         if not isinstance(operator, DirectionalOperator) or operator.order != self.order:
             have = f"order {operator.order}" if isinstance(operator, DirectionalOperator) else type(operator).__name__
             raise ValueError(
@@ -259,23 +185,25 @@ class DirectionalZernikeConv(nn.Module):
                 f"{self.order}, got {have}: build it once per surface with "
                 f"zernet.operators.build_directional_operator(operator, {self.order})"
             )
-        return operator.apply(x)
+
+    def harmonics(self, x: Tensor, operator) -> Tensor:
+        """The input harmonics the output needs, ``(N, len(plan.inputs), C_in)`` in plan order."""
+        if x.dim() == 2 and self.order == 0:
+            x = x.unsqueeze(1)
+        if not isinstance(operator, DirectionalOperator) or self.order == 0:
+            coeffs = self.fit(x, operator)  # scalar inputs: the plain operator, then the plan's rows
+            flat = coeffs.reshape(coeffs.shape[0], -1, self.in_channels)
+            inputs = self.plan.inputs
+            if inputs == tuple(range(flat.shape[1])):
+                return flat
+            return flat.index_select(1, torch.as_tensor(inputs, device=flat.device))
+        self.fit_check(x, operator)
+        return operator.apply_harmonic(x, self.plan.inputs)
 
     @float32_forward
     def forward(self, x: Tensor, operator) -> Tensor:
         """``x`` ``(N, 2 L_in + 1, C_in)`` -> ``(N, 2 L_out + 1, C_out)`` or ``(N, s, C_out)``."""
-        coeffs = self.fit(x, operator)
-        n = coeffs.shape[0]
-        alpha = coeffs.reshape(n, -1, self.in_channels)  # (N, X, C_in), x = j (2 L_in + 1) + r
-        parts = []
-        for (x0, nx, t0, t1, _), w in zip(self._blocks, self.block_weights()):
-            if nx == 0:  # orders beyond n_max + L_in: identically zero
-                parts.append(alpha.new_zeros(n, t1 - t0, self.out_channels))
-                continue
-            xs = self.block_x[x0 : x0 + nx]
-            a = alpha if nx == alpha.shape[1] else alpha.index_select(1, xs)
-            parts.append((a.reshape(n, nx * self.in_channels) @ w).view(n, t1 - t0, self.out_channels))
-        out = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
+        out = plan_contraction(self.harmonics(x, operator), self.block_weights(), self.plan)
         if self.bias is not None:
             if self.output == "fourier":
                 out = torch.cat([out[:, :1] + self.bias, out[:, 1:]], dim=1)

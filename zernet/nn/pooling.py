@@ -16,8 +16,9 @@ Pooling modes:
 
 * ``"max"``: the paper's discrete max over ``s`` equispaced angles ``φ_a = 2π a / s``
   (:func:`discrete_max`); invariant exactly to reference-direction changes by multiples of ``2π / s``.
-* ``"continuous"``: the max over the whole circle (:func:`continuous_max`: a dense grid, then Newton steps
-  on ``resp'``); independent of every vertex's reference direction up to float rounding.
+* ``"continuous"``: the max over the whole circle (:func:`continuous_max`: closed-form for degree 1, else a
+  dense grid, then Newton steps on ``resp'``); independent of every vertex's reference direction up to
+  float rounding.
 * ``"mean"``: the mean over the ``s`` angles, which is ``A_0`` (:func:`harmonic_mean`).
 * ``"none"``: the ``s`` samples themselves (:func:`evaluate_harmonics`).
 
@@ -218,7 +219,8 @@ def continuous_max(
 ):
     """Maximum of each trigonometric polynomial over the whole circle.
 
-    Sample ``grid`` equispaced angles (default ``max(32, 12 D)``); take two candidates, the best grid angle
+    Degree 1 is closed-form: ``max = A_0 + |(A_1, B_1)|`` at ``φ* = atan2(B_1, A_1)``. Higher degrees:
+    sample ``grid`` equispaced angles (default ``max(32, 12 D)``); take two candidates, the best grid angle
     and the best one at least three grid steps away from it (a second peak); move each to the vertex of the
     parabola through its grid neighbours, then ``newton_steps`` Newton steps on ``resp'(φ) = 0`` (where
     ``resp'' >= 0`` a quarter grid step uphill instead; steps clipped to one grid spacing); keep the better
@@ -230,8 +232,8 @@ def continuous_max(
 
     Args:
         harmonics: ``(2 D + 1, *rest)`` harmonic layout (unfolded: the true polynomial, not aliased samples).
-        grid: number of grid angles.
-        newton_steps: refinement steps after the parabolic step.
+        grid: number of grid angles (``D >= 2``).
+        newton_steps: refinement steps after the parabolic step (``D >= 2``).
         return_angle: also return ``φ*`` (``rest``-shaped, no gradient).
 
     Returns:
@@ -249,40 +251,54 @@ def continuous_max(
         raise ValueError(f"continuous_max needs a grid of at least 8 angles, got {grid}")
     with torch.no_grad():
         Hd = H2.detach()
-        dev, dt = Hd.device, Hd.dtype
-        T = trig_basis(equispaced_angles(grid, dt, dev), D)
-        M = Hd.shape[1]
-        spacing = 2.0 * math.pi / grid
-        phi, at_grid, grid_angle = (torch.empty(2, M, dtype=dt, device=dev) for _ in range(3))
-        positions = torch.arange(grid, device=dev)[:, None]
-        chunk = max(1, _CHUNK_ELEMENTS // grid)
-        for start in range(0, M, chunk):
-            stop = min(M, start + chunk)
-            S = T @ Hd[:, start:stop]  # (grid, c)
-            first = S.argmax(0)
-            distance = (positions - first).remainder(grid)
-            second = S.masked_fill((distance <= 2) | (distance >= grid - 2), -math.inf).argmax(0)
-            idx = torch.stack([first, second])
-            sa = S.gather(0, idx)
-            sl = S.gather(0, (idx - 1).remainder(grid))
-            sr = S.gather(0, (idx + 1).remainder(grid))
-            curv = sl - 2.0 * sa + sr
-            offset = torch.where(curv < 0, 0.5 * (sl - sr) / torch.where(curv < 0, curv, -1.0), 0.0)
-            phi[:, start:stop] = (idx.to(dt) + offset.clamp(-0.5, 0.5)) * spacing
-            at_grid[:, start:stop] = sa
-            grid_angle[:, start:stop] = idx.to(dt) * spacing
-        for _ in range(newton_steps):
-            _, d1, d2 = _poly_and_derivatives(Hd, phi, D)
-            concave = d2 < 0
-            step = torch.where(concave, -d1 / torch.where(concave, d2, -1.0), torch.sign(d1) * (spacing / 4))
-            phi = phi + step.clamp(-spacing, spacing)
-        refined, _, _ = _poly_and_derivatives(Hd, phi, D, derivatives=False)
-        better = refined >= at_grid
-        phi = torch.where(better, phi, grid_angle)
-        refined = torch.where(better, refined, at_grid)
-        phi = torch.where(refined[0] >= refined[1], phi[0], phi[1])
+        phi = torch.atan2(Hd[2], Hd[1]) if D == 1 else _maximising_angle(Hd, D, grid, newton_steps)
     value = _ValueAtAngle.apply(H2, phi).view(rest)
     return (value, phi.view(rest)) if return_angle else value
+
+
+def _grid_candidates(Hd: Tensor, D: int, grid: int):
+    """Per column of ``Hd`` (t, M): the two candidate angles after the parabolic step, their grid values
+    and grid angles, each ``(2, M)``. Columns are processed in chunks with the angles along the rows."""
+    dev, dt = Hd.device, Hd.dtype
+    TT = trig_basis(equispaced_angles(grid, dt, dev), D).t().contiguous()  # (t, grid)
+    M = Hd.shape[1]
+    spacing = 2.0 * math.pi / grid
+    phi, at_grid, grid_angle = (torch.empty(2, M, dtype=dt, device=dev) for _ in range(3))
+    chunk = max(1, _CHUNK_ELEMENTS // grid)
+    near = torch.arange(-2, 3, device=dev)
+    for start in range(0, M, chunk):
+        stop = min(M, start + chunk)
+        S = Hd[:, start:stop].t() @ TT  # (c, grid): each column's samples contiguous
+        first = S.argmax(1, keepdim=True)
+        excluded = S.scatter(1, (first + near).remainder(grid), -math.inf)
+        second = excluded.argmax(1, keepdim=True)
+        idx = torch.cat([first, second], dim=1)  # (c, 2)
+        sa = S.gather(1, idx)
+        sl = S.gather(1, (idx - 1).remainder(grid))
+        sr = S.gather(1, (idx + 1).remainder(grid))
+        curv = sl - 2.0 * sa + sr
+        offset = torch.where(curv < 0, 0.5 * (sl - sr) / torch.where(curv < 0, curv, -1.0), 0.0)
+        phi[:, start:stop] = ((idx.to(dt) + offset.clamp(-0.5, 0.5)) * spacing).t()
+        at_grid[:, start:stop] = sa.t()
+        grid_angle[:, start:stop] = (idx.to(dt) * spacing).t()
+    return phi, at_grid, grid_angle
+
+
+def _maximising_angle(Hd: Tensor, D: int, grid: int, newton_steps: int) -> Tensor:
+    """``φ*`` per column of ``Hd`` (t, M), degree ``D >= 2`` (grid, parabola, Newton; see
+    :func:`continuous_max`)."""
+    spacing = 2.0 * math.pi / grid
+    phi, at_grid, grid_angle = _grid_candidates(Hd, D, grid)
+    for _ in range(newton_steps):
+        _, d1, d2 = _poly_and_derivatives(Hd, phi, D)
+        concave = d2 < 0
+        step = torch.where(concave, -d1 / torch.where(concave, d2, -1.0), torch.sign(d1) * (spacing / 4))
+        phi = phi + step.clamp(-spacing, spacing)
+    refined, _, _ = _poly_and_derivatives(Hd, phi, D, derivatives=False)
+    better = refined >= at_grid
+    phi = torch.where(better, phi, grid_angle)
+    refined = torch.where(better, refined, at_grid)
+    return torch.where(refined[0] >= refined[1], phi[0], phi[1])
 
 
 def angular_pool(responses: Tensor, mode: str, dim: int = 1) -> Tensor:

@@ -16,14 +16,32 @@ reference direction after the minimal rotation taking ``n_q`` onto ``n_p``: a di
 **Fit.** With ``A`` the scalar patch operator (``PatchOperator.matrix``, row ``p k + j``, column ``q``), the
 Zernike coefficients of the transported channel in ``p``'s patch are, per order ``ℓ``,
 ``α_p(j, ℓ) = Σ_q A[(p, j), q] ĥ_q(ℓ) e^{-iℓγ_qp}``: with ``C_ℓ = A ⊙ cos ℓγ`` and ``S_ℓ = A ⊙ sin ℓγ``,
-``α_a = C_ℓ a - S_ℓ b`` and ``α_b = S_ℓ a + C_ℓ b``. :class:`DirectionalOperator` holds, per order, ``C_ℓ``
-and ``S_ℓ`` as one real sparse matrix. Like the patch operator it depends on the surface only, so it is
-built once per surface when the data are prepared (:func:`build_directional_operator`, or
-:meth:`zernet.operators.Geometry.with_directional` for every scale of a geometry), never inside a layer.
+``α_a = C_ℓ a - S_ℓ b`` and ``α_b = S_ℓ a + C_ℓ b``.
+
+**Storage and products.** :class:`DirectionalOperator` keeps only what the transport adds to ``A``: the
+vertex pairs ``(p, q)`` that share a patch and their angles ``γ_qp``. A layer asks for the harmonics
+``x = (j, r)`` it needs (its :class:`~zernet.nn.directional_plan.DirectionalPlan`) and
+:meth:`DirectionalOperator.apply_harmonic` computes them with *one* sparse product, whose matrix (rows
+``(p, x)``, columns ``(q, r')``, the transport folded in: one entry per ``A`` entry for ``r = 0``, two for
+``r >= 1``) is built on first use for that set of harmonics and kept, like the patch operator's own torch
+matrices. Like the patch operator it depends on the surface only, so it is built once per surface when the
+data are prepared (:func:`build_directional_operator`, or :meth:`zernet.operators.Geometry.with_directional`
+for every scale of a geometry), never inside a layer.
+
+**Cost and where it is kept.** For a FAUST-size surface (6,890 vertices, 7.9 M non-zeros in ``A``, 376 k
+pairs) the pairs and angles take about 0.5-1.3 s and the matrices of the ``L_out = 1`` layers (23 M
+non-zeros, with their transpose about 370 MB in float32) 1-2.3 s (``benchmarks/bench_directional.py``,
+idle to loaded machine). A data set held in memory keeps them on its records
+(:func:`zernet.training.batch.with_directional`), so they are built once per surface, in the first epoch; a
+batch of several surfaces stacks its surfaces' kept matrices (:func:`block_diagonal_csr`) instead. A
+data set too large for memory (``zernet.data.preprocess.IN_MEMORY_VERTEX_LIMIT``) reads every record back
+from its cache on each access and so rebuilds them on every step, as it reloads the scalar operator and
+rebuilds its transpose: holding them instead would take the memory that limit exists to save.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -37,85 +55,240 @@ from zernet.zernike import n_max_for
 
 from .sparse import SparseApply, to_torch_csr
 
-__all__ = ["DirectionalOperator", "build_directional_operator"]
+__all__ = ["DirectionalOperator", "build_directional_operator", "patch_pairs", "block_diagonal_csr"]
 
 
 class DirectionalOperator:
     r"""Transported Zernike fit of directional channels of Fourier order ``<= L``, for one surface.
 
-    ``apply`` maps per-vertex channels ``h`` (``(N, 2L + 1, C)``, Fourier layout) to the Zernike
-    coefficients of their transports into every vertex's patch, ``α[p, j, r, c]`` (module docstring).
-    Order 0 needs no transport and goes through the scalar operator itself. For each order ``ℓ >= 1``
-    one real sparse matrix ``phases[ℓ - 1]`` of shape ``(2 N k, N)`` interleaves ``C_ℓ = A ⊙ cos ℓγ``
-    (row ``2 (p k + j)``) and ``S_ℓ = A ⊙ sin ℓγ`` (row ``2 (p k + j) + 1``); it is applied to
-    ``[a_ℓ | b_ℓ]`` at once and ``α_a = C_ℓ a - S_ℓ b``, ``α_b = S_ℓ a + C_ℓ b``. Extra storage:
-    ``2 L nnz(A)`` entries. Build it with :func:`build_directional_operator`.
+    ``apply_harmonic(x, harmonics)`` maps per-vertex channels ``h`` (``(N, 2L + 1, C)``, Fourier layout) to
+    the chosen Zernike coefficients ``α[p, (j, r), c]`` of their transports into every vertex's patch
+    (module docstring) in one sparse product; ``apply(x)`` returns all of them as ``(N, k, 2L + 1, C)``.
+    Build it with :func:`build_directional_operator`.
+
+    Args:
+        operator: the scalar patch operator (``apply``, ``k``, ``matrix`` CSR ``(N k, N)``, ``frames``).
+        order: ``L``.
+        pairs: ``(P, 2)`` int vertex pairs ``(p, q)``, sorted, covering every non-zero ``A[(p, j), q]``
+            (:func:`patch_pairs`).
+        angles: ``(P,)`` transport angles ``γ_qp`` of the pairs.
 
     Attributes:
-        operator: the scalar patch operator (``apply``, ``k``, ``matrix``, ``frames``).
-        n_vertices: ``N``.
-        k: Zernike bases per patch.
-        n_max: their highest radial degree.
-        order: ``L``.
-        phases: list of ``L`` ``scipy.sparse.csr_matrix`` float64, ``(2 N k, N)``.
+        operator, order, pairs, angles: as given; ``n_vertices`` ``N``; ``k``; ``n_max``.
+        phases: per order ``ℓ = 1..L`` the interleaved ``[C_ℓ; S_ℓ]`` matrix ``(2 N k, N)`` (scipy, built on
+            request: a readable reference of what :meth:`apply_harmonic` computes, not used by it).
     """
 
-    def __init__(self, operator, phases: Sequence[sp.csr_matrix]) -> None:
+    def __init__(self, operator, order: int, pairs: np.ndarray, angles: np.ndarray) -> None:
+        fourier_dim(order)
         self.operator = operator
         self.k = int(operator.k)
         self.n_vertices = int(operator.matrix.shape[1])
         self.n_max = n_max_for(self.k)
-        self.order = len(phases)
-        shape = (2 * self.n_vertices * self.k, self.n_vertices)
-        for ell, m in enumerate(phases, start=1):
-            if m.shape != shape:
-                raise ValueError(f"phase matrix of order {ell} must be {shape}, got {m.shape}")
-        self.phases = [m.tocsr() for m in phases]
+        self.order = int(order)
+        self.pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        self.angles = np.asarray(angles, dtype=np.float64).reshape(-1)
+        if self.pairs.shape[0] != self.angles.shape[0]:
+            raise ValueError(f"{self.pairs.shape[0]} pairs but {self.angles.shape[0]} angles")
+        self._entry_pair: np.ndarray | None = None
+        self._block: bool | None = None  # A's rows hold exactly each vertex's pairs (see _is_block)
+        self.parts: list[DirectionalOperator] = []  # the surfaces of a batch (set by concatenate)
         self._torch: dict = {}
 
     def __repr__(self) -> str:
-        return f"DirectionalOperator(N={self.n_vertices}, k={self.k}, order={self.order})"
+        return f"DirectionalOperator(N={self.n_vertices}, k={self.k}, order={self.order}, pairs={len(self.pairs)})"
 
-    def _tensors(self, ell: int, dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
-        key = (ell, dtype, torch.device(device))
+    # ------------------------------------------------------------------ matrices
+    def _sorted_matrix(self) -> sp.csr_matrix:
+        a = self.operator.matrix.tocsr()
+        if not a.has_sorted_indices:
+            a = a.copy()
+            a.sort_indices()
+        return a
+
+    def _pair_layout(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per vertex ``p``: its number of pairs and the index of its first pair."""
+        per_vertex = np.bincount(self.pairs[:, 0], minlength=self.n_vertices) if len(self.pairs) else np.zeros(self.n_vertices, np.int64)
+        return per_vertex, np.concatenate([[0], np.cumsum(per_vertex)[:-1]]).astype(np.int64)
+
+    def _is_block(self, a: sp.csr_matrix) -> bool:
+        """Every row of vertex ``p`` holds exactly ``p``'s pairs, in pair order (a patch fit's layout)."""
+        per_vertex, first = self._pair_layout()
+        if not np.array_equal(np.diff(a.indptr).reshape(self.n_vertices, self.k), np.repeat(per_vertex[:, None], self.k, 1)):
+            return False
+        candidate = self._block_entry_pair(a, per_vertex, first)
+        if not np.array_equal(self.pairs[candidate, 1], a.indices):
+            return False
+        self._entry_pair = candidate
+        return True
+
+    def _block_entry_pair(self, a, per_vertex, first) -> np.ndarray:
+        row_len = np.diff(a.indptr)
+        vertex = np.repeat(np.arange(self.n_vertices * self.k, dtype=np.int64) // self.k, row_len)
+        return first[vertex] + np.arange(a.nnz) - np.repeat(a.indptr[:-1], row_len)
+
+    def entry_pair(self) -> np.ndarray:
+        """Index into :attr:`pairs` of every stored entry of ``A`` (CSR order), computed once."""
+        if self._entry_pair is None:
+            a = self._sorted_matrix()
+            self._block = self._is_block(a)
+            if self._block:
+                return self._entry_pair
+            n, k = self.n_vertices, self.k
+            centers = np.repeat(np.arange(n * k, dtype=np.int64) // k, np.diff(a.indptr))
+            keys = centers * n + a.indices
+            pair_keys = self.pairs[:, 0] * n + self.pairs[:, 1]
+            found = np.searchsorted(pair_keys, keys)
+            found = np.minimum(found, max(len(pair_keys) - 1, 0))
+            if len(keys) and (len(pair_keys) == 0 or np.any(pair_keys[found] != keys)):
+                raise ValueError("the pairs do not cover every non-zero of the operator (build them with patch_pairs)")
+            self._entry_pair = found
+        return self._entry_pair
+
+    def harmonic_matrix(self, harmonics: Sequence[int]) -> sp.csr_matrix:
+        """The matrix of :meth:`apply_harmonic`: ``(N X, N (2L + 1))``, row ``p X + i`` for harmonic
+        ``harmonics[i] = j (2L + 1) + r``, column ``q (2L + 1) + r'``; float64, sorted indices.
+
+        Row ``(p, i)`` holds, for every ``q`` of ``p``'s patch in order, ``A[(p, j), q]`` at ``r' = 0`` when
+        ``r = 0``, else the two transported entries at ``r' = 2ℓ - 1, 2ℓ``.
+        """
+        a = self._sorted_matrix()
+        n, k, d = self.n_vertices, self.k, fourier_dim(self.order)
+        harmonics = [int(x) for x in harmonics]
+        if any(not 0 <= x < k * d for x in harmonics):
+            raise ValueError(f"harmonics must lie in [0, {k * d}) for k={k}, L={self.order}")
+        block = False
+        if any(x % d for x in harmonics):  # transported harmonics need the pair of every entry
+            if self._block is None:
+                self._block = self._is_block(a)
+            self.entry_pair()
+            block = self._block
+        # each (source row, column) entry of the matrix, as arrays over "items" (pairs in the block layout,
+        # entries of A otherwise): item -> (vertex p, position t in p's row, column q, transport angle)
+        if block:
+            per_vertex, first = self._pair_layout()
+            vertex, column, gamma = self.pairs[:, 0], self.pairs[:, 1], self.angles
+            position = np.arange(len(self.pairs)) - first[vertex]
+            row_len = np.repeat(per_vertex[:, None], k, 1)
+        else:
+            row_len = np.diff(a.indptr).reshape(n, k)
+            vertex = column = position = gamma = None
+        mult = np.asarray([1 if x % d == 0 else 2 for x in harmonics], dtype=np.int64)
+        lengths = row_len[:, [x // d for x in harmonics]] * mult  # (N, X)
+        indptr = np.zeros(n * len(harmonics) + 1, dtype=np.int64)
+        np.cumsum(lengths.reshape(-1), out=indptr[1:])
+        indices = np.empty(indptr[-1], dtype=np.int32 if n * d < 2**31 else np.int64)
+        data = np.empty(indptr[-1], dtype=np.float64)
+        trig = {}
+        for i, x in enumerate(harmonics):
+            j, r = divmod(x, d)
+            if block:
+                entries = a.indptr[vertex * k + j] + position
+                dest = indptr[vertex * len(harmonics) + i] + position * mult[i]
+                q, angle = column, gamma
+            else:
+                counts = row_len[:, j]
+                within = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+                entries = np.repeat(a.indptr[np.arange(n) * k + j], counts) + within
+                dest = np.repeat(indptr[np.arange(n) * len(harmonics) + i], counts) + within * mult[i]
+                q, angle = a.indices[entries].astype(np.int64), None
+            value = a.data[entries]
+            if r == 0:
+                indices[dest], data[dest] = q * d, value
+                continue
+            ell = (r + 1) // 2
+            if block:
+                if ell not in trig:
+                    trig[ell] = (np.cos(ell * angle), np.sin(ell * angle))
+                cos, sin = trig[ell]
+            else:
+                phase = ell * self.angles[self._entry_pair[entries]]
+                cos, sin = np.cos(phase), np.sin(phase)
+            indices[dest], indices[dest + 1] = q * d + 2 * ell - 1, q * d + 2 * ell
+            # α_a = C_ℓ a - S_ℓ b (odd r), α_b = S_ℓ a + C_ℓ b (even r)
+            data[dest], data[dest + 1] = (value * cos, -value * sin) if r % 2 == 1 else (value * sin, value * cos)
+        matrix = sp.csr_matrix((data, indices, indptr), shape=(n * len(harmonics), n * d))
+        matrix.has_sorted_indices = True
+        return matrix
+
+    def torch_matrices(self, harmonics: Sequence[int], dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
+        """The torch CSR matrix of :meth:`harmonic_matrix` and its transpose, built on first use and kept
+        (per harmonics, dtype and device)."""
+        harmonics = tuple(int(h) for h in harmonics)
+        key = (harmonics, dtype, torch.device(device))
         if key not in self._torch:
-            m = self.phases[ell - 1]
-            self._torch[key] = (to_torch_csr(m, dtype, device), to_torch_csr(m.T.tocsr(), dtype, device))
+            if self.parts:  # a batch: the surfaces' own matrices (kept on them), stacked block-diagonally
+                built = [part.torch_matrices(harmonics, dtype, device) for part in self.parts]
+                self._torch[key] = tuple(block_diagonal_csr([b[i] for b in built]) for i in (0, 1))
+            else:
+                m = self.harmonic_matrix(harmonics)
+                self._torch[key] = (to_torch_csr(m, dtype, device), to_torch_csr(m.T.tocsr(), dtype, device))
         return self._torch[key]
 
-    def apply(self, x: Tensor) -> Tensor:
-        """``x`` ``(N, 2L + 1, C)`` -> ``(N, k, 2L + 1, C)``, in ``x``'s dtype and device, differentiable."""
+    @property
+    def phases(self) -> list[sp.csr_matrix]:
+        if self.order == 0:
+            return []
+        a = self._sorted_matrix()
+        gamma = self.angles[self.entry_pair()]
+        counts = np.diff(a.indptr)
+        indptr = np.zeros(2 * a.shape[0] + 1, dtype=np.int64)
+        indptr[1::2], indptr[2::2] = counts, counts
+        indptr = np.cumsum(indptr)
+        offset = np.repeat(indptr[0:-1:2] - a.indptr[:-1], counts) + np.arange(a.nnz)
+        indices = np.empty(2 * a.nnz, dtype=a.indices.dtype)
+        indices[offset] = indices[offset + np.repeat(counts, counts)] = a.indices
+        out = []
+        for ell in range(1, self.order + 1):
+            data = np.empty(2 * a.nnz)
+            data[offset] = a.data * np.cos(ell * gamma)
+            data[offset + np.repeat(counts, counts)] = a.data * np.sin(ell * gamma)
+            out.append(sp.csr_matrix((data, indices, indptr), shape=(2 * a.shape[0], self.n_vertices)))
+        return out
+
+    # ------------------------------------------------------------------ apply
+    def apply_harmonic(self, x: Tensor, harmonics: Sequence[int]) -> Tensor:
+        """The harmonics ``x = j (2L + 1) + r`` of the transported fit, in one sparse product.
+
+        Args:
+            x: ``(N, 2L + 1, C)`` channels in the Fourier layout.
+            harmonics: the wanted ``(j, r)`` as ``j (2L + 1) + r`` (a layer's ``plan.inputs``).
+
+        Returns:
+            ``(N, len(harmonics), C)`` in ``x``'s dtype and device, differentiable.
+        """
         d = fourier_dim(self.order)
-        n, k = self.n_vertices, self.k
+        n = self.n_vertices
         if x.dim() != 3 or x.shape[0] != n or x.shape[1] != d:
             raise ValueError(f"expected directional input ({n}, {d}, C) for order {self.order}, got {tuple(x.shape)}")
+        harmonics = tuple(int(h) for h in harmonics)
+        matrix, transpose = self.torch_matrices(harmonics, x.dtype, x.device)
         c = x.shape[2]
-        parts = [self.operator.apply(x[:, 0].contiguous()).unsqueeze(2)]
-        for ell in range(1, self.order + 1):
-            matrix, transpose = self._tensors(ell, x.dtype, x.device)
-            ab = x[:, 2 * ell - 1 : 2 * ell + 1].reshape(n, 2 * c)  # [a_ℓ | b_ℓ]
-            y = SparseApply.apply(ab, matrix, transpose).view(n, k, 2, 2, c)  # [C, S] x [a, b]
-            parts.append((y[:, :, 0, 0] - y[:, :, 1, 1]).unsqueeze(2))  # α_a
-            parts.append((y[:, :, 1, 0] + y[:, :, 0, 1]).unsqueeze(2))  # α_b
-        return torch.cat(parts, dim=2) if len(parts) > 1 else parts[0]
+        out = SparseApply.apply(x.reshape(n * d, c).contiguous(), matrix, transpose)
+        return out.view(n, len(harmonics), c)
+
+    def apply(self, x: Tensor) -> Tensor:
+        """``x`` ``(N, 2L + 1, C)`` -> every coefficient ``(N, k, 2L + 1, C)``, differentiable."""
+        d = fourier_dim(self.order)
+        return self.apply_harmonic(x, range(self.k * d)).view(self.n_vertices, self.k, d, x.shape[-1])
 
     __call__ = apply
 
     def to(self, device) -> DirectionalOperator:
         """Move the cached torch tensors (and the scalar operator's) to ``device``; returns ``self``.
 
-        Like :meth:`zernet.operators.PatchOperator.to`: the scipy matrices stay on the host, tensors for
-        other devices are dropped.
+        Like :meth:`zernet.operators.PatchOperator.to`: the numpy data stay on the host, tensors for other
+        devices are dropped.
         """
         device = torch.device(device)
         if hasattr(self.operator, "to"):
             self.operator = self.operator.to(device)
         if all(have == device for _, _, have in self._torch):
             return self
-        kinds = {(ell, dtype) for ell, dtype, _ in self._torch}
+        kinds = {(harmonics, dtype) for harmonics, dtype, _ in self._torch}
         self._torch = {}
-        for ell, dtype in kinds:
-            self._tensors(ell, dtype, device)
+        for harmonics, dtype in kinds:
+            self.torch_matrices(harmonics, dtype, device)
         return self
 
     def __getstate__(self):
@@ -140,8 +313,59 @@ class DirectionalOperator:
             raise ValueError(f"cannot concatenate directional operators of different (order, k): {[(op.order, op.k) for op in ops]}")
         if operator is None:
             operator = type(ops[0].operator).concatenate([op.operator for op in ops])
-        phases = [sp.block_diag([op.phases[ell] for op in ops], format="csr") for ell in range(ops[0].order)]
-        return DirectionalOperator(operator, phases)
+        offsets = np.cumsum([0] + [op.n_vertices for op in ops])[:-1]
+        pairs = np.concatenate([op.pairs + off for op, off in zip(ops, offsets)])
+        batch = DirectionalOperator(operator, ops[0].order, pairs, np.concatenate([op.angles for op in ops]))
+        # Products reuse the surfaces' matrices (built once per surface and kept on it), stacked per step.
+        batch.parts = [part for op in ops for part in (op.parts or [op])]
+        return batch
+
+
+def block_diagonal_csr(matrices: Sequence[Tensor]) -> Tensor:
+    """Torch CSR matrices stacked block-diagonally (one copy of their arrays, no sorting)."""
+    if len(matrices) == 1:
+        return matrices[0]
+    nnz = sum(int(m.values().numel()) for m in matrices)
+    rows = sum(m.shape[0] for m in matrices)
+    cols = sum(m.shape[1] for m in matrices)
+    index_dtype = torch.int32 if max(nnz, rows, cols) < 2**31 - 1 else torch.int64
+    indptr, indices = [torch.zeros(1, dtype=index_dtype, device=matrices[0].device)], []
+    nnz_offset = col_offset = 0
+    for m in matrices:
+        indptr.append(m.crow_indices()[1:].to(index_dtype) + nnz_offset)
+        indices.append(m.col_indices().to(index_dtype) + col_offset)
+        nnz_offset += int(m.values().numel())
+        col_offset += m.shape[1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
+        return torch.sparse_csr_tensor(torch.cat(indptr), torch.cat(indices), torch.cat([m.values() for m in matrices]),
+                                       size=(rows, cols), check_invariants=False)
+
+
+def patch_pairs(matrix: sp.csr_matrix, k: int) -> np.ndarray:
+    """The sorted vertex pairs ``(p, q)`` with a non-zero ``A[(p, j), q]`` for some ``j``: ``(P, 2)`` int64.
+
+    Fast when every row of a vertex has the same columns (a patch fit: all ``k`` rows read the same
+    vertices); any other pattern is handled by a sort.
+    """
+    a = matrix.tocsr()
+    if not a.has_sorted_indices:
+        a = a.copy()
+        a.sort_indices()
+    n = a.shape[1]
+    row_len = np.diff(a.indptr).reshape(-1, k)
+    first = row_len[:, 0]
+    if np.all(row_len == first[:, None]):  # each vertex's k rows are one (k, n_p) block of the CSR arrays
+        vertex = np.repeat(np.arange(len(first), dtype=np.int64), k * first)
+        starts = a.indptr[: len(first) * k : k]
+        within = np.arange(a.nnz) - starts[vertex]
+        column = within % np.maximum(first[vertex], 1)
+        if np.array_equal(a.indices, a.indices[starts[vertex] + column]):
+            in_first_row = within < first[vertex]
+            return np.stack([vertex[in_first_row], a.indices[in_first_row].astype(np.int64)], axis=1)
+    centers = np.repeat(np.arange(a.shape[0], dtype=np.int64) // k, np.diff(a.indptr))
+    keys = np.unique(centers * n + a.indices)
+    return np.stack([keys // n, keys % n], axis=1)
 
 
 def build_directional_operator(operator, order: int) -> DirectionalOperator:
@@ -149,41 +373,15 @@ def build_directional_operator(operator, order: int) -> DirectionalOperator:
 
     A pure function of the operator (its ``matrix``, ``k`` and ``frames``; a
     :class:`~zernet.operators.PatchOperator` or a :class:`~zernet.nn.reference.MatrixOperator` with frames):
-    call it once per surface when preparing the data.
+    call it once per surface when preparing the data. Only the pairs and their transport angles are
+    computed here; each layer's sparse matrix is built on its first product and kept.
     """
     fourier_dim(order)
-    a = operator.matrix.tocsr()
-    k = int(operator.k)
-    n = int(a.shape[1])
     if order == 0:
-        return DirectionalOperator(operator, [])
+        return DirectionalOperator(operator, 0, np.zeros((0, 2), np.int64), np.zeros(0))
     frames = getattr(operator, "frames", None)
     if frames is None:
         raise ValueError("directional channels of order >= 1 need the operator's tangent frames (operator.frames)")
-    frames = np.asarray(frames, dtype=np.float64)
-    a.sort_indices()
-    rows = np.repeat(np.arange(a.shape[0], dtype=np.int64), np.diff(a.indptr))
-    cols = a.indices.astype(np.int64)
-    centers = rows // k
-    pairs, inverse = np.unique(centers * n + cols, return_inverse=True)
-    gamma = transport_angles(frames, pairs // n, pairs % n)
-    # Interleave C_ℓ and S_ℓ rows: same sparsity as A, twice the rows.
-    indptr = np.zeros(2 * a.shape[0] + 1, dtype=np.int64)
-    counts = np.diff(a.indptr)
-    indptr[1::2] = counts
-    indptr[2::2] = counts
-    indptr = np.cumsum(indptr)
-    row_starts = a.indptr[:-1]
-    # position of every entry of A inside the interleaved arrays (cos copy; the sin copy follows its row)
-    offset = np.repeat(indptr[0:-1:2] - row_starts, counts) + np.arange(a.nnz)
-    indices = np.empty(2 * a.nnz, dtype=a.indices.dtype)
-    indices[offset] = a.indices
-    indices[offset + np.repeat(counts, counts)] = a.indices
-    phases = []
-    for ell in range(1, order + 1):
-        angle = ell * gamma
-        data = np.empty(2 * a.nnz, dtype=np.float64)
-        data[offset] = a.data * np.cos(angle)[inverse.reshape(-1)]
-        data[offset + np.repeat(counts, counts)] = a.data * np.sin(angle)[inverse.reshape(-1)]
-        phases.append(sp.csr_matrix((data, indices, indptr), shape=(2 * a.shape[0], n)))
-    return DirectionalOperator(operator, phases)
+    pairs = patch_pairs(operator.matrix, int(operator.k))
+    gamma = transport_angles(np.asarray(frames, dtype=np.float64), pairs[:, 0], pairs[:, 1])
+    return DirectionalOperator(operator, order, pairs, gamma)

@@ -19,12 +19,16 @@ class DirectionalZerNet(SurfaceModel):
     r"""ZerNet with direction-preserving convolutions (paper section 4.4).
 
     ``DirectionalLifting(w_0) -> act -> (DirectionalZernikeConv(w_i), act)_i -> DirectionalZernikeConv(w_last,
-    whole response) -> DirectionalPooling -> ReLU -> Lin(widths[-1]), ReLU -> Dropout -> Lin(out_channels)``
+    final_order) -> DirectionalPooling -> ReLU -> Lin(widths[-1]), ReLU -> Dropout -> Lin(out_channels)``
 
     Between convolution blocks every feature keeps its direction axis as Fourier coefficients of order
     ``L`` (default ``(s - 1) // 2``: ``L = 1`` at the paper's ``s = 4``); ``act`` is
-    :class:`DirectionalReLU`. The last convolution keeps its whole response (order ``n_max + L``), which
-    ``pooling`` reduces to scalars. At the default widths this is the paper's
+    :class:`DirectionalReLU`. The last convolution keeps its response up to Fourier order ``final_order``
+    (default: the whole response, order ``n_max + L``), which ``pooling`` reduces to scalars. Every order
+    is exactly equivariant, so a truncated response keeps the model invariant; it only pools a smoother
+    function of the direction. ``final_order = 1`` makes the last layer compute 35 of its 63 input
+    harmonics and 3 of its 13 output slabs (its cost near the single-scale layer's), and its continuous
+    max is closed-form (``a_0 + |(a_1, b_1)|``). At the default widths this is the paper's
     ``Conv64 -> Conv128 -> Conv256 -> Lin512 -> Lin(C)``.
 
     Args:
@@ -37,6 +41,8 @@ class DirectionalZerNet(SurfaceModel):
         pooling: ``"continuous"`` (default), ``"discrete"`` or ``"mean"`` at the end.
         nonlinearity: ``"regular"`` (ReLU at the ``s`` angles, default) or ``"norm"``.
         dropout: dropout probability before the output layer.
+        final_order: Fourier order kept by the last convolution (``None``: ``n_max + L``, the whole
+            response; ``configs/faust_directional.yaml`` uses 1).
 
     Attributes:
         directional_order: ``L`` (also ``order``): ``geometry.directional[0]`` must be the
@@ -60,6 +66,7 @@ class DirectionalZerNet(SurfaceModel):
         pooling: str = "continuous",
         nonlinearity: str = "regular",
         dropout: float = 0.25,
+        final_order: int | None = None,
     ) -> None:
         super().__init__()
         widths = resolve_widths(widths, None)
@@ -70,17 +77,19 @@ class DirectionalZerNet(SurfaceModel):
         s = int(angular_resolution)
         order = self.directional_order_for(angular_resolution=s, order=order)
         self.order = self.directional_order = order
+        self.final_order = None if final_order is None else int(final_order)
+        if self.final_order is not None and self.final_order < 0:
+            raise ValueError(f"final_order must be >= 0, got {final_order}")
         conv_widths = widths[:-1]
         self.convs = nn.ModuleList()
         self.acts = nn.ModuleList()
         channels, in_order = self.in_channels, 0
         for i, width in enumerate(conv_widths):
             last = i == len(conv_widths) - 1
-            self.convs.append(
-                DirectionalZernikeConv(
-                    channels, width, n_max=n_max, order=in_order, out_order=n_max + in_order if last else order
-                )
-            )
+            out_order = order
+            if last:
+                out_order = n_max + in_order if self.final_order is None else self.final_order
+            self.convs.append(DirectionalZernikeConv(channels, width, n_max=n_max, order=in_order, out_order=out_order))
             if not last:
                 self.acts.append(DirectionalReLU(width, order, mode=nonlinearity, angular_resolution=s))
             channels, in_order = width, order
