@@ -32,6 +32,7 @@ import torch
 
 from zernet.distributed import DistributedContext, is_main, setup as setup_distributed
 from zernet.io_utils import plain
+from zernet.training.augment import check_augmentation
 from zernet.training.build import (
     build_model_from_spec,
     is_correspondence,
@@ -203,6 +204,7 @@ def _load_dataset(config: RunConfig, progress: bool, workers, ctx: DistributedCo
 def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict | None, logger):
     """The run's fixed record (model spec, scaling, preprocessing) and the training objective."""
     task = dataset.task
+    check_augmentation(config.train, dataset.feature_kind)
     loss_name = resolve_loss(config.train.loss, task)
     first = dataset[splits.train[0]]
     out_channels = int(dataset.num_classes) if task == "classification" else 1
