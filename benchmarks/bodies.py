@@ -52,7 +52,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from zernet.data.bodies import TOPOLOGIES, write_bodies  # noqa: E402
-from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
+from zernet.io_utils import atomic_write_bytes, plain, write_json  # noqa: E402
 from zernet.training import apply_overrides, build_dataset, load_checkpoint, load_config, parse_config, train  # noqa: E402
 from zernet.training.evaluation import evaluate_members  # noqa: E402
 from zernet.training.predict import model_from_checkpoint, predict_record  # noqa: E402
@@ -82,6 +82,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="overrides applied to every run's configuration (e.g. train.lr=1e-3)")
     p.add_argument("--data", type=Path, default=None, help="bodies folder (default data/bodies-TOPOLOGY-COUNT)")
     p.add_argument("--runs", type=Path, default=ROOT / "runs" / "bench_bodies", help="run folders")
+    p.add_argument("--keep", action="store_true",
+                   help="reuse the results in STEM.json of (task, model) pairs whose configuration is unchanged "
+                        "(an interrupted benchmark continues; models can be added)")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "bodies",
                    help="output stem: writes STEM.md, STEM.json and STEM.png")
     return p.parse_args(argv)
@@ -268,12 +271,35 @@ def plot(results: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def kept_results(args, bodies: Path) -> dict:
+    """Results of STEM.json whose run configuration equals this call's, by (task, model)."""
+    path = args.out.with_suffix(".json")
+    if not args.keep or not path.is_file():
+        return {}
+    kept = {}
+    for result in json.loads(path.read_text()).get("results", []):
+        task, model = result["task"], result["model"]
+        if task in TASKS and model in MODELS and _same(result["config"], run_config(task, model, bodies, args)):
+            kept[(task, model)] = result
+    return kept
+
+
+def _same(stored: dict, config: dict) -> bool:
+    as_text = lambda c: json.dumps(plain(parse_config(c).to_dict()), sort_keys=True)  # noqa: E731
+    return as_text(stored) == as_text(config)
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     bodies = ensure_bodies(args)
+    kept = kept_results(args, bodies)
     results, started = [], time.perf_counter()
     for task in args.tasks:
         for model in args.models:
+            if (task, model) in kept:
+                print(f"{task} / {model}: kept from {args.out.with_suffix('.json')}", flush=True)
+                results.append(kept[(task, model)])
+                continue
             print(f"{task} / {model}", flush=True)
             results.append(run_one(task, model, bodies, args))
             report = {"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
