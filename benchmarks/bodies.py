@@ -285,8 +285,19 @@ def kept_results(args, bodies: Path) -> dict:
 
 
 def _same(stored: dict, config: dict) -> bool:
-    as_text = lambda c: json.dumps(plain(parse_config(c).to_dict()), sort_keys=True)  # noqa: E731
+    as_text = lambda c: json.dumps(_relative(plain(parse_config(c).to_dict())), sort_keys=True)  # noqa: E731
     return as_text(stored) == as_text(config)
+
+
+def _relative(value):
+    """``value`` with paths inside the repository written relative to it (results name no local folders)."""
+    if isinstance(value, str):
+        return value[len(str(ROOT)) + 1:] if value.startswith(str(ROOT) + "/") else value
+    if isinstance(value, dict):
+        return {k: _relative(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_relative(v) for v in value]
+    return value
 
 
 def main(argv=None) -> int:
@@ -304,7 +315,7 @@ def main(argv=None) -> int:
             results.append(run_one(task, model, bodies, args))
             report = {"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
                       "results": results, "wall_seconds": time.perf_counter() - started}
-            write_json(args.out.with_suffix(".json"), report)
+            write_json(args.out.with_suffix(".json"), _relative(plain(report)))
             atomic_write_bytes(args.out.with_suffix(".md"), markdown(results, args).encode())
             plot(results, args.out.with_suffix(".png"))
     print(markdown(results, args))
