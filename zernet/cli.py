@@ -149,6 +149,9 @@ def _add_train_command(sub, parents: list[argparse.ArgumentParser]) -> None:
                    help="continue the run in --run-dir exactly where its last checkpoint left off")
     p.add_argument("--overwrite", action="store_true",
                    help="start afresh even if the run folder already holds a checkpoint")
+    p.add_argument("--init-from", type=Path, default=None, metavar="RUN",
+                   help="start from the weights of another run (its folder, i.e. its best.pt, or a .pt file): the "
+                        "convolutions are taken, the output layer is new where the number of classes differs")
     p.add_argument("--workers", type=int, default=None, metavar="N", help="preprocessing worker processes")
     p.add_argument("--no-progress", action="store_true", help="no progress bars (log lines only)")
     p.set_defaults(func=_cmd_train)
@@ -272,21 +275,15 @@ def _cmd_train(args) -> int:
         raise _UsageError("--resume needs --run-dir: the run folder to continue")
     if args.resume and args.overwrite:
         raise _UsageError("--resume and --overwrite contradict each other")
-    overrides = _with_skip_bad(args)
-    if args.config is not None:
-        config = read_config(args.config, overrides)
-    elif overrides:
-        # --resume --set ...: the run's own configuration with the overrides (only some keys may change).
-        stored = args.run_dir / "config.yaml"
-        if not stored.is_file():
-            raise _UsageError(f"--resume --set needs {stored} (or give the CONFIG file)")
-        _check_resume_overrides(overrides)
-        config = read_config(stored, overrides)
-    else:
-        config = None
+    if args.resume and args.init_from is not None:
+        raise _UsageError("--init-from starts a new run from another run's weights; a run continued with --resume "
+                          "keeps its own weights (and the init-from it started with)")
+    config = read_config(args.config, args.overrides) if args.config is not None else None
+    if config is None and args.overrides:
+        raise _UsageError("--set needs a CONFIG file; on resume only train.epochs and train.patience may change")
     run_dir = args.run_dir or Path("runs") / args.config.stem
     metrics = train(config, run_dir, resume=args.resume, progress=not args.no_progress,
-                    overwrite=args.overwrite, workers=args.workers)
+                    overwrite=args.overwrite, workers=args.workers, init_from=args.init_from)
     if is_main():  # under torchrun, rank 0 alone evaluated the model and reports
         _print_metrics(metrics, run_dir)
     return 0

@@ -27,7 +27,7 @@ TODAYS_FORMAT = {
     "train": {"epochs": 12, "lr": 0.005, "lr_schedule": "constant", "weight_decay": 0.0, "loss": "auto",
               "standardize_targets": True, "target_transform": "none", "standardize_features": False,
               "patience": 6, "seed": 0, "shapes_per_step": 1, "device": "auto", "threads": None,
-              "grad_clip": None, "precision": "float32"},
+              "grad_clip": None, "precision": "float32", "augment_rotation": "none", "augment_scale": 0.0},
     "eval": {"renders": 3, "plots": True},
     "cache_dir": ".zernet-cache",
 }
@@ -40,6 +40,14 @@ def test_a_dict_in_todays_format_round_trips_with_its_key_order():
     assert parse_config(config.to_dict()) == config
     assert config.train.epochs == 12 and config.model.options["widths"] == [16, 32, 64, 64]
     assert config.data.options["features"] == "xyz+normals" and config.patch.patch_configs()[0].r0 == 2.5
+
+
+def test_a_config_written_before_augmentation_loads_with_it_off():
+    older = copy.deepcopy(TODAYS_FORMAT)
+    del older["train"]["augment_rotation"], older["train"]["augment_scale"]
+    config = parse_config(older)
+    assert config.train.augment_rotation == "none" and config.train.augment_scale == 0.0
+    assert config == parse_config(TODAYS_FORMAT)
 
 
 def test_defaults_fill_in_and_the_input_is_not_aliased(tmp_path):
@@ -80,6 +88,9 @@ def test_read_config_applies_overrides(tmp_path):
     ("train.lr_schedule", "step", "one of constant, cosine"),
     ("train.target_transform", "sqrt", "one of none, log"),
     ("train.precision", "float16", "one of float32, bfloat16"),
+    ("train.augment_rotation", "z", "one of none, vertical, any"),
+    ("train.augment_scale", 1.0, "a number >= 0 and < 1"),
+    ("train.augment_scale", -0.1, "a number >= 0 and < 1"),
     ("train.device", 0, "a string"),
     ("train.standardize_targets", "yes", "true or false"),
     ("eval.renders", -2, "an integer >= 0"),

@@ -51,6 +51,7 @@ __all__ = [
     "TARGET_TRANSFORMS",
     "LR_SCHEDULES",
     "PRECISIONS",
+    "AUGMENT_ROTATIONS",
     "load_config",
     "apply_overrides",
     "parse_config",
@@ -62,6 +63,7 @@ LOSSES = ("auto", "cross_entropy", "mse", "l1", "relative_l1")
 TARGET_TRANSFORMS = ("none", "log")
 LR_SCHEDULES = ("constant", "cosine")
 PRECISIONS = ("float32", "bfloat16")
+AUGMENT_ROTATIONS = ("none", "vertical", "any")  # see zernet.training.augment
 
 
 class ConfigError(ValueError):
@@ -311,6 +313,10 @@ class TrainSection(_Section):
     # bfloat16: linear layers under torch.autocast (convolutions stay float32); ~3x faster matmuls on CPUs
     # with AVX-512 BF16 or AMX and on recent GPUs, slower on CPUs without them.
     precision: str = _rule("float32", "str", choices=PRECISIONS)
+    # Random rigid rotation (about the up axis y, or any) and scaling by [1 - a, 1 + a] of the xyz/normals
+    # inputs of every training shape (zernet.training.augment); meaningless for rotation-invariant features.
+    augment_rotation: str = _rule("none", "str", choices=AUGMENT_ROTATIONS)
+    augment_scale: float = _rule(0.0, "number", minimum=0, below=1)
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from tqdm.auto import tqdm
 
 from zernet import metrics as zmetrics
 from zernet.distributed import DistributedContext
+from zernet.training.augment import augment_records
 from zernet.training.batch import Batch, model_directional_order
 from zernet.training.config import TrainSection
 from zernet.training.losses import compute_loss
@@ -54,8 +55,10 @@ def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: tor
     bar = tqdm(groups, desc=f"epoch {epoch}/{train.epochs}", unit="step", leave=False, disable=not progress,
                dynamic_ncols=True)
     for step, group in enumerate(bar, start=1):
-        batch = Batch([dataset[i] for i in group], device, objective.target_stats, objective.feature_stats,
-                      model_directional_order(net))
+        directional = model_directional_order(net)
+        records = augment_records([dataset[i] for i in group], train, dataset.feature_kind,
+                                  [c.n_max for c in dataset.patch_configs], epoch, step, directional)
+        batch = Batch(records, device, objective.target_stats, objective.feature_stats, directional)
         optimizer.zero_grad(set_to_none=True)
         with precision_autocast(train.precision, device.type):
             output = net(batch.features, batch.geometry)

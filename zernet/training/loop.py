@@ -37,6 +37,7 @@ from zernet.data import PreprocessError, SkippedShapesWarning
 from zernet.data.preprocess import failure_listing
 from zernet.distributed import DistributedContext, is_main, setup as setup_distributed
 from zernet.io_utils import plain
+from zernet.training.augment import check_augmentation
 from zernet.training.build import (
     build_model_from_spec,
     check_model_config,
@@ -55,6 +56,7 @@ from zernet.training.checkpoint import (
 from zernet.training.config import ConfigError, RunConfig, TrainSection, parse_config
 from zernet.training.epoch import Objective, train_one_epoch, validate
 from zernet.training.evaluation import evaluate_members, summary_line
+from zernet.training.init_from import InitSource, describe as describe_init, initialise_from, load_init_source
 from zernet.training.losses import check_loss_targets, resolve_loss
 from zernet.training.run_dir import (
     clear_run_files,
@@ -81,7 +83,8 @@ class _Splits:
 
 
 def train(config: Mapping[str, Any] | RunConfig | None, run_dir: str | Path, resume: bool = False,
-          progress: bool = True, overwrite: bool = False, workers: int | None = None) -> dict:
+          progress: bool = True, overwrite: bool = False, workers: int | None = None,
+          init_from: str | Path | None = None) -> dict:
     """Train, select the best epoch on validation, evaluate it on the test split and fill ``run_dir``.
 
     Args:
@@ -94,12 +97,19 @@ def train(config: Mapping[str, Any] | RunConfig | None, run_dir: str | Path, res
         overwrite: start afresh even if ``run_dir`` already holds a checkpoint (otherwise an error, so that a
             finished run is never clobbered by accident).
         workers: processes for preprocessing (None: the data module's default).
+        init_from: start from the weights of another run (its folder, i.e. its best.pt, or a checkpoint
+            file); see :mod:`zernet.training.init_from`. Not with ``resume`` (a resumed run has weights).
 
     Returns:
         The test metrics (also written to ``run_dir/metrics.json``).
     """
     run_dir = Path(run_dir)
-    checkpoint, resume_note = None, None
+    checkpoint, resume_note, source = None, None, None
+    if resume and init_from is not None:
+        raise ConfigError("--init-from starts a new run from another run's weights; it cannot be combined with "
+                          "--resume (a resumed run continues from its own checkpoint and keeps its init-from)")
+    if init_from is not None:  # before any preprocessing, so a bad path fails in a second
+        source = load_init_source(init_from)
     if resume:
         checkpoint, resume_note = load_resume_checkpoint(run_dir)
     else:
@@ -117,7 +127,7 @@ def train(config: Mapping[str, Any] | RunConfig | None, run_dir: str | Path, res
         ctx = setup_distributed(resolve_device(config.train.device))
         if ctx.is_main:
             write_config_yaml(run_dir, config.to_dict())
-        return _run(config, run_dir, checkpoint, progress and ctx.is_main, logger, workers, ctx)
+        return _run(config, run_dir, checkpoint, progress and ctx.is_main, logger, workers, ctx, source)
     finally:
         if ctx is not None:
             ctx.close()
@@ -181,7 +191,7 @@ def _differing_keys(a, b, prefix: str = "") -> list[str]:
 
 
 def _run(config: RunConfig, run_dir: Path, checkpoint: dict | None, progress: bool, logger: logging.Logger,
-         workers: int | None, ctx: DistributedContext) -> dict:
+         workers: int | None, ctx: DistributedContext, source: InitSource | None = None) -> dict:
     """Build, fit, select, test."""
     if config.train.threads:
         torch.set_num_threads(int(config.train.threads))
@@ -190,7 +200,7 @@ def _run(config: RunConfig, run_dir: Path, checkpoint: dict | None, progress: bo
                 + (f", {ctx.world_size} ranks, {ctx.backend})" if ctx.distributed else ")"))
     dataset, splits, preprocess_seconds = _load_dataset(config, progress, workers, ctx, logger)
     record, objective = _describe_run(config, dataset, splits, checkpoint, logger)
-    model, optimizer, state = _build_model(record.model_spec, config.train, checkpoint, ctx.device, logger)
+    model, optimizer, state = _build_model(record.model_spec, config.train, checkpoint, ctx.device, logger, source)
     logger.info(f"model {record.model_spec['name']} ({sum(p.numel() for p in model.parameters()):,} parameters), "
                 f"loss {objective.loss}, lr {config.train.lr} ({config.train.lr_schedule}), "
                 f"{config.train.shapes_per_step} shape(s) per step")
@@ -267,6 +277,7 @@ def _check_class_count(dataset, kind: str, logger) -> None:
 def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict | None, logger):
     """The run's fixed record (model spec, scaling, preprocessing) and the training objective."""
     task = dataset.task
+    check_augmentation(config.train, dataset.feature_kind)
     loss_name = resolve_loss(config.train.loss, task)
     first = dataset[splits.train[0]]
     out_channels = int(dataset.num_classes) if task == "classification" else 1
@@ -304,13 +315,19 @@ def _feature_scaling(train: TrainSection, dataset, splits: _Splits, checkpoint, 
     return stats
 
 
-def _build_model(spec: dict, train: TrainSection, checkpoint: dict | None, device, logger):
-    """The model, its Adam optimiser and the loop state: fresh from ``train.seed``, or as checkpointed."""
+def _build_model(spec: dict, train: TrainSection, checkpoint: dict | None, device, logger,
+                 source: InitSource | None = None):
+    """The model, its Adam optimiser and the loop state: fresh from ``train.seed`` (then, with ``source``,
+    taking another run's weights), or as checkpointed."""
     # Seed right before the model is built, so its initialisation depends only on train.seed.
     seed_everything(train.seed)
-    model = build_model_from_spec(spec).to(device)
+    model = build_model_from_spec(spec)
+    init_info = initialise_from(model, source) if source is not None and checkpoint is None else None
+    model = model.to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=train.lr, weight_decay=train.weight_decay)
     state = initial_state()
+    if init_info is not None:
+        state["init_from"] = init_info  # checkpointed with the state: a resumed run still reports it
     if checkpoint is not None:
         model.load_state_dict(checkpoint["model"])
         optimizer.load_state_dict(checkpoint["optimizer"])
@@ -318,6 +335,8 @@ def _build_model(spec: dict, train: TrainSection, checkpoint: dict | None, devic
         set_rng_state(checkpoint["rng"])
         logger.info(f"resumed after epoch {state['epoch']} (best {state['best_metric']} at epoch "
                     f"{state['best_epoch']})")
+    if state.get("init_from"):
+        logger.info(describe_init(state["init_from"]))
     return model, optimizer, state
 
 
@@ -370,6 +389,8 @@ def _test(model, state: dict, dataset, splits: _Splits, monitor: Monitor, run_di
         "selection": {"metric": monitor.name, "value": state["best_metric"]},
         "train_seconds": state["train_seconds"],
     })
+    if state.get("init_from"):
+        metrics["init_from"] = state["init_from"]
     return metrics, predictions
 
 

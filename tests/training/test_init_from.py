@@ -1,0 +1,135 @@
+"""``--init-from``: a new run starts from another run's weights (convolutions copied, a new output layer where
+the classes differ), refuses what does not fit with an error naming the parameter, and keeps reporting it."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import pytest
+import torch
+import yaml
+
+from tiny_configs import tiny_config
+
+from zernet.cli import main
+from zernet.training import ConfigError, load_checkpoint, train
+from zernet.training.build import build_model_from_spec
+from zernet.training.init_from import initialise_from, load_init_source
+
+
+@pytest.fixture(scope="module")
+def source_run(tmp_path_factory, cache_dir):
+    """A finished 2-epoch run on the tiny segmentation creatures (4 classes)."""
+    run_dir = tmp_path_factory.mktemp("source")
+    train(tiny_config(cache_dir), run_dir, progress=False, workers=0)
+    return run_dir
+
+
+def _spec(source_run, **changes) -> dict:
+    spec = copy.deepcopy(load_checkpoint(source_run / "best.pt")["model_spec"])
+    spec.update(changes)
+    return spec
+
+
+def test_copies_every_weight_when_the_model_is_the_same(source_run):
+    source = load_init_source(source_run)  # a run folder means its best.pt
+    assert source.path == source_run / "best.pt"
+    model = build_model_from_spec(source.model_spec)
+    info = initialise_from(model, source)
+    assert info["reinitialised"] == [] and info["copied"] == len(model.state_dict())
+    for name, value in model.state_dict().items():
+        assert torch.equal(value, source.weights[name]), name
+
+
+def test_new_output_layer_where_the_classes_differ(source_run):
+    source = load_init_source(source_run / "best.pt")  # a checkpoint file is taken as it is
+    torch.manual_seed(123)
+    model = build_model_from_spec(_spec(source_run, out_channels=7))
+    fresh_output = copy.deepcopy(model.output.state_dict())
+    info = initialise_from(model, source)
+    assert sorted(info["reinitialised"]) == ["output.bias", "output.weight"]
+    assert model.output.weight.shape == (7, source.weights["output.weight"].shape[1])
+    for name, value in model.output.state_dict().items():  # the head keeps its fresh initialisation
+        assert torch.equal(value, fresh_output[name])
+    for name, value in model.state_dict().items():
+        if not name.startswith("output."):
+            assert torch.equal(value, source.weights[name]), name
+
+
+def test_other_widths_fail_naming_the_parameter(source_run):
+    source = load_init_source(source_run)
+    model = build_model_from_spec(_spec(source_run, options={**_spec(source_run)["options"], "widths": [8, 12, 16]}))
+    with pytest.raises(ConfigError, match=r"parameter 'blocks\.1\.[\w.]+' has shape"):
+        initialise_from(model, source)
+
+
+def test_other_input_channels_fail_naming_the_parameter(source_run):
+    source = load_init_source(source_run)
+    model = build_model_from_spec(_spec(source_run, in_channels=6))
+    with pytest.raises(ConfigError, match=r"parameter 'blocks\.0\.[\w.]+' has shape"):
+        initialise_from(model, source)
+
+
+def test_other_model_family_fails_naming_the_parameter(source_run):
+    source = load_init_source(source_run)
+    model = build_model_from_spec(_spec(source_run, name="feastnet", options={"widths": [8, 8, 16]}))
+    with pytest.raises(ConfigError, match=r"parameter '[\w.]+' does not fit"):
+        initialise_from(model, source)
+
+
+def test_missing_source_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        load_init_source(tmp_path / "nowhere")
+    with pytest.raises(FileNotFoundError, match="best.pt"):
+        load_init_source(tmp_path)  # a folder that is no run
+
+
+def test_run_starts_from_the_weights_and_reports_it(source_run, tmp_path, cache_dir):
+    """Zero epochs: the selected model is the initial one, so it must equal the source's weights."""
+    run_dir = tmp_path / "tuned"
+    metrics = train(tiny_config(cache_dir, epochs=1, lr=1e-12), run_dir, progress=False, workers=0,
+                    init_from=source_run)
+    source = load_checkpoint(source_run / "best.pt")["model"]
+    tuned = load_checkpoint(run_dir / "best.pt")
+    for name, value in tuned["model"].items():
+        assert torch.allclose(value, source[name], atol=1e-6), name
+    assert metrics["init_from"]["source"] == str(source_run / "best.pt")
+    assert json.loads((run_dir / "metrics.json").read_text())["init_from"]["copied"] == len(source)
+    assert "init-from:" in (run_dir / "train.log").read_text()
+    assert tuned["state"]["init_from"]["reinitialised"] == []
+
+
+def test_resumed_run_keeps_reporting_init_from(source_run, tmp_path, cache_dir):
+    run_dir = tmp_path / "tuned"
+    train(tiny_config(cache_dir, epochs=1), run_dir, progress=False, workers=0, init_from=source_run)
+    metrics = train(tiny_config(cache_dir, epochs=2), run_dir, resume=True, progress=False, workers=0)
+    assert metrics["epochs_trained"] == 2
+    assert metrics["init_from"]["source"] == str(source_run / "best.pt")
+    assert (run_dir / "train.log").read_text().count("init-from:") == 2
+
+
+def test_init_from_with_resume_is_refused(source_run, tmp_path, cache_dir):
+    with pytest.raises(ConfigError, match="cannot be combined with --resume"):
+        train(None, tmp_path, resume=True, init_from=source_run)
+
+
+def test_cli_init_from(source_run, tmp_path, cache_dir, capsys):
+    config = tmp_path / "tiny.yaml"
+    config.write_text(yaml.safe_dump(tiny_config(cache_dir, epochs=1)))
+    run_dir = tmp_path / "run"
+    assert main(["train", str(config), "--run-dir", str(run_dir), "--no-progress", "--init-from",
+                 str(source_run)]) == 0
+    assert "init_from" in json.loads((run_dir / "metrics.json").read_text())
+    capsys.readouterr()
+    # With --resume: refused by the command, exit 2, one line naming both options.
+    assert main(["train", "--resume", "--run-dir", str(run_dir), "--init-from", str(source_run)]) == 2
+    err = capsys.readouterr().err
+    assert "--init-from" in err and "--resume" in err and len(err.strip().splitlines()) == 1
+    # A model that does not fit: exit 2, the parameter named.
+    assert main(["train", str(config), "--run-dir", str(tmp_path / "other"), "--no-progress", "--init-from",
+                 str(source_run), "--set", "model.widths=[8,12,16]"]) == 2
+    assert "parameter 'blocks.1." in capsys.readouterr().err
+    # A missing source fails before any preprocessing.
+    assert main(["train", str(config), "--run-dir", str(tmp_path / "x"), "--init-from", str(tmp_path / "nope")]) == 2
+    assert "does not exist" in capsys.readouterr().err
