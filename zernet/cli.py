@@ -278,9 +278,18 @@ def _cmd_train(args) -> int:
     if args.resume and args.init_from is not None:
         raise _UsageError("--init-from starts a new run from another run's weights; a run continued with --resume "
                           "keeps its own weights (and the init-from it started with)")
-    config = read_config(args.config, args.overrides) if args.config is not None else None
-    if config is None and args.overrides:
-        raise _UsageError("--set needs a CONFIG file; on resume only train.epochs and train.patience may change")
+    overrides = _with_skip_bad(args)
+    if args.config is not None:
+        config = read_config(args.config, overrides)
+    elif overrides:
+        # --resume --set ...: the run's own configuration with the overrides (only some keys may change).
+        stored = args.run_dir / "config.yaml"
+        if not stored.is_file():
+            raise _UsageError(f"--resume --set needs {stored} (or give the CONFIG file)")
+        _check_resume_overrides(overrides)
+        config = read_config(stored, overrides)
+    else:
+        config = None
     run_dir = args.run_dir or Path("runs") / args.config.stem
     metrics = train(config, run_dir, resume=args.resume, progress=not args.no_progress,
                     overwrite=args.overwrite, workers=args.workers, init_from=args.init_from)
