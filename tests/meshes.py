@@ -81,3 +81,12 @@ def random_sphere_points(n: int, seed: int = 0) -> np.ndarray:
     """(n, 3) points uniformly distributed on the unit sphere (seeded)."""
     points = np.random.default_rng(seed).normal(size=(n, 3))
     return points / np.linalg.norm(points, axis=1, keepdims=True)
+
+
+def random_frames(rng, n):
+    """``n`` random right-handed orthonormal frames (rows e1, e2, normal), normals near +z."""
+    normals = rng.normal(size=(n, 3)) + np.array([0.0, 0.0, 2.5])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    e1 = np.cross(normals, rng.normal(size=(n, 3)))
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return np.stack([e1, np.cross(normals, e1), normals], axis=1)

@@ -12,6 +12,7 @@ from zernet.nn.directional_plan import coupling_tensor, directional_plan, harmon
 from zernet.nn.models import DirectionalZerNet
 from zernet.nn.pooling import continuous_max
 from zernet.nn.reference import MatrixOperator
+from meshes import random_frames
 from zernet.operators import Geometry, build_directional_operator
 from zernet.operators.directional import patch_pairs
 from zernet.zernike import num_bases, orders, rotate_coefficients
@@ -28,12 +29,6 @@ def _one_thread():
     torch.set_num_threads(threads)
 
 
-def _frames(rng, n):
-    normals = rng.normal(size=(n, 3)) + np.array([0.0, 0.0, 2.5])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    e1 = np.cross(normals, rng.normal(size=(n, 3)))
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    return np.stack([e1, np.cross(normals, e1), normals], axis=1)
 
 
 def _patch_like_operator(n=15, seed=0, per_patch=5):
@@ -46,7 +41,7 @@ def _patch_like_operator(n=15, seed=0, per_patch=5):
             rows += [p * K + j] * per_patch
             cols += list(neighbours)
     matrix = sp.csr_matrix((rng.normal(size=len(rows)), (rows, cols)), shape=(n * K, n))
-    return MatrixOperator(matrix, K, _frames(rng, n))
+    return MatrixOperator(matrix, K, random_frames(rng, n))
 
 
 def _naive(alpha_full, weight, coupling):

@@ -27,6 +27,7 @@ from zernet.nn.conv import ZernikeConv
 from zernet.nn.directional import DirectionalLifting, DirectionalPooling, DirectionalReLU, DirectionalZernikeConv
 from zernet.nn.models import DirectionalZerNet
 from zernet.nn.reference import MatrixOperator
+from meshes import random_frames
 from zernet.operators import Geometry, build_directional_operator
 from zernet.geometry import transport_angles
 from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
@@ -44,12 +45,6 @@ def _one_thread():
     torch.set_num_threads(threads)
 
 
-def _random_frames(rng, n):
-    normals = rng.normal(size=(n, 3)) + np.array([0.0, 0.0, 2.5])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    e1 = np.cross(normals, rng.normal(size=(n, 3)))
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    return np.stack([e1, np.cross(normals, e1), normals], axis=1)
 
 
 def _synthetic_operator(n=14, seed=0, density=0.35):
@@ -57,7 +52,7 @@ def _synthetic_operator(n=14, seed=0, density=0.35):
     rng = np.random.default_rng(seed)
     matrix = sp.random(n * K, n, density=density, random_state=seed, format="csr")
     matrix.data = rng.normal(size=matrix.nnz)
-    return MatrixOperator(matrix, K, _random_frames(rng, n))
+    return MatrixOperator(matrix, K, random_frames(rng, n))
 
 
 def _turn_frames(frames, delta):
