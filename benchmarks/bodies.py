@@ -6,7 +6,7 @@ correspondence and segmentation, this trains
     zernet             single scale             (model section of configs/bodies_*.yaml)
     zernet-multiscale  three scales in parallel (model and patch sections of configs/faust_multi_scale.yaml)
     zernet-directional direction-preserving     (model section of configs/faust_directional.yaml)
-    paper-zernet       the paper's formulation  (zernet's section, model name paper-zernet)
+    paper-zernet       the paper's formulation  (zernet's section, model name paper-zernet, 50 samples per patch)
     feastnet           FeaStNet                 (PyTorch Geometric's FeaStConv, the same widths)
 
 each with its task's widths and the training recipe of ``configs/bodies_<task>.yaml`` (learning rate,
@@ -125,6 +125,8 @@ def run_config(task: str, model: str, bodies: Path, args) -> dict:
         config["model"] = dict(load_config(ROOT / "configs" / "faust_directional.yaml")["model"])
     elif model in ("paper-zernet", "feastnet"):
         config["model"] = dict(config["model"], name=model)
+    if model == "paper-zernet":  # the paper's sampling rule too: the 50 nearest samples of each patch
+        config["patch"]["scales"] = [dict(scale, patch_size=50) for scale in config["patch"]["scales"]]
     if model == "feastnet":
         config["model"] = {k: v for k, v in config["model"].items() if k not in ZERNET_ONLY}
     config["model"]["widths"] = widths
