@@ -7,8 +7,8 @@ In one process, on the same inputs and with the same thread count, it measures
 
 1. **Operator build** on a generated human body of FAUST's size (``zernet.data.bodies``, topology ``faust``:
    6,890 vertices, body 0 of seed 0, varied pose; needs the ``bodies`` extra), scaled to area 15000; r0 = 5.5,
-   12000 samples, 50 per patch, k = 21, samples within r0/4 left out, centre subtracted — the paper's FAUST
-   settings), and FeaStNet's equivalent (the mesh edge graph).
+   12000 samples, every sample within r0 fitted, k = 21, samples within r0/4 left out, centre subtracted,
+   front geodesics — the shipped FAUST recipe), and FeaStNet's equivalent (the mesh edge graph).
 2. **One training step and one inference pass** with the 6,890-way output (cross-entropy against
    vertex ids, Adam) for zernet at s = 1, 4, 16, the paper's formulation (``paper-zernet``: per-layer
    least squares, s rotated kernel copies) and FeaStNet (``feastnet``, PyTorch Geometric's FeaStConv,
