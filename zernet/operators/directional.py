@@ -29,14 +29,17 @@ data are prepared (:func:`build_directional_operator`, or :meth:`zernet.operator
 for every scale of a geometry), never inside a layer.
 
 **Cost and where it is kept.** For a FAUST-size surface (6,890 vertices, 7.9 M non-zeros in ``A``, 376 k
-pairs) the pairs and angles take about 0.5-1.3 s and the matrices of the ``L_out = 1`` layers (23 M
-non-zeros, with their transpose about 370 MB in float32) 1-2.3 s (``benchmarks/bench_directional.py``,
-idle to loaded machine). A data set held in memory keeps them on its records
-(:func:`zernet.training.batch.with_directional`), so they are built once per surface, in the first epoch; a
-batch of several surfaces stacks its surfaces' kept matrices (:func:`block_diagonal_csr`) instead. A
-data set too large for memory (``zernet.data.preprocess.IN_MEMORY_VERTEX_LIMIT``) reads every record back
-from its cache on each access and so rebuilds them on every step, as it reloads the scalar operator and
-rebuilds its transpose: holding them instead would take the memory that limit exists to save.
+pairs) computing the pairs and angles takes about 0.3-1.3 s, and the matrices of the ``L_out = 1`` layers
+(23 M non-zeros, with their transpose about 370 MB in float32) about 0.4-0.7 s, written by the compiled
+kernels of :mod:`zernet.operators.harmonic_csr` straight into the arrays torch wraps
+(``benchmarks/bench_directional.py``, idle to loaded machine). A data set held in memory keeps them on its
+records (:func:`zernet.training.batch.with_directional`), so they are built once per surface, in the first
+epoch; a batch of several surfaces stacks its surfaces' kept matrices (:func:`block_diagonal_csr`) instead.
+A data set too large for memory (``zernet.data.preprocess.IN_MEMORY_VERTEX_LIMIT``) reads every record
+back from its cache on each access, and holding the operators instead would take the memory that limit
+exists to save. So the pairs and angles, which depend on the patch operator only, are kept in a file
+beside the patch operator's cache file (:func:`patch_transport`, written on the first access, about 0.02 s
+to read back), and only the matrices are rebuilt on every step, as the scalar operator's transpose is.
 """
 
 from __future__ import annotations
