@@ -26,8 +26,7 @@ def _entry_pairs_kernel(indptr, indices, k, pair_start, pair_column, out):
     """Merge each row of ``A`` (vertex ``p = row // k``) with ``p``'s sorted pairs; returns the first
     entry with no pair, or -1."""
     for row in range(indptr.shape[0] - 1):
-        first, end = pair_start[row // k], pair_start[row // k + 1]
-        t = first
+        t, end = pair_start[row // k], pair_start[row // k + 1]
         for e in range(indptr[row], indptr[row + 1]):
             q = indices[e]
             while t < end and pair_column[t] < q:
