@@ -21,7 +21,17 @@ load from other processes spreads over all of them; the table gives medians and 
 of wall time and of this process's CPU time (all its threads): on a machine shared with other jobs the CPU
 time is the steadier measure of the work a step does, the wall time what a user waits.
 The directional operator's build time (vertex pairs and transport angles, once per surface when the data
-are prepared) is reported too.
+are prepared, then read back from their cache file beside the patch operator's) is reported too.
+
+**Streamed.** A data set larger than ``zernet.data.preprocess.IN_MEMORY_VERTEX_LIMIT`` (80 FAUST-size
+bodies) keeps nothing between steps: every access reads the record back from its cache and rebuilds what a
+step needs. The streamed measurement makes the body a one-shape data set forced to stream
+(``build_dataset(..., in_memory=False)``, its cache beside the patch operator's) and times, per step, what
+the training loop does: ``dataset[0]`` (shape file, patch operator file, features),
+``training.batch.Batch`` with the model's directional order (the operator's torch matrices, the
+directional operator: pairs and transport angles read back from their cache file) and the training step
+(which builds the harmonic matrices on its first product). Steps of the models are interleaved, as above,
+and the table gives the medians of the whole and of the preparation alone.
 
 Usage::
 
@@ -32,6 +42,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import pickle
 import platform
@@ -43,9 +54,11 @@ import numpy as np
 import torch
 
 from zernet.data.dataset import DatasetError
+from zernet.data.preprocess import ShapeSource, build_dataset
 from zernet.geometry import Surface, normalize_area
 from zernet.nn.models import build_model
 from zernet.operators import Geometry, PatchConfig, build_directional_operator, build_patch_operator
+from zernet.training.batch import Batch
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_directional.json"
 WIDTHS = (64, 128, 256, 512)
@@ -116,10 +129,71 @@ def time_models(operator, names: list[str], threads: int, steps: int) -> dict:
     return out
 
 
+def _body_and_labels(surface: Surface) -> tuple[Surface, np.ndarray]:
+    """The streamed data set's one shape: the body, one class per vertex (a ShapeSource's ``load``)."""
+    return surface, np.arange(surface.n_vertices)
+
+
+def streamed_dataset(surface: Surface, cache_dir: Path):
+    """The body as a one-shape correspondence data set that reads its record back from the cache on every
+    access, as a data set above ``IN_MEMORY_VERTEX_LIMIT`` does. ``cache_dir`` is the patch operator's, so
+    the operator built by :func:`main` is the one read back."""
+    source = ShapeSource(surface.name, functools.partial(_body_and_labels, surface),
+                         key=f"bench_directional:{surface.geometry_hash()}")
+    return build_dataset([source], PATCH, cache_dir, target_area=None, task="classification",
+                         num_classes=surface.n_vertices, split_names={"train": [surface.name]}, workers=0,
+                         progress=False, in_memory=False, correspondence=True)
+
+
+def _streamed_step(dataset, model, order, optimizer) -> tuple:
+    """(wall, CPU) seconds of one streamed step and of its preparation: read the record back, batch it
+    (building what is rebuilt on every access), then train."""
+    start, cpu = time.perf_counter(), time.process_time()
+    batch = Batch([dataset[0]], torch.device("cpu"), directional_order=order)
+    prepared, prepared_cpu = time.perf_counter() - start, time.process_time() - cpu
+    optimizer.zero_grad(set_to_none=True)
+    loss = torch.nn.functional.cross_entropy(model(batch.features, batch.geometry), batch.target)
+    loss.backward()
+    optimizer.step()
+    return time.perf_counter() - start, time.process_time() - cpu, prepared, prepared_cpu
+
+
+def time_streamed(dataset, names: list[str], threads: int, steps: int) -> dict:
+    """Medians of ``steps`` interleaved streamed steps per model at ``threads`` threads."""
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    n = dataset[0].n_vertices
+    runs = {}
+    for name in names:
+        registry_name, options = MODELS[name]
+        model = build_model(registry_name, 3, n, widths=WIDTHS, **options).train()
+        optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+        runs[name] = (model, getattr(model, "directional_order", None), optimizer)
+        _streamed_step(dataset, *runs[name])  # warm-up: compiles the kernels, writes the transport cache
+    times = {name: [] for name in names}
+    for _ in range(steps):
+        for name, run in runs.items():
+            times[name].append(_streamed_step(dataset, *run))
+    out = {}
+    for name in names:
+        wall, cpu, prepared, prepared_cpu = np.asarray(times[name]).T
+        out[name] = {"median_s": float(np.median(wall)), "median_cpu_s": float(np.median(cpu)),
+                     "median_preparation_s": float(np.median(prepared)),
+                     "median_preparation_cpu_s": float(np.median(prepared_cpu)),
+                     "steps_s": wall.tolist(), "steps_cpu_s": cpu.tolist(),
+                     "preparation_s": prepared.tolist(), "preparation_cpu_s": prepared_cpu.tolist()}
+    if "single" in out:
+        for name in names:
+            out[name]["ratio_to_single"] = out[name]["median_s"] / out["single"]["median_s"]
+            out[name]["cpu_ratio_to_single"] = out[name]["median_cpu_s"] / out["single"]["median_cpu_s"]
+    return out
+
+
 def surface_preparation(operator) -> dict:
     """Seconds of the per-surface work a step on a not-yet-prepared surface adds: the patch operator's
-    torch matrices (both models), the directional operator's pairs and transport angles, and the torch
-    matrices of the harmonics its layers ask for (L_out = 1 layers; the whole-response layer's)."""
+    torch matrices (both models), the directional operator's pairs and transport angles (computed, and read
+    back from their cache file beside the operator's), and the torch matrices of the harmonics its layers
+    ask for (L_out = 1 layers; the whole-response layer's)."""
     from zernet.nn.directional_plan import directional_plan
 
     out = {}
@@ -127,9 +201,15 @@ def surface_preparation(operator) -> dict:
     start = time.perf_counter()
     operator.to("cpu")
     out["patch_torch_matrices"] = time.perf_counter() - start
+    cache_file, operator.cache_file = operator.cache_file, None
+    start = time.perf_counter()
+    build_directional_operator(operator, 1)
+    out["directional_pairs_angles_computed"] = time.perf_counter() - start
+    operator.cache_file = cache_file
+    build_directional_operator(operator, 1)  # writes the cache file if it is not there yet
     start = time.perf_counter()
     directional = build_directional_operator(operator, 1)
-    out["directional_pairs_angles"] = time.perf_counter() - start
+    out["directional_pairs_angles_from_cache"] = time.perf_counter() - start
     for name, plan in (("directional_matrices_order1", directional_plan(5, 1, out_order=1)),
                        ("directional_matrices_full", directional_plan(5, 1, out_order=6))):
         start = time.perf_counter()
@@ -159,8 +239,11 @@ def main(argv=None) -> int:
                "preparation_s": preparation, "widths": list(WIDTHS), "steps": args.steps,
                "models": {name: {"name": MODELS[name][0], **MODELS[name][1]} for name in args.models},
                "threads": {}, "torch": torch.__version__, "machine": platform.platform()}
+    dataset = streamed_dataset(surface, Path(args.cache_dir) / "operators")
+    results["streamed"] = {}
     for threads in args.threads:
         results["threads"][str(threads)] = time_models(operator, args.models, threads, args.steps)
+        results["streamed"][str(threads)] = time_streamed(dataset, args.models, threads, args.steps)
 
     print(f"surface: {description}; N = {operator.n_vertices}, nnz = {operator.nnz}, "
           f"{len(directional.pairs)} vertex pairs")
@@ -173,6 +256,16 @@ def main(argv=None) -> int:
             text = lambda value: f"{value:.2f}x" if value is not None else "-"  # noqa: E731
             print(f"| {threads} | {name} | {row['first_step_s']:.2f} | {row['median_s']:.2f} | {text(ratio)} | "
                   f"{row['median_cpu_s']:.2f} | {text(cpu_ratio)} |")
+    print("\nstreamed (record read back from the cache on every step):")
+    print("\n| threads | model | median preparation, wall (s) | median preparation, CPU (s) | median step + "
+          "preparation, wall (s) | ratio | median step + preparation, CPU (s) | CPU ratio |")
+    print("|---|---|---|---|---|---|---|---|")
+    for threads, by_model in results["streamed"].items():
+        for name, row in by_model.items():
+            ratio, cpu_ratio = row.get("ratio_to_single"), row.get("cpu_ratio_to_single")
+            text = lambda value: f"{value:.2f}x" if value is not None else "-"  # noqa: E731
+            print(f"| {threads} | {name} | {row['median_preparation_s']:.2f} | {row['median_preparation_cpu_s']:.2f} | "
+                  f"{row['median_s']:.2f} | {text(ratio)} | {row['median_cpu_s']:.2f} | {text(cpu_ratio)} |")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=2) + "\n")

@@ -5,6 +5,7 @@ the :class:`Geometry` a model receives.
 - ``sparse.py``: :class:`SparseApply` (sparse products with a stored transpose) and CSR conversions.
 - ``cache.py``: the on-disk cache of patch operators (:func:`cache_key`, the checked file format).
 - ``directional.py``: :class:`DirectionalOperator` and :func:`build_directional_operator`.
+- ``harmonic_csr.py``: the compiled kernels that write a directional operator's matrix and its transpose.
 - ``batch.py``: :class:`Geometry`, one surface or a block-diagonal batch.
 """
 

@@ -5,7 +5,9 @@ config), keyed by :func:`cache_key` = ``sha256(geometry_hash, config JSON, polar
 version)``: a file written by another backend version, another fit or an older format gets another key
 (and a stale file under the same name is rejected by its stored version), so it is rebuilt, never misread. The file holds
 the patch geometry (sample ids, polar coordinates, frames, interpolation; ~10 MB for 6,890 vertices) rather
-than the assembled matrix (~100 MB); assembling from it takes a fraction of a second.
+than the assembled matrix (~100 MB); assembling from it takes a fraction of a second. Beside it, ``<key>.transport.npz`` (same checked format)
+keeps the operator's vertex pairs and transport angles once a directional model has asked for them
+(:func:`zernet.operators.directional.patch_transport`).
 
 A file is an outer ``.npz`` holding an inner ``.npz`` payload, its sha256, the key and
 :data:`FORMAT_VERSION`; :func:`unpack_payload` rejects (``ValueError`` naming the file) a file that is

@@ -29,20 +29,25 @@ data are prepared (:func:`build_directional_operator`, or :meth:`zernet.operator
 for every scale of a geometry), never inside a layer.
 
 **Cost and where it is kept.** For a FAUST-size surface (6,890 vertices, 7.9 M non-zeros in ``A``, 376 k
-pairs) the pairs and angles take about 0.5-1.3 s and the matrices of the ``L_out = 1`` layers (23 M
-non-zeros, with their transpose about 370 MB in float32) 1-2.3 s (``benchmarks/bench_directional.py``,
-idle to loaded machine). A data set held in memory keeps them on its records
-(:func:`zernet.training.batch.with_directional`), so they are built once per surface, in the first epoch; a
-batch of several surfaces stacks its surfaces' kept matrices (:func:`block_diagonal_csr`) instead. A
-data set too large for memory (``zernet.data.preprocess.IN_MEMORY_VERTEX_LIMIT``) reads every record back
-from its cache on each access and so rebuilds them on every step, as it reloads the scalar operator and
-rebuilds its transpose: holding them instead would take the memory that limit exists to save.
+pairs) computing the pairs and angles takes about 0.3-1.3 s, and the matrices of the ``L_out = 1`` layers
+(23 M non-zeros, with their transpose about 370 MB in float32) about 0.4-0.7 s, written by the compiled
+kernels of :mod:`zernet.operators.harmonic_csr` straight into the arrays torch wraps
+(``benchmarks/bench_directional.py``, idle to loaded machine). A data set held in memory keeps them on its
+records (:func:`zernet.training.batch.with_directional`), so they are built once per surface, in the first
+epoch; a batch of several surfaces stacks its surfaces' kept matrices (:func:`block_diagonal_csr`) instead.
+A data set too large for memory (``zernet.data.preprocess.IN_MEMORY_VERTEX_LIMIT``) reads every record
+back from its cache on each access, and holding the operators instead would take the memory that limit
+exists to save. So the pairs and angles, which depend on the patch operator only, are kept in a file
+beside the patch operator's cache file (:func:`patch_transport`, written on the first access, about 0.02 s
+to read back), and only the matrices are rebuilt on every step, as the scalar operator's transpose is.
 """
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -53,9 +58,12 @@ from zernet.fourier import fourier_dim
 from zernet.geometry import transport_angles
 from zernet.zernike import n_max_for
 
-from .sparse import SparseApply, to_torch_csr
+from .cache import CacheWarning, read_payload, write_payload
+from .harmonic_csr import csr_transpose, entry_pairs, harmonic_csr
+from .sparse import SparseApply
 
-__all__ = ["DirectionalOperator", "build_directional_operator", "patch_pairs", "block_diagonal_csr"]
+__all__ = ["DirectionalOperator", "build_directional_operator", "patch_pairs", "patch_transport", "transport_cache_path",
+           "block_diagonal_csr"]
 
 
 class DirectionalOperator:
@@ -91,7 +99,6 @@ class DirectionalOperator:
         if self.pairs.shape[0] != self.angles.shape[0]:
             raise ValueError(f"{self.pairs.shape[0]} pairs but {self.angles.shape[0]} angles")
         self._entry_pair: np.ndarray | None = None
-        self._block: bool | None = None  # A's rows hold exactly each vertex's pairs (see _is_block)
         self.parts: list[DirectionalOperator] = []  # the surfaces of a batch (set by concatenate)
         self._torch: dict = {}
 
@@ -106,114 +113,45 @@ class DirectionalOperator:
             a.sort_indices()
         return a
 
-    def _pair_layout(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per vertex ``p``: its number of pairs and the index of its first pair."""
-        per_vertex = np.bincount(self.pairs[:, 0], minlength=self.n_vertices) if len(self.pairs) else np.zeros(self.n_vertices, np.int64)
-        return per_vertex, np.concatenate([[0], np.cumsum(per_vertex)[:-1]]).astype(np.int64)
-
-    def _is_block(self, a: sp.csr_matrix) -> bool:
-        """Every row of vertex ``p`` holds exactly ``p``'s pairs, in pair order (a patch fit's layout)."""
-        per_vertex, first = self._pair_layout()
-        if not np.array_equal(np.diff(a.indptr).reshape(self.n_vertices, self.k), np.repeat(per_vertex[:, None], self.k, 1)):
-            return False
-        candidate = self._block_entry_pair(a, per_vertex, first)
-        if not np.array_equal(self.pairs[candidate, 1], a.indices):
-            return False
-        self._entry_pair = candidate
-        return True
-
-    def _block_entry_pair(self, a, per_vertex, first) -> np.ndarray:
-        row_len = np.diff(a.indptr)
-        vertex = np.repeat(np.arange(self.n_vertices * self.k, dtype=np.int64) // self.k, row_len)
-        return first[vertex] + np.arange(a.nnz) - np.repeat(a.indptr[:-1], row_len)
-
     def entry_pair(self) -> np.ndarray:
-        """Index into :attr:`pairs` of every stored entry of ``A`` (CSR order), computed once."""
+        """Index into :attr:`pairs` of every stored entry of ``A`` (CSR order, sorted indices), computed once."""
         if self._entry_pair is None:
             a = self._sorted_matrix()
-            self._block = self._is_block(a)
-            if self._block:
-                return self._entry_pair
-            n, k = self.n_vertices, self.k
-            centers = np.repeat(np.arange(n * k, dtype=np.int64) // k, np.diff(a.indptr))
-            keys = centers * n + a.indices
-            pair_keys = self.pairs[:, 0] * n + self.pairs[:, 1]
-            found = np.searchsorted(pair_keys, keys)
-            found = np.minimum(found, max(len(pair_keys) - 1, 0))
-            if len(keys) and (len(pair_keys) == 0 or np.any(pair_keys[found] != keys)):
-                raise ValueError("the pairs do not cover every non-zero of the operator (build them with patch_pairs)")
-            self._entry_pair = found
+            self._entry_pair = entry_pairs(a.indptr, a.indices, self.k, self.pairs, self.n_vertices)
         return self._entry_pair
+
+    def _harmonic_arrays(self, harmonics: Sequence[int], dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """CSR arrays ``(indptr, indices, data)`` of :meth:`harmonic_matrix`, values in numpy ``dtype``."""
+        a = self._sorted_matrix()
+        d = fourier_dim(self.order)
+        harmonics = [int(x) for x in harmonics]
+        if any(not 0 <= x < self.k * d for x in harmonics):
+            raise ValueError(f"harmonics must lie in [0, {self.k * d}) for k={self.k}, L={self.order}")
+        transported = any(x % d for x in harmonics)  # only these need the pair (and angle) of every entry
+        return harmonic_csr(a.indptr, a.indices, a.data, self.entry_pair() if transported else None, self.angles,
+                            self.k, self.order, harmonics, dtype)
 
     def harmonic_matrix(self, harmonics: Sequence[int]) -> sp.csr_matrix:
         """The matrix of :meth:`apply_harmonic`: ``(N X, N (2L + 1))``, row ``p X + i`` for harmonic
         ``harmonics[i] = j (2L + 1) + r``, column ``q (2L + 1) + r'``; float64, sorted indices.
 
         Row ``(p, i)`` holds, for every ``q`` of ``p``'s patch in order, ``A[(p, j), q]`` at ``r' = 0`` when
-        ``r = 0``, else the two transported entries at ``r' = 2ℓ - 1, 2ℓ``.
+        ``r = 0``, else the two transported entries at ``r' = 2ℓ - 1, 2ℓ``
+        (:func:`zernet.operators.harmonic_csr.harmonic_csr`).
         """
-        a = self._sorted_matrix()
-        n, k, d = self.n_vertices, self.k, fourier_dim(self.order)
-        harmonics = [int(x) for x in harmonics]
-        if any(not 0 <= x < k * d for x in harmonics):
-            raise ValueError(f"harmonics must lie in [0, {k * d}) for k={k}, L={self.order}")
-        block = False
-        if any(x % d for x in harmonics):  # transported harmonics need the pair of every entry
-            if self._block is None:
-                self._block = self._is_block(a)
-            self.entry_pair()
-            block = self._block
-        # each (source row, column) entry of the matrix, as arrays over "items" (pairs in the block layout,
-        # entries of A otherwise): item -> (vertex p, position t in p's row, column q, transport angle)
-        if block:
-            per_vertex, first = self._pair_layout()
-            vertex, column, gamma = self.pairs[:, 0], self.pairs[:, 1], self.angles
-            position = np.arange(len(self.pairs)) - first[vertex]
-            row_len = np.repeat(per_vertex[:, None], k, 1)
-        else:
-            row_len = np.diff(a.indptr).reshape(n, k)
-            vertex = column = position = gamma = None
-        mult = np.asarray([1 if x % d == 0 else 2 for x in harmonics], dtype=np.int64)
-        lengths = row_len[:, [x // d for x in harmonics]] * mult  # (N, X)
-        indptr = np.zeros(n * len(harmonics) + 1, dtype=np.int64)
-        np.cumsum(lengths.reshape(-1), out=indptr[1:])
-        indices = np.empty(indptr[-1], dtype=np.int32 if n * d < 2**31 else np.int64)
-        data = np.empty(indptr[-1], dtype=np.float64)
-        trig = {}
-        for i, x in enumerate(harmonics):
-            j, r = divmod(x, d)
-            if block:
-                entries = a.indptr[vertex * k + j] + position
-                dest = indptr[vertex * len(harmonics) + i] + position * mult[i]
-                q, angle = column, gamma
-            else:
-                counts = row_len[:, j]
-                within = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
-                entries = np.repeat(a.indptr[np.arange(n) * k + j], counts) + within
-                dest = np.repeat(indptr[np.arange(n) * len(harmonics) + i], counts) + within * mult[i]
-                q, angle = a.indices[entries].astype(np.int64), None
-            value = a.data[entries]
-            if r == 0:
-                indices[dest], data[dest] = q * d, value
-                continue
-            ell = (r + 1) // 2
-            if block:
-                if ell not in trig:
-                    trig[ell] = (np.cos(ell * angle), np.sin(ell * angle))
-                cos, sin = trig[ell]
-            else:
-                phase = ell * self.angles[self._entry_pair[entries]]
-                cos, sin = np.cos(phase), np.sin(phase)
-            indices[dest], indices[dest + 1] = q * d + 2 * ell - 1, q * d + 2 * ell
-            # α_a = C_ℓ a - S_ℓ b (odd r), α_b = S_ℓ a + C_ℓ b (even r)
-            data[dest], data[dest + 1] = (value * cos, -value * sin) if r % 2 == 1 else (value * sin, value * cos)
+        n, d = self.n_vertices, fourier_dim(self.order)
+        indptr, indices, data = self._harmonic_arrays(harmonics, np.float64)
         matrix = sp.csr_matrix((data, indices, indptr), shape=(n * len(harmonics), n * d))
         matrix.has_sorted_indices = True
         return matrix
 
     def torch_matrices(self, harmonics: Sequence[int], dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
         """The torch CSR matrix of :meth:`harmonic_matrix` and its transpose, built on first use and kept
-        (per harmonics, dtype and device)."""
+        (per harmonics, dtype and device).
+
+        Both are written by the compiled kernels of :mod:`zernet.operators.harmonic_csr` directly in the
+        value dtype and wrapped by torch without a copy (then moved to ``device``).
+        """
         harmonics = tuple(int(h) for h in harmonics)
         key = (harmonics, dtype, torch.device(device))
         if key not in self._torch:
@@ -221,8 +159,11 @@ class DirectionalOperator:
                 built = [part.torch_matrices(harmonics, dtype, device) for part in self.parts]
                 self._torch[key] = tuple(block_diagonal_csr([b[i] for b in built]) for i in (0, 1))
             else:
-                m = self.harmonic_matrix(harmonics)
-                self._torch[key] = (to_torch_csr(m, dtype, device), to_torch_csr(m.T.tocsr(), dtype, device))
+                value_dtype = torch.empty(0, dtype=dtype).numpy().dtype
+                shape = (self.n_vertices * len(harmonics), self.n_vertices * fourier_dim(self.order))
+                forward = self._harmonic_arrays(harmonics, value_dtype)
+                transpose = csr_transpose(*forward, shape[1])
+                self._torch[key] = (_wrap_csr(forward, shape, device), _wrap_csr(transpose, shape[::-1], device))
         return self._torch[key]
 
     @property
@@ -321,6 +262,14 @@ class DirectionalOperator:
         return batch
 
 
+def _wrap_csr(arrays: tuple[np.ndarray, np.ndarray, np.ndarray], shape: tuple[int, int], device) -> Tensor:
+    """Torch CSR tensor over numpy CSR arrays (no copy on the CPU), on ``device``."""
+    indptr, indices, data = (torch.from_numpy(array) for array in arrays)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
+        return torch.sparse_csr_tensor(indptr, indices, data, size=shape, check_invariants=False).to(device)
+
+
 def block_diagonal_csr(matrices: Sequence[Tensor]) -> Tensor:
     """Torch CSR matrices stacked block-diagonally (one copy of their arrays, no sorting)."""
     if len(matrices) == 1:
@@ -368,20 +317,59 @@ def patch_pairs(matrix: sp.csr_matrix, k: int) -> np.ndarray:
     return np.stack([keys // n, keys % n], axis=1)
 
 
+def patch_transport(operator) -> tuple[np.ndarray, np.ndarray]:
+    """The vertex pairs of a patch operator (:func:`patch_pairs`) and their transport angles ``γ_qp``.
+
+    They depend on the scalar operator only (not on the order ``L``). When the operator was read from or
+    written to the operator cache (its ``cache_file``, set by :func:`zernet.operators.build_patch_operator`),
+    they are kept in a checked file beside it (:func:`transport_cache_path`): a data set streamed from its
+    cache rebuilds the operator on every access, and reads them back instead of computing them again. A
+    file that cannot be trusted is rebuilt with a :class:`~zernet.operators.cache.CacheWarning`.
+    """
+    cache_file = getattr(operator, "cache_file", None)
+    path = None if cache_file is None else transport_cache_path(cache_file)
+    key = None if path is None else f"{Path(cache_file).stem}:transport"
+    if path is not None and path.exists():
+        try:
+            arrays = read_payload(path, key=key)
+            pairs, angles = arrays["pairs"].astype(np.int64), arrays["angles"]
+            n = operator.matrix.shape[1]
+            if pairs.ndim != 2 or pairs.shape[1] != 2 or angles.shape != (len(pairs),) or (pairs.size and pairs.max() >= n):
+                raise ValueError(f"{path}: pairs {pairs.shape} and angles {angles.shape} do not fit {n} vertices")
+            return pairs, angles
+        except (ValueError, KeyError, OSError) as error:
+            warnings.warn(f"rebuilding cached transport angles {path}: {error}", CacheWarning, stacklevel=2)
+    frames = getattr(operator, "frames", None)
+    if frames is None:
+        raise ValueError("directional channels of order >= 1 need the operator's tangent frames (operator.frames)")
+    pairs = patch_pairs(operator.matrix, int(operator.k))
+    angles = transport_angles(np.asarray(frames, dtype=np.float64), pairs[:, 0], pairs[:, 1])
+    if path is not None:
+        index_dtype = np.int32 if operator.matrix.shape[1] < 2**31 else np.int64  # half the file
+        try:
+            write_payload(path, {"pairs": pairs.astype(index_dtype), "angles": angles}, key=key)
+        except OSError as error:  # a read-only cache still works, it just recomputes them
+            warnings.warn(f"could not cache transport angles at {path}: {error}", CacheWarning, stacklevel=2)
+    return pairs, angles
+
+
+def transport_cache_path(cache_file: str | os.PathLike) -> Path:
+    """The file of the pairs and transport angles of the operator cached in ``cache_file``."""
+    cache_file = Path(cache_file)
+    return cache_file.with_name(f"{cache_file.stem}.transport.npz")
+
+
 def build_directional_operator(operator, order: int) -> DirectionalOperator:
     """The :class:`DirectionalOperator` of Fourier order ``L`` of a scalar patch operator.
 
     A pure function of the operator (its ``matrix``, ``k`` and ``frames``; a
     :class:`~zernet.operators.PatchOperator` or a :class:`~zernet.nn.reference.MatrixOperator` with frames):
     call it once per surface when preparing the data. Only the pairs and their transport angles are
-    computed here; each layer's sparse matrix is built on its first product and kept.
+    needed here (:func:`patch_transport`, read from the operator cache when the operator came from it);
+    each layer's sparse matrix is built on its first product and kept.
     """
     fourier_dim(order)
     if order == 0:
         return DirectionalOperator(operator, 0, np.zeros((0, 2), np.int64), np.zeros(0))
-    frames = getattr(operator, "frames", None)
-    if frames is None:
-        raise ValueError("directional channels of order >= 1 need the operator's tangent frames (operator.frames)")
-    pairs = patch_pairs(operator.matrix, int(operator.k))
-    gamma = transport_angles(np.asarray(frames, dtype=np.float64), pairs[:, 0], pairs[:, 1])
+    pairs, gamma = patch_transport(operator)
     return DirectionalOperator(operator, order, pairs, gamma)

@@ -141,6 +141,9 @@ class PatchOperator:
         interpolation: scipy CSR (M, N) vertex field -> samples.
         lam: the absolute ridge λ used.
         ridge_weights: (k,) the diagonal of the ridge's degree weights ``W`` (:mod:`zernet.operators.fit`).
+        cache_file: the cache file :func:`build_patch_operator` read it from or wrote it to (``None``
+            otherwise); files derived from the operator, like its directional transport angles
+            (:func:`zernet.operators.directional.patch_transport`), are kept beside it.
     """
 
     def __init__(
@@ -171,6 +174,7 @@ class PatchOperator:
         self._transpose: scipy.sparse.csr_matrix | None = None  # built with the first torch tensors
         self._tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # (dtype, device, basis order)
         self._basis: np.ndarray | None = None
+        self.cache_file: Path | None = None
 
     # ------------------------------------------------------------------ data
     @property
@@ -368,7 +372,9 @@ def build_patch_operator(
         path = cache_path(cache_dir, key)
         if path.exists():
             try:
-                return PatchOperator.load(path, key=key)
+                operator = PatchOperator.load(path, key=key)
+                operator.cache_file = path
+                return operator
             except (ValueError, OSError) as error:
                 warnings.warn(f"rebuilding cached patch operator {path}: {error}", CacheWarning, stacklevel=2)
     start = time.perf_counter()
@@ -383,6 +389,7 @@ def build_patch_operator(
         print(f"{surface.name}: operator {operator} in {time.perf_counter() - start:.2f} s")
     if path is not None:
         operator.save(path, key=key)
+        operator.cache_file = path
     return operator
 
 
