@@ -48,6 +48,8 @@ __all__ = ["front_polar"]
 _CROSSING_TOLERANCE = 1e-9
 # The front runs past r0 by at most this many median longest edges (see _propagate).
 _EXTENSION_EDGES = 1.5
+# Which path gave a vertex its distance in a front update (see _propagate).
+_THROUGH_I, _UNFOLDED, _THROUGH_OTHER = 0, 1, 2
 
 
 def front_polar(
@@ -92,7 +94,7 @@ def front_polar(
     reach = _sample_reach(corners, samples.points, samples.face_index)
     arguments = (
         points, faces, fans.wedge_start, fans.wedge_face, fans.wedge_corner, fans.start_angle, fans.scale,
-        fans.corner, fans.reversed, opposite, reach, face_sample_start, face_samples,
+        fans.corner, fans.reversed, opposite, _unfolded_targets(opposite), reach, face_sample_start, face_samples,
         np.ascontiguousarray(samples.points, dtype=np.float64), frames, float(r0),
         _EXTENSION_EDGES * float(np.median(opposite.max(axis=1))),
     )  # fmt: skip
@@ -106,10 +108,9 @@ def front_polar(
             results = list(pool.map(lambda chunk: _front_chunk(chunk, *arguments), chunks))
     if not results:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    # The chunks are in vertex order and each is sorted by (centre, radius).
     center, sample, radius, angle = (np.concatenate(parts) for parts in zip(*results))
-    order = np.lexsort((radius, center))  # chunks are in vertex order; sort by radius within a vertex
-    angle = np.mod(angle[order] + np.pi, 2 * np.pi) - np.pi
-    return center[order], sample[order], radius[order], angle
+    return center, sample, radius, angle
 
 
 def _sample_reach(corners: np.ndarray, sample_points: np.ndarray, face_index: np.ndarray) -> np.ndarray:
@@ -124,6 +125,27 @@ def _sample_reach(corners: np.ndarray, sample_points: np.ndarray, face_index: np
     return reach
 
 
+def _unfolded_targets(opposite: np.ndarray) -> np.ndarray:
+    """(F, 3, 2, 2) the target corner of each face unfolded into the plane of one of its edges.
+
+    Entry ``[f, c, side]`` is the point ``(kx, ky)``, ``ky >= 0``, of corner ``(c + 1 + side) % 3`` with
+    corner ``c`` at the origin and the other corner ``(c + 2 - side) % 3`` at ``(edge length, 0)``: what
+    each front update across face ``f`` needs, computed once instead of on every update.
+    """
+    targets = np.zeros(opposite.shape + (2, 2))
+    for c in range(3):
+        for side in range(2):
+            to_target = opposite[:, (c + 2 - side) % 3]
+            other_to_target = opposite[:, c]
+            edge = opposite[:, (c + 1 + side) % 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                kx = (to_target * to_target - other_to_target * other_to_target + edge * edge) / (2.0 * edge)
+            kx = np.where(edge > 0.0, kx, 0.0)
+            targets[:, c, side, 0] = kx
+            targets[:, c, side, 1] = np.sqrt(np.maximum(to_target * to_target - kx * kx, 0.0))
+    return targets
+
+
 def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
     """CSR of the samples in each face."""
     order = np.argsort(face_index, kind="stable").astype(np.int64)
@@ -135,7 +157,7 @@ def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.
 @numba.njit(cache=True, nogil=True)
 def _front_chunk(
     sources, points, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite,
-    reach, face_sample_start, face_samples, sample_points, frames, r0, extension,
+    unfolded_target, reach, face_sample_start, face_samples, sample_points, frames, r0, extension,
 ):  # fmt: skip
     """Front propagation from each of ``sources``; returns the (center, sample, radius, angle) pairs."""
     n = points.shape[0]
@@ -154,9 +176,10 @@ def _front_chunk(
     out_angle = np.empty(capacity)
     count = 0
     for p in sources:
+        first = count  # this source's pairs are out_*[first:count]
         n_touched, heap_key, heap_vertex = _propagate(
-            p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite, reach,
-            r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
+            p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite,
+            unfolded_target, reach, r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
         )  # fmt: skip
         for t in range(n_touched):
             v = touched[t]
@@ -193,8 +216,13 @@ def _front_chunk(
                     out_center[count] = p
                     out_sample[count] = s
                     out_radius[count] = r
-                    out_angle[count] = theta
+                    out_angle[count] = _wrap(theta)
                     count += 1
+        # Sorted by radius (stable) here, so the chunks come out sorted by (centre, radius) with no global sort.
+        order = first + np.argsort(out_radius[first:count], kind="mergesort")
+        out_sample[first:count] = out_sample[order]
+        out_radius[first:count] = out_radius[order]
+        out_angle[first:count] = out_angle[order]
         for t in range(n_touched):  # reset only what this source touched
             v = touched[t]
             distance[v] = np.inf
@@ -205,8 +233,8 @@ def _front_chunk(
 
 @numba.njit(cache=True, nogil=True)
 def _propagate(
-    p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite, reach, r0,
-    extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
+    p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite, unfolded_target,
+    reach, r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
 ):  # fmt: skip
     """Run the front from vertex ``p``; fills ``distance``, ``angle`` (intrinsic, see
     :mod:`zernet.geometry.fans`), ``final`` for the touched vertices and returns their count and the
@@ -265,26 +293,28 @@ def _propagate(
                 target, other = faces[f, ct], faces[f, co]
                 if exact[target]:
                     continue
-                to_target = opposite[f, co]
-                u = distance[i] + to_target
-                theta = angle[i]
+                u = distance[i] + opposite[f, co]
+                path = _THROUGH_I
+                edge, kx, ky, sx, sy = 0.0, 0.0, 0.0, 0.0, 0.0
                 if final[other]:  # otherwise the path through i is an upper bound until other is final
-                    edge, other_to_target = opposite[f, ct], opposite[f, c]
-                    kx = (to_target * to_target - other_to_target * other_to_target + edge * edge) / (2.0 * edge) if edge > 0.0 else 0.0
-                    ky = np.sqrt(max(to_target * to_target - kx * kx, 0.0))
+                    edge = opposite[f, ct]
+                    kx, ky = unfolded_target[f, c, side, 0], unfolded_target[f, c, side, 1]
                     through, sx, sy = _unfolded_distance(distance[i], distance[other], edge, kx, ky)
-                    via_other = distance[other] + other_to_target
+                    via_other = distance[other] + opposite[f, c]
                     if through < u and through <= via_other:
-                        u = through
-                        theta = _unfolded_angle(angle[i], angle[other], edge, sx, sy, kx, ky)
+                        u, path = through, _UNFOLDED
                     elif via_other < u:
-                        u, theta = via_other, angle[other]
+                        u, path = via_other, _THROUGH_OTHER
                 if u < distance[target] * (1.0 - 1e-12):
                     if not np.isfinite(distance[target]):
                         touched[n_touched] = target
                         n_touched += 1
                     distance[target] = u
-                    angle[target] = theta
+                    # The angle only for an accepted update: most offers lose, and it costs three arctan2.
+                    if path == _UNFOLDED:
+                        angle[target] = _unfolded_angle(angle[i], angle[other], edge, sx, sy, kx, ky)
+                    else:
+                        angle[target] = angle[other] if path == _THROUGH_OTHER else angle[i]
                     final[target] = False
                     heap_size, heap_key, heap_vertex = _heap_push(heap_key, heap_vertex, heap_size, u, target)
     return n_touched, heap_key, heap_vertex
