@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+import scipy.sparse
 
 from zernet.zernike import index_to_nm, num_bases, zernike_basis
 
@@ -92,60 +93,75 @@ def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max
     return fit, lam
 
 
-def carry_to_vertices(rows, block, sample_index, interpolation, subtract_center: bool):
-    """The fit of a group of patches carried from samples to mesh vertices: ``P_p · Interp[patch p]``.
+def carry_to_vertices(groups: list, sample_index: np.ndarray, interpolation, k: int,
+                      subtract_center: bool) -> scipy.sparse.csr_matrix:
+    """The fit of every patch carried from samples to mesh vertices: ``A = blockrows_p(P_p · Interp[patch p])``.
 
     Args:
-        rows: (g,) vertices of the group.
-        block: (g, k, n) their fit matrices.
-        sample_index: (g, n) their sample ids.
+        groups: ``(rows, fit)`` pairs of :func:`fit_groups`: (g,) vertices and their (g, k, n) fit matrices.
+        sample_index: (N, n) sample ids of each patch (-1 for padding), nearest first.
         interpolation: (M, N) CSR, vertex values -> sample values.
+        k: number of Zernike bases.
         subtract_center: also subtract ``(P_p 1) f(p)`` (the fit of ``f - f(p)``).
 
     Returns:
-        ``(width, columns, values)``: (g,) number of distinct vertices of each patch, and per patch its
-        vertex ids (ascending) and its (k, width) row-major values, concatenated over the group.
+        (N k, N) CSR matrix; rows ``p k .. p k + k - 1`` are vertex ``p``'s coefficients and share its
+        columns, the distinct vertices its samples interpolate from (ascending). A vertex without a patch
+        has empty rows.
     """
-    return _carry(
-        rows.astype(np.int64), np.ascontiguousarray(block), np.ascontiguousarray(sample_index, dtype=np.int64),
-        interpolation.indptr.astype(np.int64), interpolation.indices.astype(np.int64), interpolation.data,
-        interpolation.shape[1], subtract_center,
-    )  # fmt: skip
+    n_vertices = sample_index.shape[0]
+    indptr_in = interpolation.indptr.astype(np.int64)
+    indices_in = interpolation.indices.astype(np.int64)
+    sample_index = np.ascontiguousarray(sample_index, dtype=np.int64)
+    width = np.zeros(n_vertices, dtype=np.int64)
+    for rows, block in groups:
+        width[rows] = _patch_widths(rows.astype(np.int64), sample_index[rows, : block.shape[2]], indptr_in, indices_in,
+                                    n_vertices, subtract_center)
+    indptr = np.zeros(n_vertices * k + 1, dtype=np.int64)
+    np.cumsum(np.repeat(width, k), out=indptr[1:])
+    # The index dtype scipy would pick: written in place, so the matrix is built without a copy.
+    index_dtype = np.int32 if max(indptr[-1], n_vertices) < np.iinfo(np.int32).max else np.int64
+    columns = np.empty(indptr[-1], dtype=index_dtype)
+    values = np.zeros(indptr[-1])
+    for rows, block in groups:
+        _carry(rows.astype(np.int64), np.ascontiguousarray(block), sample_index[rows, : block.shape[2]], indptr_in,
+               indices_in, interpolation.data, n_vertices, subtract_center, indptr[rows * k], columns, values)
+    return scipy.sparse.csr_matrix((values, columns, indptr.astype(index_dtype)), shape=(n_vertices * k, n_vertices))
 
 
 @numba.njit(cache=True, nogil=True)
-def _carry(rows, block, sample_index, indptr, indices, data, n_vertices, subtract_center):
-    """Compiled :func:`carry_to_vertices`: a dense scatter per patch into a slot per touched vertex."""
-    g, k, n = block.shape
-    slot = np.full(n_vertices, -1, dtype=np.int64)
+def _patch_widths(rows, sample_index, indptr, indices, n_vertices, subtract_center):
+    """(g,) number of distinct vertices the samples of each patch interpolate from (and the centre with
+    ``subtract_center``)."""
+    g, n = sample_index.shape
+    seen = np.zeros(n_vertices, dtype=np.bool_)
     width = np.zeros(g, dtype=np.int64)
-    total = 0
-    for a in range(g):  # pass 1: the distinct vertices of each patch
+    for a in range(g):
         count = 0
         for j in range(n):
             s = sample_index[a, j]
             for t in range(indptr[s], indptr[s + 1]):
-                v = indices[t]
-                if slot[v] < 0:
-                    slot[v] = 1
+                if not seen[indices[t]]:
+                    seen[indices[t]] = True
                     count += 1
-        if subtract_center and slot[rows[a]] < 0:
+        if subtract_center and not seen[rows[a]]:
             count += 1
         width[a] = count
-        total += count * k
-        for j in range(n):  # reset
+        for j in range(n):  # reset only what this patch touched
             s = sample_index[a, j]
             for t in range(indptr[s], indptr[s + 1]):
-                slot[indices[t]] = -1
-    columns = np.empty(total // k if k > 0 else 0, dtype=np.int64)
-    values = np.zeros(total)
-    column_at = 0
-    value_at = 0
-    members = np.empty(n_vertices if n_vertices < 4096 else 4096, dtype=np.int64)
-    for a in range(g):  # pass 2: vertex ids (ascending) and the k × width values
-        w = width[a]
-        if members.shape[0] < w:
-            members = np.empty(2 * w, dtype=np.int64)
+                seen[indices[t]] = False
+    return width
+
+
+@numba.njit(cache=True, nogil=True)
+def _carry(rows, block, sample_index, indptr, indices, data, n_vertices, subtract_center, row_start, columns, values):
+    """Compiled :func:`carry_to_vertices` for one group: each patch's ``k × width`` values (row-major, from
+    ``row_start``) by a dense scatter into a slot per touched vertex."""
+    g, k, n = block.shape
+    slot = np.full(n_vertices, -1, dtype=np.int64)
+    members = np.empty(16, dtype=np.int64)
+    for a in range(g):
         count = 0
         for j in range(n):
             s = sample_index[a, j]
@@ -153,32 +169,38 @@ def _carry(rows, block, sample_index, indptr, indices, data, n_vertices, subtrac
                 v = indices[t]
                 if slot[v] < 0:
                     slot[v] = 0
+                    if count == members.shape[0]:
+                        grown = np.empty(2 * count, dtype=np.int64)
+                        grown[:count] = members
+                        members = grown
                     members[count] = v
                     count += 1
         if subtract_center and slot[rows[a]] < 0:
+            if count == members.shape[0]:
+                grown = np.empty(2 * count, dtype=np.int64)
+                grown[:count] = members
+                members = grown
             slot[rows[a]] = 0
             members[count] = rows[a]
             count += 1
         ordered = np.sort(members[:count])
+        at = row_start[a]
         for c in range(count):
             slot[ordered[c]] = c
-            columns[column_at + c] = ordered[c]
+            columns[at + c : at + k * count : count] = ordered[c]
         for j in range(n):
             s = sample_index[a, j]
             for t in range(indptr[s], indptr[s + 1]):
                 c = slot[indices[t]]
                 weight = data[t]
                 for i in range(k):
-                    values[value_at + i * w + c] += block[a, i, j] * weight
+                    values[at + i * count + c] += block[a, i, j] * weight
         if subtract_center:
             c = slot[rows[a]]
             for i in range(k):
                 row_sum = 0.0
                 for j in range(n):
                     row_sum += block[a, i, j]
-                values[value_at + i * w + c] -= row_sum
+                values[at + i * count + c] -= row_sum
         for c in range(count):
             slot[ordered[c]] = -1
-        column_at += w
-        value_at += k * w
-    return width, columns, values
