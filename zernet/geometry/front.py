@@ -32,15 +32,13 @@ load it instead of compiling. Sources are split over threads (the kernel release
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import numba
 import numpy as np
 
 from zernet.geometry.fans import tangent_angle_of, vertex_fans
 from zernet.geometry.sampling import SurfaceSamples
 from zernet.geometry.surface import Surface, SurfaceError
+from zernet.threads import available_cores, thread_map
 
 __all__ = ["front_polar"]
 
@@ -98,14 +96,9 @@ def front_polar(
         np.ascontiguousarray(samples.points, dtype=np.float64), frames, float(r0),
         _EXTENSION_EDGES * float(np.median(opposite.max(axis=1))),
     )  # fmt: skip
-    if n_threads is None:
-        n_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    n_threads = available_cores() if n_threads is None else n_threads
     chunks = [c for c in np.array_split(np.arange(n, dtype=np.int64), max(1, 4 * n_threads)) if len(c)]
-    if n_threads <= 1 or len(chunks) <= 1:
-        results = [_front_chunk(chunk, *arguments) for chunk in chunks]
-    else:
-        with ThreadPoolExecutor(max_workers=n_threads) as pool:
-            results = list(pool.map(lambda chunk: _front_chunk(chunk, *arguments), chunks))
+    results = thread_map(lambda chunk: _front_chunk(chunk, *arguments), chunks, n_threads)
     if not results:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     # The chunks are in vertex order and each is sorted by (centre, radius).

@@ -20,6 +20,17 @@ padding. A vertex with no sample gets all-zero rows.
 λ is one absolute number per surface: ``λ = ridge · median_p(trace(B_pᵀB_p) / k)``, ``ridge`` times the
 typical eigenvalue of a full interior patch (≈ n_p / π for samples spread over the unit disk).
 
+Why one λ rather than one scaled to each patch's conditioning: the ridge moves a coefficient by about
+``λ w_j / μ`` of the mode it sits in (``μ``: that mode's eigenvalue of ``B_pᵀB_p``), so on a well-posed
+patch (smallest eigenvalue ``μ_min ≫ λ``) it vanishes by itself. Measured on a FAUST-sized body (12,000
+samples, r0 = 5.5, ``ridge`` 1e-3, a linear field refitted at the patch samples): on the 69 % of patches
+with ``μ_min > 10 λ`` the median relative residual is 1.731 % with this λ and 1.731 % with no ridge at
+all, so a conditioning-scaled ridge (``λ² / (λ + μ_min)``, or 0 on those patches) changes nothing there.
+The rest have a mode their samples barely see (``μ_min`` down to 0: gaps in the sampling, few samples);
+there a smaller ridge lowers the residual at the samples (median 13.1 % → 11.9 % at ``ridge`` 1e-6) only
+by fitting that mode to the samples, with coefficients up to 5× (1e-6) to 50× (1e-8) larger. The
+remaining linear residual is Zernike truncation and those sampling gaps, not the ridge.
+
 The fit is computed in groups of patches with the same number of samples (no padding enters the
 products): :func:`fit_groups`; :func:`fit_patches` pads the result to the widest patch.
 """
@@ -30,6 +41,7 @@ import numba
 import numpy as np
 import scipy.sparse
 
+from zernet.threads import thread_map
 from zernet.zernike import index_to_nm, num_bases, zernike_basis
 
 __all__ = ["degree_weights", "fit_groups", "fit_patches", "carry_to_vertices"]
@@ -60,23 +72,28 @@ def fit_groups(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max:
     k = num_bases(n_max)
     counts = np.asarray(counts, dtype=np.int64)
     groups = [(size, np.flatnonzero(counts == size)) for size in np.unique(counts) if size > 0]
-    bases, grams, traces = [], [], []
-    for size, rows in groups:
+
+    def basis_and_gram(group):
+        size, rows = group
         basis_t = np.ascontiguousarray(zernike_basis(radius[rows, :size], angle[rows, :size], n_max).transpose(0, 2, 1))
-        gram = basis_t @ basis_t.transpose(0, 2, 1)  # (g, k, k)
-        bases.append(basis_t)
-        grams.append(gram)
-        traces.append(np.trace(gram, axis1=1, axis2=2))
+        return basis_t, basis_t @ basis_t.transpose(0, 2, 1)  # (g, k, n), (g, k, k)
+
+    # numpy releases the GIL in these products and solves: the groups are spread over threads.
+    bases_and_grams = thread_map(basis_and_gram, groups)
+    traces = [np.trace(gram, axis1=1, axis2=2) for _, gram in bases_and_grams]
     scale = float(np.median(np.concatenate(traces)) / k) if traces else 1.0
     lam = ridge * max(scale, 1e-12)
     penalty = lam * degree_weights(n_max)
     diagonal = np.arange(k)
-    fits = []
-    for (size, rows), basis_t, gram in zip(groups, bases, grams):
+
+    def solve(basis_and_gram):
+        basis_t, gram = basis_and_gram
         gram[:, diagonal, diagonal] += penalty
         # One k × k solve per patch with its n samples as right-hand sides; symmetric positive definite.
-        fits.append((rows, np.linalg.solve(gram, basis_t)))
-    return fits, lam
+        return np.linalg.solve(gram, basis_t)
+
+    fits = thread_map(solve, bases_and_grams)
+    return [(rows, fit) for (_, rows), fit in zip(groups, fits)], lam
 
 
 def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float) -> tuple[np.ndarray, float]:
@@ -113,19 +130,28 @@ def carry_to_vertices(groups: list, sample_index: np.ndarray, interpolation, k: 
     indptr_in = interpolation.indptr.astype(np.int64)
     indices_in = interpolation.indices.astype(np.int64)
     sample_index = np.ascontiguousarray(sample_index, dtype=np.int64)
+
+    def patch_widths(group):
+        rows, block = group
+        return _patch_widths(rows.astype(np.int64), sample_index[rows, : block.shape[2]], indptr_in, indices_in,
+                             n_vertices, subtract_center)
+
+    def carry(group):
+        rows, block = group
+        _carry(rows.astype(np.int64), np.ascontiguousarray(block), sample_index[rows, : block.shape[2]], indptr_in,
+               indices_in, interpolation.data, n_vertices, subtract_center, indptr[rows * k], columns, values)
+
+    # The kernels release the GIL: the groups are spread over threads (each writes only its own rows).
     width = np.zeros(n_vertices, dtype=np.int64)
-    for rows, block in groups:
-        width[rows] = _patch_widths(rows.astype(np.int64), sample_index[rows, : block.shape[2]], indptr_in, indices_in,
-                                    n_vertices, subtract_center)
+    for (rows, _), group_width in zip(groups, thread_map(patch_widths, groups)):
+        width[rows] = group_width
     indptr = np.zeros(n_vertices * k + 1, dtype=np.int64)
     np.cumsum(np.repeat(width, k), out=indptr[1:])
     # The index dtype scipy would pick: written in place, so the matrix is built without a copy.
     index_dtype = np.int32 if max(indptr[-1], n_vertices) < np.iinfo(np.int32).max else np.int64
     columns = np.empty(indptr[-1], dtype=index_dtype)
     values = np.zeros(indptr[-1])
-    for rows, block in groups:
-        _carry(rows.astype(np.int64), np.ascontiguousarray(block), sample_index[rows, : block.shape[2]], indptr_in,
-               indices_in, interpolation.data, n_vertices, subtract_center, indptr[rows * k], columns, values)
+    thread_map(carry, groups)
     return scipy.sparse.csr_matrix((values, columns, indptr.astype(index_dtype)), shape=(n_vertices * k, n_vertices))
 
 
