@@ -195,7 +195,7 @@ def _front_chunk(
                     if adjacent:  # straight from the source
                         r, theta = _distance(points, p, x, y, z), _tangent_angle(points, frames, p, x, y, z)
                     else:
-                        r, theta = _sample_polar(f, x, y, z, points, faces, distance, angle)
+                        r, theta = _sample_polar(f, x, y, z, points, faces, distance, angle, r0)
                         if r > r0:
                             continue
                         theta = tangent_angle_of(
@@ -372,11 +372,13 @@ def _unfolded_angle(theta_i, theta_j, length, sx, sy, kx, ky):
 
 
 @numba.njit(cache=True, nogil=True)
-def _sample_polar(f, x, y, z, points, faces, distance, angle):
+def _sample_polar(f, x, y, z, points, faces, distance, angle, r0):
     """(r, intrinsic θ) of the point ``(x, y, z)`` in face ``f`` (not around the source), whose corners are
     final: the smallest distance over the virtual sources of its three edges and the paths through its
-    corners."""
-    best, best_angle = np.inf, 0.0
+    corners. θ is left 0 when ``r > r0`` (the caller drops the point)."""
+    best = np.inf
+    best_corner, best_unfolded = 0, False  # the path that gave ``best``, for its angle below
+    best_length, best_sx, best_sy, best_kx, best_ky = 0.0, 0.0, 0.0, 0.0, 0.0
     for c in range(3):
         i, j = faces[f, c], faces[f, (c + 1) % 3]
         ex, ey, ez = points[j, 0] - points[i, 0], points[j, 1] - points[i, 1], points[j, 2] - points[i, 2]
@@ -386,11 +388,18 @@ def _sample_polar(f, x, y, z, points, faces, distance, angle):
         ky = np.sqrt(max(ox * ox + oy * oy + oz * oz - kx * kx, 0.0))
         r, sx, sy = _unfolded_distance(distance[i], distance[j], length, kx, ky)
         if r < best:
-            best, best_angle = r, _unfolded_angle(angle[i], angle[j], length, sx, sy, kx, ky)
+            best, best_corner, best_unfolded = r, c, True
+            best_length, best_sx, best_sy, best_kx, best_ky = length, sx, sy, kx, ky
         via = distance[i] + _distance(points, i, x, y, z)
         if via < best:
-            best, best_angle = via, angle[i]
-    return best, best_angle
+            best, best_corner, best_unfolded = via, c, False
+    if best > r0:
+        return best, 0.0
+    i = faces[f, best_corner]
+    if not best_unfolded:
+        return best, angle[i]
+    j = faces[f, (best_corner + 1) % 3]
+    return best, _unfolded_angle(angle[i], angle[j], best_length, best_sx, best_sy, best_kx, best_ky)
 
 
 @numba.njit(cache=True, nogil=True)
