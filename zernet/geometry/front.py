@@ -384,13 +384,14 @@ def _sample_polar(f, x, y, z, points, faces, distance, angle, r0):
         ex, ey, ez = points[j, 0] - points[i, 0], points[j, 1] - points[i, 1], points[j, 2] - points[i, 2]
         length = np.sqrt(ex * ex + ey * ey + ez * ez)
         ox, oy, oz = x - points[i, 0], y - points[i, 1], z - points[i, 2]
+        to_corner2 = ox * ox + oy * oy + oz * oz
         kx = (ox * ex + oy * ey + oz * ez) / length if length > 0.0 else 0.0
-        ky = np.sqrt(max(ox * ox + oy * oy + oz * oz - kx * kx, 0.0))
+        ky = np.sqrt(max(to_corner2 - kx * kx, 0.0))
         r, sx, sy = _unfolded_distance(distance[i], distance[j], length, kx, ky)
         if r < best:
             best, best_corner, best_unfolded = r, c, True
             best_length, best_sx, best_sy, best_kx, best_ky = length, sx, sy, kx, ky
-        via = distance[i] + _distance(points, i, x, y, z)
+        via = distance[i] + np.sqrt(to_corner2)
         if via < best:
             best, best_corner, best_unfolded = via, c, False
     if best > r0:
