@@ -48,6 +48,8 @@ _CROSSING_TOLERANCE = 1e-9
 _EXTENSION_EDGES = 1.5
 # Which path gave a vertex its distance in a front update (see _propagate).
 _THROUGH_I, _UNFOLDED, _THROUGH_OTHER = 0, 1, 2
+# Columns of the per-side wedge records (see _wedge_records).
+_TO_TARGET, _EDGE, _TARGET_X, _TARGET_Y, _TARGET_REACH = 0, 1, 2, 3, 4
 
 
 def front_polar(
@@ -92,7 +94,8 @@ def front_polar(
     reach = _sample_reach(corners, samples.points, samples.face_index)
     arguments = (
         points, faces, fans.wedge_start, fans.wedge_face, fans.wedge_corner, fans.start_angle, fans.scale,
-        fans.corner, fans.reversed, opposite, _unfolded_targets(opposite), reach, face_sample_start, face_samples,
+        fans.corner, fans.reversed, *_wedge_records(faces, fans.wedge_face, fans.wedge_corner, opposite, reach), reach,
+        face_sample_start, face_samples,
         np.ascontiguousarray(samples.points, dtype=np.float64), frames, float(r0),
         _EXTENSION_EDGES * float(np.median(opposite.max(axis=1))),
     )  # fmt: skip
@@ -118,25 +121,39 @@ def _sample_reach(corners: np.ndarray, sample_points: np.ndarray, face_index: np
     return reach
 
 
-def _unfolded_targets(opposite: np.ndarray) -> np.ndarray:
-    """(F, 3, 2, 2) the target corner of each face unfolded into the plane of one of its edges.
+def _wedge_records(faces, wedge_face, wedge_corner, opposite, reach):
+    """What a front update across each wedge needs, one record per wedge, so that the wedges of a vertex
+    are read in one sweep of memory.
 
-    Entry ``[f, c, side]`` is the point ``(kx, ky)``, ``ky >= 0``, of corner ``(c + 1 + side) % 3`` with
-    corner ``c`` at the origin and the other corner ``(c + 2 - side) % 3`` at ``(edge length, 0)``: what
-    each front update across face ``f`` needs, computed once instead of on every update.
+    Wedge ``w`` is vertex ``i`` at corner ``c`` of face ``f``; its side 0 updates the corner ``a = (c + 1) %
+    3`` from ``i`` and the other corner ``b = (c + 2) % 3``, its side 1 updates ``b`` from ``i`` and ``a``.
+
+    Returns:
+        ``(target, side_geometry, far_edge, reach_at)``: (W, 2) the target vertex of each side; (W, 2, 5)
+        per side the lengths ``|i target|`` and ``|i other|``, the target unfolded into the plane of edge
+        ``i → other`` (``i`` at the origin, ``other`` at ``(|i other|, 0)``, ``y >= 0``) and the target's
+        ``reach`` (columns ``_TO_TARGET, _EDGE, _TARGET_X, _TARGET_Y, _TARGET_REACH``); (W,) the length
+        ``|a b|``; (W,) the ``reach`` of corner ``c``.
     """
-    targets = np.zeros(opposite.shape + (2, 2))
-    for c in range(3):
-        for side in range(2):
-            to_target = opposite[:, (c + 2 - side) % 3]
-            other_to_target = opposite[:, c]
-            edge = opposite[:, (c + 1 + side) % 3]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                kx = (to_target * to_target - other_to_target * other_to_target + edge * edge) / (2.0 * edge)
-            kx = np.where(edge > 0.0, kx, 0.0)
-            targets[:, c, side, 0] = kx
-            targets[:, c, side, 1] = np.sqrt(np.maximum(to_target * to_target - kx * kx, 0.0))
-    return targets
+    n_wedges = len(wedge_face)
+    target = np.empty((n_wedges, 2), dtype=np.int64)
+    side_geometry = np.empty((n_wedges, 2, 5))
+    for side in range(2):
+        target_corner = (wedge_corner + 1 + side) % 3
+        other_corner = (wedge_corner + 2 - side) % 3
+        to_target = opposite[wedge_face, other_corner]
+        other_to_target = opposite[wedge_face, wedge_corner]
+        edge = opposite[wedge_face, target_corner]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = (to_target * to_target - other_to_target * other_to_target + edge * edge) / (2.0 * edge)
+        x = np.where(edge > 0.0, x, 0.0)
+        target[:, side] = faces[wedge_face, target_corner]
+        side_geometry[:, side, _TO_TARGET] = to_target
+        side_geometry[:, side, _EDGE] = edge
+        side_geometry[:, side, _TARGET_X] = x
+        side_geometry[:, side, _TARGET_Y] = np.sqrt(np.maximum(to_target * to_target - x * x, 0.0))
+        side_geometry[:, side, _TARGET_REACH] = reach[wedge_face, target_corner]
+    return target, side_geometry, opposite[wedge_face, wedge_corner], reach[wedge_face, wedge_corner]
 
 
 def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
@@ -149,8 +166,8 @@ def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.
 # ====================================================================== compiled kernel
 @numba.njit(cache=True, nogil=True)
 def _front_chunk(
-    sources, points, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite,
-    unfolded_target, reach, face_sample_start, face_samples, sample_points, frames, r0, extension,
+    sources, points, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, wedge_target,
+    side_geometry, far_edge, reach_at, reach, face_sample_start, face_samples, sample_points, frames, r0, extension,
 ):  # fmt: skip
     """Front propagation from each of ``sources``; returns the (center, sample, radius, angle) pairs."""
     n = points.shape[0]
@@ -171,8 +188,8 @@ def _front_chunk(
     for p in sources:
         first = count  # this source's pairs are out_*[first:count]
         n_touched, heap_key, heap_vertex = _propagate(
-            p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite,
-            unfolded_target, reach, r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
+            p, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, wedge_target, side_geometry,
+            far_edge, reach_at, r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
         )  # fmt: skip
         for t in range(n_touched):
             v = touched[t]
@@ -226,8 +243,8 @@ def _front_chunk(
 
 @numba.njit(cache=True, nogil=True)
 def _propagate(
-    p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite, unfolded_target,
-    reach, r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
+    p, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, wedge_target, side_geometry,
+    far_edge, reach_at, r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
 ):  # fmt: skip
     """Run the front from vertex ``p``; fills ``distance``, ``angle`` (intrinsic, see
     :mod:`zernet.geometry.fans`), ``final`` for the touched vertices and returns their count and the
@@ -254,18 +271,18 @@ def _propagate(
     heap_size = 0
     bound = r0
     for slot in range(wedge_start[p], wedge_start[p + 1]):
-        f, c = wedge_face[slot], wedge_corner[slot]
         for side in range(2):
-            q = faces[f, (c + 1 + side) % 3]
-            if reach[f, c] >= 0.0:  # the face holds samples: its corners must be final
-                bound = max(bound, min(opposite[f, (c + 2 - side) % 3], r0 + min(reach[f, (c + 1 + side) % 3], extension)))
+            q = wedge_target[slot, side]
+            to_q = side_geometry[slot, side, _TO_TARGET]
+            if reach_at[slot] >= 0.0:  # the face holds samples: its corners must be final
+                bound = max(bound, min(to_q, r0 + min(side_geometry[slot, side, _TARGET_REACH], extension)))
             if exact[q]:
                 continue
             touched[n_touched] = q
             n_touched += 1
-            distance[q] = opposite[f, (c + 2 - side) % 3]
+            distance[q] = to_q
             at_end = side == 1 if not reversed_[slot] else side == 0  # q is the wedge's last edge
-            angle[q] = start_angle[slot] + (scale[p] * corner[f, c] if at_end else 0.0)
+            angle[q] = start_angle[slot] + (scale[p] * corner[wedge_face[slot], wedge_corner[slot]] if at_end else 0.0)
             exact[q] = True
             heap_size, heap_key, heap_vertex = _heap_push(heap_key, heap_vertex, heap_size, distance[q], q)
     while heap_size > 0:
@@ -276,24 +293,22 @@ def _propagate(
             break
         final[i] = True
         for slot in range(wedge_start[i], wedge_start[i + 1]):
-            f, c = wedge_face[slot], wedge_corner[slot]
-            relevant = reach[f, c] >= 0.0 and key <= r0 + min(reach[f, c], extension)
+            relevant = reach_at[slot] >= 0.0 and key <= r0 + min(reach_at[slot], extension)
             for side in range(2):
-                ct = (c + 1 + side) % 3  # the target corner
-                co = (c + 2 - side) % 3  # the other corner
+                to_target = side_geometry[slot, side, _TO_TARGET]
                 if relevant:
-                    bound = max(bound, min(key + opposite[f, co], r0 + min(reach[f, ct], extension)))
-                target, other = faces[f, ct], faces[f, co]
+                    bound = max(bound, min(key + to_target, r0 + min(side_geometry[slot, side, _TARGET_REACH], extension)))
+                target, other = wedge_target[slot, side], wedge_target[slot, 1 - side]
                 if exact[target]:
                     continue
-                u = distance[i] + opposite[f, co]
+                u = distance[i] + to_target
                 path = _THROUGH_I
                 edge, kx, ky, sx, sy = 0.0, 0.0, 0.0, 0.0, 0.0
                 if final[other]:  # otherwise the path through i is an upper bound until other is final
-                    edge = opposite[f, ct]
-                    kx, ky = unfolded_target[f, c, side, 0], unfolded_target[f, c, side, 1]
+                    edge = side_geometry[slot, side, _EDGE]
+                    kx, ky = side_geometry[slot, side, _TARGET_X], side_geometry[slot, side, _TARGET_Y]
                     through, sx, sy = _unfolded_distance(distance[i], distance[other], edge, kx, ky)
-                    via_other = distance[other] + opposite[f, c]
+                    via_other = distance[other] + far_edge[slot]
                     if through < u and through <= via_other:
                         u, path = through, _UNFOLDED
                     elif via_other < u:
