@@ -32,15 +32,13 @@ load it instead of compiling. Sources are split over threads (the kernel release
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import numba
 import numpy as np
 
 from zernet.geometry.fans import tangent_angle_of, vertex_fans
 from zernet.geometry.sampling import SurfaceSamples
 from zernet.geometry.surface import Surface, SurfaceError
+from zernet.threads import available_cores, thread_map
 
 __all__ = ["front_polar"]
 
@@ -48,6 +46,10 @@ __all__ = ["front_polar"]
 _CROSSING_TOLERANCE = 1e-9
 # The front runs past r0 by at most this many median longest edges (see _propagate).
 _EXTENSION_EDGES = 1.5
+# Which path gave a vertex its distance in a front update (see _propagate).
+_THROUGH_I, _UNFOLDED, _THROUGH_OTHER = 0, 1, 2
+# Columns of the per-side wedge records (see _wedge_records).
+_TO_TARGET, _EDGE, _TARGET_X, _TARGET_Y, _TARGET_REACH = 0, 1, 2, 3, 4
 
 
 def front_polar(
@@ -92,24 +94,19 @@ def front_polar(
     reach = _sample_reach(corners, samples.points, samples.face_index)
     arguments = (
         points, faces, fans.wedge_start, fans.wedge_face, fans.wedge_corner, fans.start_angle, fans.scale,
-        fans.corner, fans.reversed, opposite, reach, face_sample_start, face_samples,
+        fans.corner, fans.reversed, *_wedge_records(faces, fans.wedge_face, fans.wedge_corner, opposite, reach), reach,
+        face_sample_start, face_samples,
         np.ascontiguousarray(samples.points, dtype=np.float64), frames, float(r0),
         _EXTENSION_EDGES * float(np.median(opposite.max(axis=1))),
     )  # fmt: skip
-    if n_threads is None:
-        n_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    n_threads = available_cores() if n_threads is None else n_threads
     chunks = [c for c in np.array_split(np.arange(n, dtype=np.int64), max(1, 4 * n_threads)) if len(c)]
-    if n_threads <= 1 or len(chunks) <= 1:
-        results = [_front_chunk(chunk, *arguments) for chunk in chunks]
-    else:
-        with ThreadPoolExecutor(max_workers=n_threads) as pool:
-            results = list(pool.map(lambda chunk: _front_chunk(chunk, *arguments), chunks))
+    results = thread_map(lambda chunk: _front_chunk(chunk, *arguments), chunks, n_threads)
     if not results:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    # The chunks are in vertex order and each is sorted by (centre, radius).
     center, sample, radius, angle = (np.concatenate(parts) for parts in zip(*results))
-    order = np.lexsort((radius, center))  # chunks are in vertex order; sort by radius within a vertex
-    angle = np.mod(angle[order] + np.pi, 2 * np.pi) - np.pi
-    return center[order], sample[order], radius[order], angle
+    return center, sample, radius, angle
 
 
 def _sample_reach(corners: np.ndarray, sample_points: np.ndarray, face_index: np.ndarray) -> np.ndarray:
@@ -124,6 +121,41 @@ def _sample_reach(corners: np.ndarray, sample_points: np.ndarray, face_index: np
     return reach
 
 
+def _wedge_records(faces, wedge_face, wedge_corner, opposite, reach):
+    """What a front update across each wedge needs, one record per wedge, so that the wedges of a vertex
+    are read in one sweep of memory.
+
+    Wedge ``w`` is vertex ``i`` at corner ``c`` of face ``f``; its side 0 updates the corner ``a = (c + 1) %
+    3`` from ``i`` and the other corner ``b = (c + 2) % 3``, its side 1 updates ``b`` from ``i`` and ``a``.
+
+    Returns:
+        ``(target, side_geometry, far_edge, reach_at)``: (W, 2) the target vertex of each side; (W, 2, 5)
+        per side the lengths ``|i target|`` and ``|i other|``, the target unfolded into the plane of edge
+        ``i → other`` (``i`` at the origin, ``other`` at ``(|i other|, 0)``, ``y >= 0``) and the target's
+        ``reach`` (columns ``_TO_TARGET, _EDGE, _TARGET_X, _TARGET_Y, _TARGET_REACH``); (W,) the length
+        ``|a b|``; (W,) the ``reach`` of corner ``c``.
+    """
+    n_wedges = len(wedge_face)
+    target = np.empty((n_wedges, 2), dtype=np.int64)
+    side_geometry = np.empty((n_wedges, 2, 5))
+    for side in range(2):
+        target_corner = (wedge_corner + 1 + side) % 3
+        other_corner = (wedge_corner + 2 - side) % 3
+        to_target = opposite[wedge_face, other_corner]
+        other_to_target = opposite[wedge_face, wedge_corner]
+        edge = opposite[wedge_face, target_corner]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = (to_target * to_target - other_to_target * other_to_target + edge * edge) / (2.0 * edge)
+        x = np.where(edge > 0.0, x, 0.0)
+        target[:, side] = faces[wedge_face, target_corner]
+        side_geometry[:, side, _TO_TARGET] = to_target
+        side_geometry[:, side, _EDGE] = edge
+        side_geometry[:, side, _TARGET_X] = x
+        side_geometry[:, side, _TARGET_Y] = np.sqrt(np.maximum(to_target * to_target - x * x, 0.0))
+        side_geometry[:, side, _TARGET_REACH] = reach[wedge_face, target_corner]
+    return target, side_geometry, opposite[wedge_face, wedge_corner], reach[wedge_face, wedge_corner]
+
+
 def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
     """CSR of the samples in each face."""
     order = np.argsort(face_index, kind="stable").astype(np.int64)
@@ -134,8 +166,8 @@ def _face_samples(face_index: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.
 # ====================================================================== compiled kernel
 @numba.njit(cache=True, nogil=True)
 def _front_chunk(
-    sources, points, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite,
-    reach, face_sample_start, face_samples, sample_points, frames, r0, extension,
+    sources, points, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, wedge_target,
+    side_geometry, far_edge, reach_at, reach, face_sample_start, face_samples, sample_points, frames, r0, extension,
 ):  # fmt: skip
     """Front propagation from each of ``sources``; returns the (center, sample, radius, angle) pairs."""
     n = points.shape[0]
@@ -154,9 +186,10 @@ def _front_chunk(
     out_angle = np.empty(capacity)
     count = 0
     for p in sources:
+        first = count  # this source's pairs are out_*[first:count]
         n_touched, heap_key, heap_vertex = _propagate(
-            p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite, reach,
-            r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
+            p, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, wedge_target, side_geometry,
+            far_edge, reach_at, r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
         )  # fmt: skip
         for t in range(n_touched):
             v = touched[t]
@@ -179,7 +212,7 @@ def _front_chunk(
                     if adjacent:  # straight from the source
                         r, theta = _distance(points, p, x, y, z), _tangent_angle(points, frames, p, x, y, z)
                     else:
-                        r, theta = _sample_polar(f, x, y, z, points, faces, distance, angle)
+                        r, theta = _sample_polar(f, x, y, z, points, faces, distance, angle, r0)
                         if r > r0:
                             continue
                         theta = tangent_angle_of(
@@ -193,8 +226,13 @@ def _front_chunk(
                     out_center[count] = p
                     out_sample[count] = s
                     out_radius[count] = r
-                    out_angle[count] = theta
+                    out_angle[count] = _wrap(theta)
                     count += 1
+        # Sorted by radius (stable) here, so the chunks come out sorted by (centre, radius) with no global sort.
+        order = first + np.argsort(out_radius[first:count], kind="mergesort")
+        out_sample[first:count] = out_sample[order]
+        out_radius[first:count] = out_radius[order]
+        out_angle[first:count] = out_angle[order]
         for t in range(n_touched):  # reset only what this source touched
             v = touched[t]
             distance[v] = np.inf
@@ -205,8 +243,8 @@ def _front_chunk(
 
 @numba.njit(cache=True, nogil=True)
 def _propagate(
-    p, faces, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, opposite, reach, r0,
-    extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
+    p, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_, wedge_target, side_geometry,
+    far_edge, reach_at, r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
 ):  # fmt: skip
     """Run the front from vertex ``p``; fills ``distance``, ``angle`` (intrinsic, see
     :mod:`zernet.geometry.fans`), ``final`` for the touched vertices and returns their count and the
@@ -233,18 +271,18 @@ def _propagate(
     heap_size = 0
     bound = r0
     for slot in range(wedge_start[p], wedge_start[p + 1]):
-        f, c = wedge_face[slot], wedge_corner[slot]
         for side in range(2):
-            q = faces[f, (c + 1 + side) % 3]
-            if reach[f, c] >= 0.0:  # the face holds samples: its corners must be final
-                bound = max(bound, min(opposite[f, (c + 2 - side) % 3], r0 + min(reach[f, (c + 1 + side) % 3], extension)))
+            q = wedge_target[slot, side]
+            to_q = side_geometry[slot, side, _TO_TARGET]
+            if reach_at[slot] >= 0.0:  # the face holds samples: its corners must be final
+                bound = max(bound, min(to_q, r0 + min(side_geometry[slot, side, _TARGET_REACH], extension)))
             if exact[q]:
                 continue
             touched[n_touched] = q
             n_touched += 1
-            distance[q] = opposite[f, (c + 2 - side) % 3]
+            distance[q] = to_q
             at_end = side == 1 if not reversed_[slot] else side == 0  # q is the wedge's last edge
-            angle[q] = start_angle[slot] + (scale[p] * corner[f, c] if at_end else 0.0)
+            angle[q] = start_angle[slot] + (scale[p] * corner[wedge_face[slot], wedge_corner[slot]] if at_end else 0.0)
             exact[q] = True
             heap_size, heap_key, heap_vertex = _heap_push(heap_key, heap_vertex, heap_size, distance[q], q)
     while heap_size > 0:
@@ -255,36 +293,36 @@ def _propagate(
             break
         final[i] = True
         for slot in range(wedge_start[i], wedge_start[i + 1]):
-            f, c = wedge_face[slot], wedge_corner[slot]
-            relevant = reach[f, c] >= 0.0 and key <= r0 + min(reach[f, c], extension)
+            relevant = reach_at[slot] >= 0.0 and key <= r0 + min(reach_at[slot], extension)
             for side in range(2):
-                ct = (c + 1 + side) % 3  # the target corner
-                co = (c + 2 - side) % 3  # the other corner
+                to_target = side_geometry[slot, side, _TO_TARGET]
                 if relevant:
-                    bound = max(bound, min(key + opposite[f, co], r0 + min(reach[f, ct], extension)))
-                target, other = faces[f, ct], faces[f, co]
+                    bound = max(bound, min(key + to_target, r0 + min(side_geometry[slot, side, _TARGET_REACH], extension)))
+                target, other = wedge_target[slot, side], wedge_target[slot, 1 - side]
                 if exact[target]:
                     continue
-                to_target = opposite[f, co]
                 u = distance[i] + to_target
-                theta = angle[i]
+                path = _THROUGH_I
+                edge, kx, ky, sx, sy = 0.0, 0.0, 0.0, 0.0, 0.0
                 if final[other]:  # otherwise the path through i is an upper bound until other is final
-                    edge, other_to_target = opposite[f, ct], opposite[f, c]
-                    kx = (to_target * to_target - other_to_target * other_to_target + edge * edge) / (2.0 * edge) if edge > 0.0 else 0.0
-                    ky = np.sqrt(max(to_target * to_target - kx * kx, 0.0))
+                    edge = side_geometry[slot, side, _EDGE]
+                    kx, ky = side_geometry[slot, side, _TARGET_X], side_geometry[slot, side, _TARGET_Y]
                     through, sx, sy = _unfolded_distance(distance[i], distance[other], edge, kx, ky)
-                    via_other = distance[other] + other_to_target
+                    via_other = distance[other] + far_edge[slot]
                     if through < u and through <= via_other:
-                        u = through
-                        theta = _unfolded_angle(angle[i], angle[other], edge, sx, sy, kx, ky)
+                        u, path = through, _UNFOLDED
                     elif via_other < u:
-                        u, theta = via_other, angle[other]
+                        u, path = via_other, _THROUGH_OTHER
                 if u < distance[target] * (1.0 - 1e-12):
                     if not np.isfinite(distance[target]):
                         touched[n_touched] = target
                         n_touched += 1
                     distance[target] = u
-                    angle[target] = theta
+                    # The angle only for an accepted update: most offers lose, and it costs three arctan2.
+                    if path == _UNFOLDED:
+                        angle[target] = _unfolded_angle(angle[i], angle[other], edge, sx, sy, kx, ky)
+                    else:
+                        angle[target] = angle[other] if path == _THROUGH_OTHER else angle[i]
                     final[target] = False
                     heap_size, heap_key, heap_vertex = _heap_push(heap_key, heap_vertex, heap_size, u, target)
     return n_touched, heap_key, heap_vertex
@@ -349,25 +387,35 @@ def _unfolded_angle(theta_i, theta_j, length, sx, sy, kx, ky):
 
 
 @numba.njit(cache=True, nogil=True)
-def _sample_polar(f, x, y, z, points, faces, distance, angle):
+def _sample_polar(f, x, y, z, points, faces, distance, angle, r0):
     """(r, intrinsic θ) of the point ``(x, y, z)`` in face ``f`` (not around the source), whose corners are
     final: the smallest distance over the virtual sources of its three edges and the paths through its
-    corners."""
-    best, best_angle = np.inf, 0.0
+    corners. θ is left 0 when ``r > r0`` (the caller drops the point)."""
+    best = np.inf
+    best_corner, best_unfolded = 0, False  # the path that gave ``best``, for its angle below
+    best_length, best_sx, best_sy, best_kx, best_ky = 0.0, 0.0, 0.0, 0.0, 0.0
     for c in range(3):
         i, j = faces[f, c], faces[f, (c + 1) % 3]
         ex, ey, ez = points[j, 0] - points[i, 0], points[j, 1] - points[i, 1], points[j, 2] - points[i, 2]
         length = np.sqrt(ex * ex + ey * ey + ez * ez)
         ox, oy, oz = x - points[i, 0], y - points[i, 1], z - points[i, 2]
+        to_corner2 = ox * ox + oy * oy + oz * oz
         kx = (ox * ex + oy * ey + oz * ez) / length if length > 0.0 else 0.0
-        ky = np.sqrt(max(ox * ox + oy * oy + oz * oz - kx * kx, 0.0))
+        ky = np.sqrt(max(to_corner2 - kx * kx, 0.0))
         r, sx, sy = _unfolded_distance(distance[i], distance[j], length, kx, ky)
         if r < best:
-            best, best_angle = r, _unfolded_angle(angle[i], angle[j], length, sx, sy, kx, ky)
-        via = distance[i] + _distance(points, i, x, y, z)
+            best, best_corner, best_unfolded = r, c, True
+            best_length, best_sx, best_sy, best_kx, best_ky = length, sx, sy, kx, ky
+        via = distance[i] + np.sqrt(to_corner2)
         if via < best:
-            best, best_angle = via, angle[i]
-    return best, best_angle
+            best, best_corner, best_unfolded = via, c, False
+    if best > r0:
+        return best, 0.0
+    i = faces[f, best_corner]
+    if not best_unfolded:
+        return best, angle[i]
+    j = faces[f, (best_corner + 1) % 3]
+    return best, _unfolded_angle(angle[i], angle[j], best_length, best_sx, best_sy, best_kx, best_ky)
 
 
 @numba.njit(cache=True, nogil=True)

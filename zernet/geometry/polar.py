@@ -249,13 +249,17 @@ def compute_polar(
         center, sample, radius, angle = front_polar(surface, samples, frames, r0)
     else:
         center, sample, radius, angle = accurate_polar(surface, samples, frames, r0, n_jobs)
-    # Sort by (vertex, radius): one float key (radius < 2 r0, so the vertex term dominates).
-    order = np.argsort(center * (2.0 * r0) + np.minimum(radius, 1.999 * r0), kind="stable")
+    # Sort by (vertex, radius): one float key (radius < 2 r0, so the vertex term dominates). The front
+    # backend's pairs come sorted already: checking is cheaper than a stable sort of them.
+    key = center * (2.0 * r0) + np.minimum(radius, 1.999 * r0)
+    if not np.all(key[1:] >= key[:-1]):
+        order = np.argsort(key, kind="stable")
+        center, sample, radius, angle = center[order], sample[order], radius[order], angle[order]
     return PolarCoordinates(
-        center=center[order].astype(np.int64),
-        sample=sample[order].astype(np.int64),
-        radius=radius[order],
-        angle=wrap_angle(angle[order]),
+        center=center.astype(np.int64, copy=False),
+        sample=sample.astype(np.int64, copy=False),
+        radius=radius,
+        angle=wrap_angle(angle),
         frames=frames,
         r0=float(r0),
         backend=backend,

@@ -7,7 +7,6 @@ Public API: :func:`accurate_polar`.
 from __future__ import annotations
 
 import multiprocessing
-import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
 
@@ -17,6 +16,7 @@ import potpourri3d as pp3d
 from zernet.geometry.polar_fast import ball_pairs
 from zernet.geometry.sampling import SurfaceSamples
 from zernet.geometry.surface import Surface
+from zernet.threads import available_cores
 
 __all__ = ["accurate_polar"]
 
@@ -37,7 +37,7 @@ def accurate_polar(surface: Surface, samples: SurfaceSamples, frames: np.ndarray
     bounds = np.searchsorted(center, np.arange(n + 1))
 
     if n_jobs is None:
-        n_jobs = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        n_jobs = available_cores()
     n_jobs = max(1, min(int(n_jobs), n))
     # Several chunks per worker so that a slow chunk does not leave the other workers idle.
     chunks = [c for c in np.array_split(np.arange(n), max(1, 4 * n_jobs)) if len(c)]

@@ -20,6 +20,17 @@ padding. A vertex with no sample gets all-zero rows.
 λ is one absolute number per surface: ``λ = ridge · median_p(trace(B_pᵀB_p) / k)``, ``ridge`` times the
 typical eigenvalue of a full interior patch (≈ n_p / π for samples spread over the unit disk).
 
+Why one λ rather than one scaled to each patch's conditioning: the ridge moves a coefficient by about
+``λ w_j / μ`` of the mode it sits in (``μ``: that mode's eigenvalue of ``B_pᵀB_p``), so on a well-posed
+patch (smallest eigenvalue ``μ_min ≫ λ``) it vanishes by itself. Measured on a FAUST-sized body (12,000
+samples, r0 = 5.5, ``ridge`` 1e-3, a linear field refitted at the patch samples): on the 69 % of patches
+with ``μ_min > 10 λ`` the median relative residual is 1.731 % with this λ and 1.731 % with no ridge at
+all, so a conditioning-scaled ridge (``λ² / (λ + μ_min)``, or 0 on those patches) changes nothing there.
+The rest have a mode their samples barely see (``μ_min`` down to 0: gaps in the sampling, few samples);
+there a smaller ridge lowers the residual at the samples (median 13.1 % → 11.9 % at ``ridge`` 1e-6) only
+by fitting that mode to the samples, with coefficients up to 5× (1e-6) to 50× (1e-8) larger. The
+remaining linear residual is Zernike truncation and those sampling gaps, not the ridge.
+
 The fit is computed in groups of patches with the same number of samples (no padding enters the
 products): :func:`fit_groups`; :func:`fit_patches` pads the result to the widest patch.
 """
@@ -28,7 +39,9 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+import scipy.sparse
 
+from zernet.threads import thread_map
 from zernet.zernike import index_to_nm, num_bases, zernike_basis
 
 __all__ = ["degree_weights", "fit_groups", "fit_patches", "carry_to_vertices"]
@@ -59,23 +72,30 @@ def fit_groups(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max:
     k = num_bases(n_max)
     counts = np.asarray(counts, dtype=np.int64)
     groups = [(size, np.flatnonzero(counts == size)) for size in np.unique(counts) if size > 0]
-    bases, grams, traces = [], [], []
-    for size, rows in groups:
+
+    def basis_and_gram(group):
+        size, rows = group
         basis_t = np.ascontiguousarray(zernike_basis(radius[rows, :size], angle[rows, :size], n_max).transpose(0, 2, 1))
-        gram = basis_t @ basis_t.transpose(0, 2, 1)  # (g, k, k)
-        bases.append(basis_t)
-        grams.append(gram)
-        traces.append(np.trace(gram, axis1=1, axis2=2))
+        return basis_t, basis_t @ basis_t.transpose(0, 2, 1)  # (g, k, n), (g, k, k)
+
+    # numpy releases the GIL in these products and solves: the groups are spread over threads.
+    bases_and_grams = thread_map(basis_and_gram, groups)
+    traces = [np.trace(gram, axis1=1, axis2=2) for _, gram in bases_and_grams]
     scale = float(np.median(np.concatenate(traces)) / k) if traces else 1.0
     lam = ridge * max(scale, 1e-12)
     penalty = lam * degree_weights(n_max)
     diagonal = np.arange(k)
-    fits = []
-    for (size, rows), basis_t, gram in zip(groups, bases, grams):
+
+    def solve(basis_and_gram):
+        basis_t, gram = basis_and_gram
         gram[:, diagonal, diagonal] += penalty
-        # One k × k solve per patch with its n samples as right-hand sides; symmetric positive definite.
-        fits.append((rows, np.linalg.solve(gram, basis_t)))
-    return fits, lam
+        # The inverse of each k × k matrix (symmetric positive definite; condition number at most ~1e5 on
+        # a FAUST-sized body with the default ridge), then one product: about twice as fast as a solve with
+        # the n samples as right-hand sides, and the same to round-off.
+        return np.linalg.inv(gram) @ basis_t
+
+    fits = thread_map(solve, bases_and_grams)
+    return [(rows, fit) for (_, rows), fit in zip(groups, fits)], lam
 
 
 def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float) -> tuple[np.ndarray, float]:
@@ -92,60 +112,84 @@ def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max
     return fit, lam
 
 
-def carry_to_vertices(rows, block, sample_index, interpolation, subtract_center: bool):
-    """The fit of a group of patches carried from samples to mesh vertices: ``P_p · Interp[patch p]``.
+def carry_to_vertices(groups: list, sample_index: np.ndarray, interpolation, k: int,
+                      subtract_center: bool) -> scipy.sparse.csr_matrix:
+    """The fit of every patch carried from samples to mesh vertices: ``A = blockrows_p(P_p · Interp[patch p])``.
 
     Args:
-        rows: (g,) vertices of the group.
-        block: (g, k, n) their fit matrices.
-        sample_index: (g, n) their sample ids.
+        groups: ``(rows, fit)`` pairs of :func:`fit_groups`: (g,) vertices and their (g, k, n) fit matrices.
+        sample_index: (N, n) sample ids of each patch (-1 for padding), nearest first.
         interpolation: (M, N) CSR, vertex values -> sample values.
+        k: number of Zernike bases.
         subtract_center: also subtract ``(P_p 1) f(p)`` (the fit of ``f - f(p)``).
 
     Returns:
-        ``(width, columns, values)``: (g,) number of distinct vertices of each patch, and per patch its
-        vertex ids (ascending) and its (k, width) row-major values, concatenated over the group.
+        (N k, N) CSR matrix; rows ``p k .. p k + k - 1`` are vertex ``p``'s coefficients and share its
+        columns, the distinct vertices its samples interpolate from (ascending). A vertex without a patch
+        has empty rows.
     """
-    return _carry(
-        rows.astype(np.int64), np.ascontiguousarray(block), np.ascontiguousarray(sample_index, dtype=np.int64),
-        interpolation.indptr.astype(np.int64), interpolation.indices.astype(np.int64), interpolation.data,
-        interpolation.shape[1], subtract_center,
-    )  # fmt: skip
+    n_vertices = sample_index.shape[0]
+    indptr_in = interpolation.indptr.astype(np.int64)
+    indices_in = interpolation.indices.astype(np.int64)
+    sample_index = np.ascontiguousarray(sample_index, dtype=np.int64)
+
+    def patch_widths(group):
+        rows, block = group
+        return _patch_widths(rows.astype(np.int64), sample_index[rows, : block.shape[2]], indptr_in, indices_in,
+                             n_vertices, subtract_center)
+
+    def carry(group):
+        rows, block = group
+        _carry(rows.astype(np.int64), np.ascontiguousarray(block), sample_index[rows, : block.shape[2]], indptr_in,
+               indices_in, interpolation.data, n_vertices, subtract_center, indptr[rows * k], columns, values)
+
+    # The kernels release the GIL: the groups are spread over threads (each writes only its own rows).
+    width = np.zeros(n_vertices, dtype=np.int64)
+    for (rows, _), group_width in zip(groups, thread_map(patch_widths, groups)):
+        width[rows] = group_width
+    indptr = np.zeros(n_vertices * k + 1, dtype=np.int64)
+    np.cumsum(np.repeat(width, k), out=indptr[1:])
+    # The index dtype scipy would pick: written in place, so the matrix is built without a copy.
+    index_dtype = np.int32 if max(indptr[-1], n_vertices) < np.iinfo(np.int32).max else np.int64
+    columns = np.empty(indptr[-1], dtype=index_dtype)
+    values = np.zeros(indptr[-1])
+    thread_map(carry, groups)
+    return scipy.sparse.csr_matrix((values, columns, indptr.astype(index_dtype)), shape=(n_vertices * k, n_vertices))
 
 
 @numba.njit(cache=True, nogil=True)
-def _carry(rows, block, sample_index, indptr, indices, data, n_vertices, subtract_center):
-    """Compiled :func:`carry_to_vertices`: a dense scatter per patch into a slot per touched vertex."""
-    g, k, n = block.shape
-    slot = np.full(n_vertices, -1, dtype=np.int64)
+def _patch_widths(rows, sample_index, indptr, indices, n_vertices, subtract_center):
+    """(g,) number of distinct vertices the samples of each patch interpolate from (and the centre with
+    ``subtract_center``)."""
+    g, n = sample_index.shape
+    seen = np.zeros(n_vertices, dtype=np.bool_)
     width = np.zeros(g, dtype=np.int64)
-    total = 0
-    for a in range(g):  # pass 1: the distinct vertices of each patch
+    for a in range(g):
         count = 0
         for j in range(n):
             s = sample_index[a, j]
             for t in range(indptr[s], indptr[s + 1]):
-                v = indices[t]
-                if slot[v] < 0:
-                    slot[v] = 1
+                if not seen[indices[t]]:
+                    seen[indices[t]] = True
                     count += 1
-        if subtract_center and slot[rows[a]] < 0:
+        if subtract_center and not seen[rows[a]]:
             count += 1
         width[a] = count
-        total += count * k
-        for j in range(n):  # reset
+        for j in range(n):  # reset only what this patch touched
             s = sample_index[a, j]
             for t in range(indptr[s], indptr[s + 1]):
-                slot[indices[t]] = -1
-    columns = np.empty(total // k if k > 0 else 0, dtype=np.int64)
-    values = np.zeros(total)
-    column_at = 0
-    value_at = 0
-    members = np.empty(n_vertices if n_vertices < 4096 else 4096, dtype=np.int64)
-    for a in range(g):  # pass 2: vertex ids (ascending) and the k × width values
-        w = width[a]
-        if members.shape[0] < w:
-            members = np.empty(2 * w, dtype=np.int64)
+                seen[indices[t]] = False
+    return width
+
+
+@numba.njit(cache=True, nogil=True)
+def _carry(rows, block, sample_index, indptr, indices, data, n_vertices, subtract_center, row_start, columns, values):
+    """Compiled :func:`carry_to_vertices` for one group: each patch's ``k × width`` values (row-major, from
+    ``row_start``) by a dense scatter into a slot per touched vertex."""
+    g, k, n = block.shape
+    slot = np.full(n_vertices, -1, dtype=np.int64)
+    members = np.empty(16, dtype=np.int64)
+    for a in range(g):
         count = 0
         for j in range(n):
             s = sample_index[a, j]
@@ -153,32 +197,38 @@ def _carry(rows, block, sample_index, indptr, indices, data, n_vertices, subtrac
                 v = indices[t]
                 if slot[v] < 0:
                     slot[v] = 0
+                    if count == members.shape[0]:
+                        grown = np.empty(2 * count, dtype=np.int64)
+                        grown[:count] = members
+                        members = grown
                     members[count] = v
                     count += 1
         if subtract_center and slot[rows[a]] < 0:
+            if count == members.shape[0]:
+                grown = np.empty(2 * count, dtype=np.int64)
+                grown[:count] = members
+                members = grown
             slot[rows[a]] = 0
             members[count] = rows[a]
             count += 1
         ordered = np.sort(members[:count])
+        at = row_start[a]
         for c in range(count):
             slot[ordered[c]] = c
-            columns[column_at + c] = ordered[c]
+            columns[at + c : at + k * count : count] = ordered[c]
         for j in range(n):
             s = sample_index[a, j]
             for t in range(indptr[s], indptr[s + 1]):
                 c = slot[indices[t]]
                 weight = data[t]
                 for i in range(k):
-                    values[value_at + i * w + c] += block[a, i, j] * weight
+                    values[at + i * count + c] += block[a, i, j] * weight
         if subtract_center:
             c = slot[rows[a]]
             for i in range(k):
                 row_sum = 0.0
                 for j in range(n):
                     row_sum += block[a, i, j]
-                values[value_at + i * w + c] -= row_sum
+                values[at + i * count + c] -= row_sum
         for c in range(count):
             slot[ordered[c]] = -1
-        column_at += w
-        value_at += k * w
-    return width, columns, values

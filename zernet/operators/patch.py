@@ -431,33 +431,10 @@ def assemble_operator(center, sample, radius, angle, frames, interpolation, conf
     Returns:
         :class:`PatchOperator`.
     """
-    n = frames.shape[0]
-    k = config.k
-    index, r, theta = select_patches(center, sample, radius, angle, n, config)
+    index, r, theta = select_patches(center, sample, radius, angle, frames.shape[0], config)
     counts = (index >= 0).sum(axis=1)
     groups, lam = fit_groups(r, theta, counts, config.n_max, config.ridge)
-
-    # Rows p*k + i, columns = the mesh vertices the patch's samples interpolate from (and p itself with
-    # subtract_center). The k rows of vertex p are contiguous in CSR order and share their columns, so each
-    # group's (k, width) blocks are written in place.
-    carried = [(rows, *carry_to_vertices(rows, block, index[rows, : block.shape[2]], interpolation, config.subtract_center))
-               for rows, block in groups]
-    width = np.zeros(n, dtype=np.int64)
-    for rows, group_width, _, _ in carried:
-        width[rows] = group_width
-    indptr = np.concatenate([[0], np.cumsum(np.repeat(width, k))])
-    cols = np.empty(indptr[-1], dtype=np.int64)
-    vals = np.empty(indptr[-1])
-    for rows, group_width, columns, values in carried:
-        starts = indptr[rows * k]
-        lengths = k * group_width
-        where = np.repeat(starts - np.concatenate([[0], np.cumsum(lengths)[:-1]]), lengths) + np.arange(lengths.sum())
-        column_starts = np.concatenate([[0], np.cumsum(group_width)[:-1]])
-        # per patch: its width columns repeated for each of the k rows
-        local = np.arange(lengths.sum()) - np.repeat(np.concatenate([[0], np.cumsum(lengths)[:-1]]), lengths)
-        cols[where] = columns[np.repeat(column_starts, lengths) + local % np.repeat(group_width, lengths)]
-        vals[where] = values
-    matrix = scipy.sparse.csr_matrix((vals, cols, indptr), shape=(n * k, n))
+    matrix = carry_to_vertices(groups, index, interpolation, config.k, config.subtract_center)
     matrix.eliminate_zeros()
     return PatchOperator(
         matrix=matrix,
