@@ -13,7 +13,7 @@ Per backend: kept pairs whose exact distance exceeds 1.1 r0 (a fold crossed), tr
 dropped, radius error median / p95 in % of r0, angle error p95 (rad, r > 0.1 r0, after removing each
 centre's circular-mean offset), and the time for all vertices.
 
-Patch fit (the default :class:`~zernet.operators.PatchConfig`: every sample within r0, degree-weighted
+Patch fit (the default :class:`~zernet.operators.PatchConfig`: every sample within r0, piston-sparing
 ridge, backend front on meshes), on the vertices farther than r0 (Euclidean, so at least r0 along the
 surface) from any boundary:
 

@@ -45,7 +45,8 @@ __all__ = [
 ]
 
 #: Version 2: degree-weighted ridge, all samples within r0 by default, backend and its version in the key.
-FORMAT_VERSION = 2
+#: Version 3: the ridge weighs every basis but the piston equally (operators of version 2 differ).
+FORMAT_VERSION = 3
 
 
 class CacheWarning(UserWarning):

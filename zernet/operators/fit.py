@@ -1,35 +1,35 @@
-"""The least-squares fit of Zernike coefficients to the samples of each patch: a degree-weighted ridge.
+"""The least-squares fit of Zernike coefficients to the samples of each patch: a ridge that spares the piston.
 
 For vertex ``p`` with ``n_p`` patch samples at normalised polar coordinates ``(r_j, θ_j)`` and Zernike
 values ``B_p`` (``n_p × k``), the fit matrix is
 
-    ``P_p = (B_pᵀ B_p + λ W)⁻¹ B_pᵀ``,   ``W = diag(w_j)``,  ``w_j = n_j (n_j + 2) / (n_max (n_max + 2))``,
+    ``P_p = (B_pᵀ B_p + λ W)⁻¹ B_pᵀ``,   ``W = diag(0, 1, 1, ..., 1)``:
 
-where ``n_j`` is the radial degree of basis ``j`` (the eigenvalue of the disk Laplacian grows like
-``n (n + 2)``, so the penalty is a smoothness prior, 0 for the piston and 1 at the highest degree).
+the paper's ridge ``λ I`` on every basis but the piston.
 
-Why degree weights: a plain ridge ``λ I`` shrinks every coefficient, the piston included, so a constant
-field comes out low by about ``λ / eigenvalue`` — a bias that grows where a patch covers less of the disk.
-With ``w_0 = 0`` a constant field is fitted exactly on every non-empty patch (``W a = 0`` for a pure
-piston, so ``P_p B_p a = a``): its piston is exact and every other coefficient 0, whatever the coverage.
+Why the piston is spared: ``λ I`` shrinks every coefficient, the piston included, so a constant field comes
+out low by about ``λ / eigenvalue``, a bias that grows where a patch covers less of the disk. With
+``W_00 = 0`` a constant field is fitted exactly on every non-empty patch (``W a = 0`` for a pure piston, so
+``P_p B_p a = a``): its piston is exact and every other coefficient 0, whatever the coverage.
 ``B_pᵀB_p + λW`` is still positive definite for any non-empty patch (the piston column of ``B_p`` is a
 non-zero constant), so truncated boundary patches stay well-posed: the modes the samples cannot see
 (eigenvalues ≪ λ) shrink to 0 instead of exploding, the least-squares counterpart of the paper's zero
 padding. A vertex with no sample gets all-zero rows.
 
-λ is one absolute number per surface: ``λ = ridge · median_p(trace(B_pᵀB_p) / k)``, ``ridge`` times the
-typical eigenvalue of a full interior patch (≈ n_p / π for samples spread over the unit disk).
+Why every other basis gets the same weight: a penalty that grows with the degree (``n (n + 2)``, a
+smoothness prior; tried) leaves the low-degree combinations that a patch's samples barely separate (an
+annulus ``r0/4 <= r <= r0`` hardly tells the piston from ``Z_2^0``) almost undamped. Their coefficients then
+carry sampling noise into every layer, and networks learn far more slowly: on generated bodies
+(correspondence, 1,229 vertices, 34 training bodies, every sample within r0, inner radius r0/4, 3 epochs)
+test accuracy 46 % with the degree penalty against 79 % with this ``W`` (80 % with ``λ I``); with the
+paper's 50 nearest samples 0.7 % against 25 % (30 %).
 
-Why one λ rather than one scaled to each patch's conditioning: the ridge moves a coefficient by about
-``λ w_j / μ`` of the mode it sits in (``μ``: that mode's eigenvalue of ``B_pᵀB_p``), so on a well-posed
-patch (smallest eigenvalue ``μ_min ≫ λ``) it vanishes by itself. Measured on a FAUST-sized body (12,000
-samples, r0 = 5.5, ``ridge`` 1e-3, a linear field refitted at the patch samples): on the 69 % of patches
-with ``μ_min > 10 λ`` the median relative residual is 1.731 % with this λ and 1.731 % with no ridge at
-all, so a conditioning-scaled ridge (``λ² / (λ + μ_min)``, or 0 on those patches) changes nothing there.
-The rest have a mode their samples barely see (``μ_min`` down to 0: gaps in the sampling, few samples);
-there a smaller ridge lowers the residual at the samples (median 13.1 % → 11.9 % at ``ridge`` 1e-6) only
-by fitting that mode to the samples, with coefficients up to 5× (1e-6) to 50× (1e-8) larger. The
-remaining linear residual is Zernike truncation and those sampling gaps, not the ridge.
+λ is one absolute number per surface: ``λ = ridge · median_p(trace(B_pᵀB_p) / k)``, ``ridge`` times the
+typical eigenvalue of a full interior patch (≈ n_p / π for samples spread over the unit disk). The ridge
+moves a coefficient by about ``λ / μ`` of the mode it sits in (``μ``: that mode's eigenvalue of
+``B_pᵀB_p``), so on a well-posed patch (smallest eigenvalue ``μ_min ≫ λ``) it is negligible; where a mode
+is barely seen (gaps in the sampling, few samples, boundaries) it keeps that mode's coefficient small
+instead of fitting it to the samples.
 
 The fit is computed in groups of patches with the same number of samples (no padding enters the
 products): :func:`fit_groups`; :func:`fit_patches` pads the result to the widest patch.
@@ -42,16 +42,16 @@ import numpy as np
 import scipy.sparse
 
 from zernet.threads import thread_map
-from zernet.zernike import index_to_nm, num_bases, zernike_basis
+from zernet.zernike import num_bases, zernike_basis
 
-__all__ = ["degree_weights", "fit_groups", "fit_patches", "carry_to_vertices"]
+__all__ = ["ridge_weights", "fit_groups", "fit_patches", "carry_to_vertices"]
 
 
-def degree_weights(n_max: int) -> np.ndarray:
-    """(k,) ridge weights ``n (n + 2) / (n_max (n_max + 2))`` of the Zernike bases, in single-index order
-    (0 for the piston, 1 at degree ``n_max``)."""
-    degree = np.array([index_to_nm(j)[0] for j in range(num_bases(n_max))], dtype=np.float64)
-    return degree * (degree + 2) / max(n_max * (n_max + 2), 1)
+def ridge_weights(n_max: int) -> np.ndarray:
+    """(k,) diagonal of the ridge's ``W``: 0 for the piston, 1 for every other basis (module docstring)."""
+    weights = np.ones(num_bases(n_max))
+    weights[0] = 0.0
+    return weights
 
 
 def fit_groups(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float) -> tuple[list, float]:
@@ -83,7 +83,7 @@ def fit_groups(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max:
     traces = [np.trace(gram, axis1=1, axis2=2) for _, gram in bases_and_grams]
     scale = float(np.median(np.concatenate(traces)) / k) if traces else 1.0
     lam = ridge * max(scale, 1e-12)
-    penalty = lam * degree_weights(n_max)
+    penalty = lam * ridge_weights(n_max)
     diagonal = np.arange(k)
 
     def solve(basis_and_gram):

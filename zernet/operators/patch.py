@@ -1,7 +1,7 @@
 """The patch operator: one sparse linear map from per-vertex features to local Zernike coefficients.
 
 For vertex ``p`` with patch samples ``j`` at geodesic polar coordinates ``(r_j / r0, θ_j)``, the Zernike
-coefficients of a field ``f`` are the degree-weighted ridge least-squares fit ``a_p = P_p f(samples)``
+coefficients of a field ``f`` are the ridge least-squares fit (piston unpenalised) ``a_p = P_p f(samples)``
 with ``P_p = (B_pᵀ B_p + λ W)⁻¹ B_pᵀ`` (``B_p``: n_p × k Zernike values; ``W`` and λ in
 :mod:`zernet.operators.fit`). Samples carry vertex features by barycentric interpolation, so the whole
 map is ``A = blockrows_p(P_p · Interp[patch of p])``, an ``(N·k) × N`` CSR matrix built once per surface
@@ -56,7 +56,7 @@ from .cache import (
     unpack_payload,
     write_payload,
 )
-from .fit import carry_to_vertices, degree_weights, fit_groups, fit_patches
+from .fit import carry_to_vertices, fit_groups, fit_patches, ridge_weights
 from .sparse import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
 
 __all__ = [
@@ -81,8 +81,8 @@ class PatchConfig:
         n_max: highest Zernike degree (k = (n_max + 1)(n_max + 2) / 2; 5 -> 21).
         inner_radius: samples closer than this (absolute units) are left out.
         subtract_center: fit ``f(sample) - f(p)`` instead of ``f(sample)``.
-        ridge: regularisation relative to a full patch's typical eigenvalue, weighted by degree (the piston
-            is not penalised; :mod:`zernet.operators.fit`).
+        ridge: regularisation relative to a full patch's typical eigenvalue, on every basis but the piston
+            (:mod:`zernet.operators.fit`).
         backend: polar-coordinate backend: ``None`` (default: ``"front"`` for meshes, ``"fast"`` for point
             clouds), ``"front"`` (surface distances by front propagation; meshes), ``"fast"`` or ``"accurate"``.
         seed: seed of the surface sampling.
@@ -140,7 +140,7 @@ class PatchOperator:
         patch_angle: (N, n) float64 θ (0 where -1).
         interpolation: scipy CSR (M, N) vertex field -> samples.
         lam: the absolute ridge λ used.
-        ridge_weights: (k,) the diagonal of the ridge's degree weights ``W`` (:mod:`zernet.operators.fit`).
+        ridge_weights: (k,) the diagonal of the ridge's ``W``: 0 for the piston, 1 otherwise (:mod:`zernet.operators.fit`).
         cache_file: the cache file :func:`build_patch_operator` read it from or wrote it to (``None``
             otherwise); files derived from the operator, like its directional transport angles
             (:func:`zernet.operators.directional.patch_transport`), are kept beside it.
@@ -168,7 +168,7 @@ class PatchOperator:
         self.n_vertices = int(frames.shape[0])
         self.n_max = config.n_max
         self.k = config.k
-        self.ridge_weights = degree_weights(config.n_max)
+        self.ridge_weights = ridge_weights(config.n_max)
         if self.matrix.shape != (self.n_vertices * self.k, self.n_vertices):
             raise ValueError(f"operator matrix has shape {self.matrix.shape}, expected {(self.n_vertices * self.k, self.n_vertices)}")
         self._transpose: scipy.sparse.csr_matrix | None = None  # built with the first torch tensors

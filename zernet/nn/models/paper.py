@@ -103,7 +103,7 @@ class PaperZernikeConv(RotatedKernelConv):
     :func:`torch.linalg.solve` in every forward pass, like the authors' release (which uses an absolute
     ``λ = 0.01``). By default ``λ`` is the absolute value the operator was built with (``operator.lam``:
     ``zernet.operators.PatchOperator`` scales its relative ``config.ridge`` by the surface's typical patch
-    eigenvalue) and ``I`` is replaced by the operator's degree weights ``W`` (``operator.ridge_weights``), so
+    eigenvalue) and ``I`` is replaced by the operator's ridge weights ``W`` (``operator.ridge_weights``: ``I`` without the piston), so
     ``fit(x, op)`` equals ``op.apply(x)`` to rounding and this layer equals
     :class:`~zernet.nn.conv.ZernikeConv` (same ``weight`` and ``bias``, ``pooling="max"``); pass
     ``ridge=0.01`` for the release's absolute value with ``I``. Build the operator with ``patch_size=50``
@@ -181,7 +181,7 @@ class PaperZernikeConv(RotatedKernelConv):
         # Vertex features -> values at each patch's samples (barycentric interpolation), (N, n, C).
         values = SparseApply.apply(x.contiguous(), patches.gather, patches.gather_t)
         values = values.view(patches.n_vertices, patches.width, x.shape[1])
-        if self.ridge is None:  # the operator's own fit: its λ and its degree weights
+        if self.ridge is None:  # the operator's own fit: its λ and its ridge weights
             normal = ridge_normal_matrix(patches.basis, float(operator.lam), getattr(operator, "ridge_weights", None))
         else:  # the release's plain ridge λ I
             normal = ridge_normal_matrix(patches.basis, float(self.ridge))
