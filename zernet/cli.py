@@ -53,7 +53,7 @@ DEMO_CONFIG = {
     "data": {"kind": "bodies", "task": "segmentation", "count": 40, "n_test": 8, "val_count": 4,
              "topology": "coarse-615", "poses": "varied", "seed": 0, "features": "xyz+normals"},
     "patch": {"area": 1000,
-              "scales": [{"r0": 4.0, "n_samples": 1600, "patch_size": 50, "n_max": 5, "subtract_center": False}]},
+              "scales": [{"r0": 4.0, "n_samples": 1600, "n_max": 5, "ridge": 1.0e-2, "subtract_center": False}]},
     "model": {"name": "zernet", "widths": [16, 32, 64, 64], "angular_resolution": 4, "pooling": "max",
               "dropout": 0.1},
     "train": {"epochs": 12, "patience": 6, "lr": 5.0e-3, "seed": 0, "threads": 1},
