@@ -90,3 +90,21 @@ def random_frames(rng, n):
     e1 = np.cross(normals, rng.normal(size=(n, 3)))
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
     return np.stack([e1, np.cross(normals, e1), normals], axis=1)
+
+
+def patch_like_operator(k: int, n: int = 15, seed: int = 0, per_patch: int = 5):
+    """A random ``(n k, n)`` operator (``zernet.nn.reference.MatrixOperator`` with random frames) whose ``k``
+    rows per vertex read the same few vertices: the block layout of a real patch fit."""
+    import scipy.sparse as sp
+
+    from zernet.nn.reference import MatrixOperator
+
+    rng = np.random.default_rng(seed)
+    rows, cols = [], []
+    for p in range(n):
+        neighbours = np.sort(rng.choice(n, size=per_patch, replace=False))
+        for j in range(k):
+            rows += [p * k + j] * per_patch
+            cols += list(neighbours)
+    matrix = sp.csr_matrix((rng.normal(size=len(rows)), (rows, cols)), shape=(n * k, n))
+    return MatrixOperator(matrix, k, random_frames(rng, n))

@@ -1,6 +1,8 @@
 """The per-layer plan of the direction-preserving convolution (zernet/nn/directional_plan.py), the
 operator's apply_harmonic, the model's final_order, and the closed-form continuous max of degree 1."""
 
+from functools import partial
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -12,7 +14,7 @@ from zernet.nn.directional_plan import coupling_tensor, directional_plan, harmon
 from zernet.nn.models import DirectionalZerNet
 from zernet.nn.pooling import continuous_max
 from zernet.nn.reference import MatrixOperator
-from meshes import random_frames
+from meshes import patch_like_operator
 from zernet.operators import Geometry, build_directional_operator
 from zernet.operators.directional import patch_pairs
 from zernet.zernike import num_bases, orders, rotate_coefficients
@@ -31,17 +33,7 @@ def _one_thread():
 
 
 
-def _patch_like_operator(n=15, seed=0, per_patch=5):
-    """Every vertex's k rows read the same few vertices (the structure of a real patch fit)."""
-    rng = np.random.default_rng(seed)
-    rows, cols = [], []
-    for p in range(n):
-        neighbours = np.sort(rng.choice(n, size=per_patch, replace=False))
-        for j in range(K):
-            rows += [p * K + j] * per_patch
-            cols += list(neighbours)
-    matrix = sp.csr_matrix((rng.normal(size=len(rows)), (rows, cols)), shape=(n * K, n))
-    return MatrixOperator(matrix, K, random_frames(rng, n))
+_patch_like_operator = partial(patch_like_operator, K)
 
 
 def _naive(alpha_full, weight, coupling):

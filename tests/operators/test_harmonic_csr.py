@@ -9,7 +9,7 @@ import pytest
 import scipy.sparse as sp
 import torch
 
-from meshes import icosphere, random_frames
+from meshes import icosphere, patch_like_operator, random_frames
 from zernet.data.preprocess import ShapeSource, build_dataset
 from zernet.fourier import fourier_dim
 from zernet.nn.models import build_model
@@ -23,17 +23,7 @@ K = num_bases(3)
 CONFIG = PatchConfig(r0=0.6, n_samples=800, patch_size=20, n_max=3, seed=0)
 
 
-def _patch_like_operator(n=15, seed=0, per_patch=5):
-    """Every vertex's k rows read the same few vertices (the block layout of a real patch fit)."""
-    rng = np.random.default_rng(seed)
-    rows, cols = [], []
-    for p in range(n):
-        neighbours = np.sort(rng.choice(n, size=per_patch, replace=False))
-        for j in range(K):
-            rows += [p * K + j] * per_patch
-            cols += list(neighbours)
-    matrix = sp.csr_matrix((rng.normal(size=len(rows)), (rows, cols)), shape=(n * K, n))
-    return MatrixOperator(matrix, K, random_frames(rng, n))
+_patch_like_operator = partial(patch_like_operator, K)
 
 
 def _scattered_operator(n=12, seed=1):
