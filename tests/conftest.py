@@ -5,6 +5,7 @@ pytest loads this file first and, because the test folders have no ``__init__.py
 """
 
 import pytest
+import torch
 
 from meshes import grid, icosphere, open_cylinder, tetrahedron
 
@@ -31,3 +32,12 @@ def cylinder_surface():
 def tetrahedron_surface():
     """The unit corner tetrahedron with outward normals."""
     return tetrahedron()
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Tiny tensors: threads only add contention on a shared machine (a sparse gradcheck 1 s -> 24 s)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
