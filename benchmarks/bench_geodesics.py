@@ -11,7 +11,7 @@ samples as in the paper's FAUST settings, plus any mesh passed with ``--mesh PAT
 
 Per backend: kept pairs whose exact distance exceeds 1.1 r0 (a fold crossed), true pairs (exact < 0.95 r0)
 dropped, radius error median / p95 in % of r0, angle error p95 (rad, r > 0.1 r0, after removing each
-centre's circular-mean offset), and the time for all vertices.
+centre's circular-mean offset; on the body also per body part), and the time for all vertices.
 
 Patch fit (the default :class:`~zernet.operators.PatchConfig`: every sample within r0, piston-sparing
 ridge, backend front on meshes), on the vertices farther than r0 (Euclidean, so at least r0 along the
@@ -21,7 +21,8 @@ surface) from any boundary:
   and the largest other coefficient in % of the piston (p95);
 * linear field ``f(x) = g·x`` (random unit ``g``): the fit reconstructed at the patch samples, relative
   residual ``‖B a − f‖ / ‖f − f(p)‖`` per patch (median, p95), at ``n_max`` 5 and, to tell the Zernike
-  truncation of curved patches from coordinate errors, at ``n_max`` 8 on the same coordinates;
+  truncation of curved patches from coordinate errors, at ``n_max`` 8 on the same coordinates, and the same
+  fit on the exact (MMP) coordinates of the reference centres: what perfect geodesics would give;
 * operator build time (sampling, polar coordinates, fit, assembly) in seconds per 1000 vertices: the
   first build in this process (compiled kernels loaded from numba's disk cache) and a second one.
 
@@ -39,7 +40,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from zernet.data.bodies import generate_bodies
-from zernet.geometry import Surface, compute_polar, load_surface, normalize_area, sample_surface, tangent_frames
+from zernet.data.segmentation import HUMAN_PART_NAMES
+from zernet.geometry import PolarCoordinates, Surface, compute_polar, load_surface, normalize_area, sample_surface, tangent_frames
 from zernet.geometry.exact import ExactGeodesics
 from zernet.io_utils import atomic_write_bytes
 from zernet.operators import PatchConfig, assemble_operator, build_patch_operator
@@ -47,10 +49,11 @@ from zernet.operators import PatchConfig, assemble_operator, build_patch_operato
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_geodesics.json"
 
 
-def body_surface(seed: int) -> Surface:
-    """One posed generated body at the FAUST-sized topology."""
+def body_surface(seed: int) -> tuple[Surface, np.ndarray]:
+    """One posed generated body at the FAUST-sized topology, and the name of each vertex's body part."""
     body = generate_bodies(count=2, seed=seed, topology="faust", poses="varied", n_test=1, progress=False)[0]
-    return Surface(body.vertices, body.faces, name=f"generated body (seed {seed})")
+    surface = Surface(body.vertices, body.faces, name=f"generated body (seed {seed})")
+    return surface, np.asarray(HUMAN_PART_NAMES)[body.parts]
 
 
 def exact_reference(surface, samples, frames, centres, r0):
@@ -59,8 +62,17 @@ def exact_reference(surface, samples, frames, centres, r0):
     return {(int(i), int(j)): (dist, ang) for i, j, dist, ang in zip(c, s, d, a)}
 
 
-def score(polar, exact, centres, r0) -> dict:
-    """The accuracy columns of one backend against the exact pairs of ``centres``."""
+def exact_polar(exact, frames, r0) -> PolarCoordinates:
+    """The exact pairs within ``r0`` as polar coordinates (only the reference's centres have patches)."""
+    pairs = np.array([(i, j, d, a) for (i, j), (d, a) in exact.items() if d <= r0 and np.isfinite(a)]).reshape(-1, 4)
+    pairs = pairs[np.lexsort((pairs[:, 2], pairs[:, 0]))]
+    return PolarCoordinates(pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64), pairs[:, 2], pairs[:, 3],
+                            frames, r0=r0, backend="exact")
+
+
+def score(polar, exact, centres, r0, regions=None) -> dict:
+    """The accuracy columns of one backend against the exact pairs of ``centres``; with ``regions`` (the
+    region name of every vertex) also the angle p95 of the centres in each region."""
     chosen = set(int(c) for c in centres)
     pick = np.isin(polar.center, centres)
     kept = {(int(i), int(j)): (r, t) for i, j, r, t in
@@ -70,18 +82,22 @@ def score(polar, exact, centres, r0) -> dict:
     dropped = sum(1 for key in true if key not in kept)
     both = [key for key in true if key in kept]
     radius_error = np.array([abs(kept[k][0] - exact[k][0]) for k in both]) / r0
-    angle_error = []
+    angle_error, region_errors = [], {}
     for centre in chosen:
         keys = [k for k in both if k[0] == centre and exact[k][0] > 0.1 * r0 and np.isfinite(exact[k][1])]
         if keys:
             diff = np.angle(np.exp(1j * np.array([kept[k][1] - exact[k][1] for k in keys])))
             offset = np.angle(np.mean(np.exp(1j * diff)))
-            angle_error.extend(np.abs(np.angle(np.exp(1j * (diff - offset)))))
+            errors = np.abs(np.angle(np.exp(1j * (diff - offset))))
+            angle_error.extend(errors)
+            if regions is not None:
+                region_errors.setdefault(str(regions[centre]), []).extend(errors)
     return {"kept_beyond_1.1r0_percent": 100.0 * far / max(1, len(kept)),
             "true_dropped_percent": 100.0 * dropped / max(1, len(true)),
             "radius_median_percent_r0": 100.0 * float(np.median(radius_error)),
             "radius_p95_percent_r0": 100.0 * float(np.percentile(radius_error, 95)),
-            "angle_p95_rad": float(np.percentile(angle_error, 95)) if angle_error else None}
+            "angle_p95_rad": float(np.percentile(angle_error, 95)) if angle_error else None,
+            "angle_p95_rad_by_region": {name: float(np.percentile(e, 95)) for name, e in sorted(region_errors.items())}}
 
 
 def interior_vertices(surface: Surface, r0: float) -> np.ndarray:
@@ -106,11 +122,14 @@ def fit_residuals(operator, field_at_samples, field_at_vertices, vertices) -> np
     return np.linalg.norm(residual, axis=1) / np.maximum(np.linalg.norm(variation, axis=1), 1e-300)
 
 
-def patch_fit(surface, polar, samples, config, seed) -> dict:
-    """The patch-fit columns (module docstring) on the coordinates ``polar``."""
+def patch_fit(surface, polar, samples, config, seed, vertices=None) -> dict:
+    """The patch-fit columns (module docstring) on the coordinates ``polar``, scored on the interior
+    vertices (those of them in ``vertices`` when given)."""
     operator = assemble_operator(polar.center, polar.sample, polar.radius, polar.angle, polar.frames,
                                  samples.interpolation, config)
     inside = interior_vertices(surface, config.r0)
+    if vertices is not None:
+        inside = np.intersect1d(inside, vertices)
     coefficients = (operator.matrix @ np.ones(surface.n_vertices)).reshape(-1, operator.k)[inside]
     piston = np.sqrt(np.pi)  # ∫ Z_0 over the unit disk for f = 1
     piston_error = np.abs(coefficients[:, 0] - piston) / piston
@@ -141,7 +160,7 @@ def build_seconds(surface, config) -> tuple[float, float]:
     return times[0], times[1]
 
 
-def measure(surface, r0, n_samples, n_centres, backends, seed) -> dict:
+def measure(surface, r0, n_samples, n_centres, backends, seed, regions=None) -> dict:
     config = PatchConfig(r0=r0, n_samples=n_samples, seed=seed)
     first, second = build_seconds(surface, config)  # first: before anything else in this process
     samples = sample_surface(surface, n_samples, seed=seed)
@@ -155,8 +174,13 @@ def measure(surface, r0, n_samples, n_centres, backends, seed) -> dict:
             "build_second_seconds_per_1000_vertices": 1000.0 * second / surface.n_vertices}
     for backend in backends:
         polar = compute_polar(surface, samples, r0, backend=backend)
-        rows["backends"][backend] = {"seconds_all_vertices": polar.seconds, **score(polar, exact, centres, r0),
-                                     **patch_fit(surface, polar, samples, PatchConfig(**{**config.to_dict(), "backend": backend}), seed)}
+        backend_config = PatchConfig(**{**config.to_dict(), "backend": backend})
+        rows["backends"][backend] = {"seconds_all_vertices": polar.seconds, **score(polar, exact, centres, r0, regions),
+                                     **patch_fit(surface, polar, samples, backend_config, seed)}
+        # The same fit on the reference's centres only, beside the exact coordinates' fit below.
+        rows["backends"][backend]["on_centres"] = patch_fit(surface, polar, samples, backend_config, seed, centres)
+    # The fit on exact coordinates: what the patch-fit targets can reach with perfect geodesics.
+    rows["exact_fit_on_centres"] = patch_fit(surface, exact_polar(exact, frames, r0), samples, config, seed, centres)
     return rows
 
 
@@ -174,6 +198,14 @@ def print_rows(row) -> None:
               f"{b['seconds_all_vertices']:7.2f} {b['piston_error_p95_percent']:13.4f} "
               f"{b['other_coefficients_p95_percent_of_piston']:13.4f} {b['linear_residual_median_percent']:10.2f} "
               f"{b['linear_residual_p95_percent']:10.2f} {b['linear_residual_nmax8_median_percent']:9.2f}")
+    for name, b in row["backends"].items():
+        if b["angle_p95_rad_by_region"]:
+            print(f"angle p95 by region ({name}): " + ", ".join(f"{region} {p95:.3f}" for region, p95 in b["angle_p95_rad_by_region"].items()))
+    print(f"linear residual median on the {row['centres']} reference centres (interior ones), n_max 5 / 8:")
+    fits = {**{name: b["on_centres"] for name, b in row["backends"].items()}, "exact (MMP)": row["exact_fit_on_centres"]}
+    for name, fit in fits.items():
+        print(f"  {name:12} {fit['linear_residual_median_percent']:6.2f} % / {fit['linear_residual_nmax8_median_percent']:6.2f} %"
+              f"  (piston p95 {fit['piston_error_p95_percent']:.2g} %)")
 
 
 def main() -> None:
@@ -188,11 +220,11 @@ def main() -> None:
     parser.add_argument("--no-body", action="store_true", help="only the meshes passed with --mesh")
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args()
-    surfaces = ([] if args.no_body else [body_surface(args.seed)]) + [load_surface(path) for path in args.mesh]
+    surfaces = ([] if args.no_body else [body_surface(args.seed)]) + [(load_surface(path), None) for path in args.mesh]
     results = []
-    for surface in surfaces:
+    for surface, regions in surfaces:
         surface, _ = normalize_area(surface, args.area)
-        results.append(measure(surface, args.r0, args.samples, args.centres, args.backends, args.seed))
+        results.append(measure(surface, args.r0, args.samples, args.centres, args.backends, args.seed, regions))
         print_rows(results[-1])
     args.output.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(args.output, json.dumps(results, indent=2).encode())
