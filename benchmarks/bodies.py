@@ -131,8 +131,9 @@ def run_config(task: str, model: str, bodies: Path, args) -> dict:
         config["model"] = {k: v for k, v in config["model"].items() if k not in ZERNET_ONLY}
     config["model"]["widths"] = widths
     config["model"]["dropout"] = config["model"].get("dropout", 0.25)
-    config["train"].update({"epochs": args.epochs, "patience": None, "seed": args.seed, "threads": args.threads,
-                            "device": "cpu"})
+    # Trained one epoch at a time (run_one): the cosine schedule, if any, spans the whole budget.
+    config["train"].update({"epochs": args.epochs, "lr_schedule_epochs": args.epochs, "patience": None,
+                            "seed": args.seed, "threads": args.threads, "device": "cpu"})
     config["eval"] = {"renders": 0, "plots": False}
     config["cache_dir"] = str(ROOT / ".zernet-cache")
     return apply_overrides(config, args.overrides)

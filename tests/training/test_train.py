@@ -323,6 +323,12 @@ def test_cosine_schedule_and_resume_from_mid_schedule(tmp_path, cache_dir):
     assert rates[0] == pytest.approx(0.1) and rates[2] == pytest.approx(0.05)
     assert all(a > b > 0 for a, b in zip(rates, rates[1:]))
     assert epoch_learning_rate(TrainSection(lr=0.1, epochs=4), 3) == 0.1  # constant by default
+    # A run trained in pieces (epochs 1, 2, ... with resume) keeps the schedule of its whole span.
+    pieces = [epoch_learning_rate(TrainSection(lr=0.1, lr_schedule="cosine", epochs=e, lr_schedule_epochs=4), e)
+              for e in range(1, 5)]
+    assert pieces == pytest.approx(rates)
+    assert epoch_learning_rate(TrainSection(lr=0.1, lr_schedule="cosine", epochs=6, lr_schedule_epochs=4), 6) == \
+        pytest.approx(rates[-1])  # past the span: the last epoch's rate
 
     config = tiny_config(cache_dir, epochs=4, patience=None, lr_schedule="cosine")
     train(config, tmp_path / "full", progress=False, workers=0)

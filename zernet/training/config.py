@@ -299,6 +299,9 @@ class TrainSection(_Section):
     epochs: int = _rule(200, "int", minimum=0)
     lr: float = _rule(1.0e-3, "number", positive=True)
     lr_schedule: str = _rule("constant", "str", choices=LR_SCHEDULES)  # cosine: from lr to 0 over epochs
+    # Epochs the cosine spans (null: train.epochs). Set it when a run is trained in pieces with a growing
+    # epoch budget (resume), so the schedule stays that of the whole run.
+    lr_schedule_epochs: int | None = _rule(None, "int", minimum=1, optional=True)
     weight_decay: float = _rule(0.0, "number")
     loss: str = _rule("auto", "str", choices=LOSSES)                   # auto: cross_entropy / mse by task
     standardize_targets: bool = _rule(True, "bool")     # regression: train on (y - mean) / std

@@ -24,11 +24,13 @@ __all__ = ["epoch_learning_rate", "epoch_order", "step_groups", "seed_everything
 
 def epoch_learning_rate(train: TrainSection, epoch: int) -> float:
     """Learning rate of (1-based) ``epoch``: ``train.lr``, or with ``lr_schedule: cosine`` the half cosine
-    from ``lr`` at epoch 1 towards 0 after the last of ``train.epochs``."""
+    from ``lr`` at epoch 1 towards 0 after the last of ``train.lr_schedule_epochs`` (default
+    ``train.epochs``); epochs past that span keep the last epoch's rate."""
     lr = float(train.lr)
     if train.lr_schedule == "constant":
         return lr
-    return 0.5 * lr * (1.0 + math.cos(math.pi * (epoch - 1) / max(int(train.epochs), 1)))
+    span = max(int(train.lr_schedule_epochs or train.epochs), 1)
+    return 0.5 * lr * (1.0 + math.cos(math.pi * min(epoch - 1, span - 1) / span))
 
 
 def epoch_order(seed: int, epoch: int, n: int) -> list[int]:
