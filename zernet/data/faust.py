@@ -38,11 +38,13 @@ _PATTERN = "tr_reg_{:03d}.ply"
 
 
 def faust_patch_configs(n_scales: int = 1, **overrides):
-    """The authors' settings at area 15000: r0 = 5.5 (then 11, 22 for more scales), 12000 samples, 50 per
-    patch, samples closer than r0/4 left out (``inner_radius``), centre value subtracted."""
-    settings = {"n_samples": 12000, "patch_size": 50, "inner_radius": 0.25, "subtract_center": True}
+    """The shipped FAUST recipe at area 15000 (``configs/faust_single_scale.yaml``): r0 = 5.5 (then 11, 22
+    for more scales), 12000 samples, every sample within r0 fitted except those closer than r0/4
+    (``inner_radius``), centre value subtracted, fit ridge 1e-2, front geodesics. The authors fitted the 50
+    nearest samples: pass ``patch_size=50`` for their formulation."""
+    settings = {"n_samples": 12000, "subtract_center": True, "ridge": 1.0e-2, "backend": "front"}
     settings.update(overrides)
-    return [PatchConfig(r0=5.5 * 2**s, **settings) for s in range(n_scales)]
+    return [PatchConfig(**{"r0": 5.5 * 2**s, "inner_radius": 5.5 * 2**s / 4, **settings}) for s in range(n_scales)]
 
 
 def find_registrations(root: str | os.PathLike) -> Path:
