@@ -11,6 +11,7 @@ from tqdm.auto import tqdm
 
 from zernet import metrics as zmetrics
 from zernet.distributed import DistributedContext
+from zernet.threads import prefetched
 from zernet.training.augment import augment_records
 from zernet.training.batch import Batch, model_directional_order
 from zernet.training.config import TrainSection
@@ -52,13 +53,19 @@ def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: tor
     groups = step_groups(order, train.shapes_per_step)
     classification = objective.task == "classification"
     loss_sum, hit_sum, vertex_sum = 0.0, 0.0, 0
-    bar = tqdm(groups, desc=f"epoch {epoch}/{train.epochs}", unit="step", leave=False, disable=not progress,
-               dynamic_ncols=True)
-    for step, group in enumerate(bar, start=1):
-        directional = model_directional_order(net)
+    directional = model_directional_order(net)
+
+    def step_batch(numbered_group):
+        step, group = numbered_group
         records = augment_records([dataset[i] for i in group], train, dataset.feature_kind,
                                   [c.n_max for c in dataset.patch_configs], epoch, step, directional)
-        batch = Batch(records, device, objective.target_stats, objective.feature_stats, directional)
+        return Batch(records, device, objective.target_stats, objective.feature_stats, directional)
+
+    # The next step's shapes are read (from the cache, for a streamed data set) while this step computes.
+    batches = prefetched(step_batch, enumerate(groups, start=1))
+    bar = tqdm(batches, total=len(groups), desc=f"epoch {epoch}/{train.epochs}", unit="step", leave=False,
+               disable=not progress, dynamic_ncols=True)
+    for step, batch in enumerate(bar, start=1):
         optimizer.zero_grad(set_to_none=True)
         with precision_autocast(train.precision, device.type):
             output = net(batch.features, batch.geometry)
@@ -95,9 +102,12 @@ def validate(model: torch.nn.Module, dataset, indices: Sequence[int], device: to
     """Mean validation loss and metric (accuracy, or MAPE for regression) over shapes, each counting once."""
     model.eval()
     losses, scores = [], []
-    for i in indices:
-        batch = Batch([dataset[i]], device, objective.target_stats, objective.feature_stats,
-                      model_directional_order(model))
+    directional = model_directional_order(model)
+
+    def shape_batch(i):
+        return i, Batch([dataset[i]], device, objective.target_stats, objective.feature_stats, directional)
+
+    for i, batch in prefetched(shape_batch, indices):
         output = model(batch.features, batch.geometry)
         losses.append(compute_loss(objective.loss, output, batch.target, objective.target_stats).item())
         if objective.task == "classification":
