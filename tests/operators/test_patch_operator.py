@@ -1,5 +1,7 @@
 """The patch operator: analytic coefficients, invariances, autograd, batching and the on-disk cache."""
 
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -287,3 +289,22 @@ def test_config_validation():
     with pytest.raises(ValueError):
         PatchConfig(r0=1.0, ridge=0.0)
     assert PatchConfig(r0=1.0).k == num_bases(5) == 21
+
+
+def test_the_checksum_is_verified_once_per_file_version(tmp_path, monkeypatch):
+    import hashlib
+
+    import zernet.operators.cache as cache
+
+    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=500))
+    path = op.save(tmp_path / "op.npz", key="k")
+    rewritten = op.to_bytes(key="k")
+    hashed, sha256 = [], hashlib.sha256
+    monkeypatch.setattr(cache.hashlib, "sha256", lambda data=b"": hashed.append(len(data)) or sha256(data))
+    for _ in range(3):
+        assert (PatchOperator.load(path, key="k").matrix != op.matrix).nnz == 0
+    assert len(hashed) == 1  # a streamed data set rereads its files every epoch
+    path.write_bytes(rewritten)
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))  # a rewritten file
+    PatchOperator.load(path, key="k")
+    assert len(hashed) == 2

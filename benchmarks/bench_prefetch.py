@@ -1,0 +1,100 @@
+"""Training steps on a streamed FAUST-sized data set, with and without reading the next step's shape ahead.
+
+A data set over ``zernet.data.preprocess.IN_MEMORY_VERTEX_LIMIT`` vertices (80 FAUST-sized bodies) keeps
+nothing in memory: every step reads its shape back from the cache (shape file, 150 MB patch operator with
+its checksum, features) and builds the torch matrices. ``zernet.training.epoch.train_one_epoch`` does that
+for the next step on a background thread (:func:`zernet.threads.prefetched`) while the current one computes.
+This script times :func:`train_one_epoch` over the first ``--shapes`` training shapes of the generated bodies
+(``zernet bodies DIR --count 100 --n-test 20``, the recipe of ``configs/bodies_correspondence.yaml``), once
+as shipped and once with the shapes read in turn, alternating over ``--rounds`` rounds, and prints seconds
+per step (median over rounds) and their ratio. The results are the same either way (same batches, same
+order); only the wall time differs.
+
+    .venv/bin/python benchmarks/bench_prefetch.py --data data/bodies-faust-100 --shapes 12 --rounds 2
+
+Writes ``benchmarks/results/bench_prefetch.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+import zernet.training.epoch as epoch_module
+from zernet.distributed import DistributedContext
+from zernet.io_utils import atomic_write_bytes
+from zernet.training.build import build_dataset, build_model_from_spec, model_spec
+from zernet.training.config import load_config, parse_config
+from zernet.training.epoch import Objective, train_one_epoch
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results" / "bench_prefetch.json"
+
+
+def sequential(function, items):
+    """What training did before the prefetch: each step's shapes read when the step starts."""
+    return (function(item) for item in items)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, default=ROOT / "data" / "bodies-faust-100",
+                        help="folder written by `zernet bodies` (FAUST-sized, 100 bodies)")
+    parser.add_argument("--shapes", type=int, default=12, help="training shapes per timed pass")
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--output", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    config = load_config(ROOT / "configs" / "bodies_correspondence.yaml")
+    config["data"].update({"root": str(args.data / "correspondence"), "train_indices": list(range(80)),
+                           "test_indices": list(range(80, 100))})
+    config["train"].update({"threads": args.threads, "device": "cpu"})
+    config["cache_dir"] = str(ROOT / ".zernet-cache")
+    config = parse_config(config)
+    dataset = build_dataset(config, progress=False, workers=1)
+    if dataset.in_memory:
+        raise SystemExit(f"{args.data}: the data set fits in memory, nothing is streamed (use 100 FAUST-sized bodies)")
+    shapes = list(dataset.splits["train"])[: args.shapes]
+    spec = model_spec(config.model, dataset.in_channels, dataset.num_classes, dataset.patch_configs)
+    model = build_model_from_spec(spec)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.train.lr)
+    objective = Objective("classification", "cross_entropy", None, None)
+    context = DistributedContext()
+    shipped = epoch_module.prefetched
+
+    def seconds_per_step(reader) -> float:
+        epoch_module.prefetched = reader
+        try:
+            started = time.perf_counter()
+            train_one_epoch(model, model, optimizer, dataset, shapes, 1, config.train, objective, context, progress=False)
+            return (time.perf_counter() - started) / len(shapes)
+        finally:
+            epoch_module.prefetched = shipped
+
+    seconds_per_step(shipped)  # warm-up: first products, allocator
+    times = {"sequential": [], "prefetched": []}
+    for _ in range(args.rounds):
+        times["sequential"].append(seconds_per_step(sequential))
+        times["prefetched"].append(seconds_per_step(shipped))
+    medians = {name: statistics.median(values) for name, values in times.items()}
+    print(f"{len(shapes)} FAUST-sized training shapes (streamed), {args.threads} threads, {args.rounds} rounds")
+    print(f"{'reading':12} {'s / step':>9}")
+    for name, value in medians.items():
+        print(f"{name:12} {value:9.2f}")
+    ratio = medians["sequential"] / medians["prefetched"]
+    print(f"prefetched steps are {ratio:.2f}x as fast")
+    result = {"shapes": len(shapes), "threads": args.threads, "rounds": args.rounds, "seconds_per_step": times,
+              "median_seconds_per_step": medians, "speedup": ratio}
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(args.output, json.dumps(result, indent=2).encode())
+
+
+if __name__ == "__main__":
+    main()
