@@ -122,32 +122,38 @@ def fit_residuals(operator, field_at_samples, field_at_vertices, vertices) -> np
     return np.linalg.norm(residual, axis=1) / np.maximum(np.linalg.norm(variation, axis=1), 1e-300)
 
 
-def patch_fit(surface, polar, samples, config, seed, vertices=None) -> dict:
+def patch_fit(surface, polar, samples, config, seed, centres=None) -> dict:
     """The patch-fit columns (module docstring) on the coordinates ``polar``, scored on the interior
-    vertices (those of them in ``vertices`` when given)."""
+    vertices; with ``centres`` also under ``"on_centres"``, scored on the interior ones among them (the same
+    operators, so a backend's fit compares with the exact coordinates' fit on the same vertices)."""
     operator = assemble_operator(polar.center, polar.sample, polar.radius, polar.angle, polar.frames,
                                  samples.interpolation, config)
-    inside = interior_vertices(surface, config.r0)
-    if vertices is not None:
-        inside = np.intersect1d(inside, vertices)
-    coefficients = (operator.matrix @ np.ones(surface.n_vertices)).reshape(-1, operator.k)[inside]
-    piston = np.sqrt(np.pi)  # ∫ Z_0 over the unit disk for f = 1
-    piston_error = np.abs(coefficients[:, 0] - piston) / piston
-    others = np.abs(coefficients[:, 1:]).max(axis=1) / np.abs(coefficients[:, 0])
+    high = assemble_operator(polar.center, polar.sample, polar.radius, polar.angle, polar.frames,
+                             samples.interpolation, PatchConfig(**{**config.to_dict(), "n_max": 8}))
     direction = np.random.default_rng(seed).normal(size=3)
     field = surface.vertices @ (direction / np.linalg.norm(direction))
     at_samples = samples.interpolation @ field
-    residual = fit_residuals(operator, at_samples, field, inside)
-    high = assemble_operator(polar.center, polar.sample, polar.radius, polar.angle, polar.frames,
-                             samples.interpolation, PatchConfig(**{**config.to_dict(), "n_max": 8}))
-    residual_high = fit_residuals(high, at_samples, field, inside)
-    counts = (operator.patch_sample_index[inside] >= 0).sum(axis=1)
-    return {"vertices_scored": int(len(inside)), "samples_per_patch_median": float(np.median(counts)),
-            "piston_error_p95_percent": 100.0 * float(np.percentile(piston_error, 95)),
-            "other_coefficients_p95_percent_of_piston": 100.0 * float(np.percentile(others, 95)),
-            "linear_residual_median_percent": 100.0 * float(np.median(residual)),
-            "linear_residual_p95_percent": 100.0 * float(np.percentile(residual, 95)),
-            "linear_residual_nmax8_median_percent": 100.0 * float(np.median(residual_high))}
+
+    def columns(inside):
+        coefficients = (operator.matrix @ np.ones(surface.n_vertices)).reshape(-1, operator.k)[inside]
+        piston = np.sqrt(np.pi)  # ∫ Z_0 over the unit disk for f = 1
+        piston_error = np.abs(coefficients[:, 0] - piston) / piston
+        others = np.abs(coefficients[:, 1:]).max(axis=1) / np.abs(coefficients[:, 0])
+        residual = fit_residuals(operator, at_samples, field, inside)
+        residual_high = fit_residuals(high, at_samples, field, inside)
+        counts = (operator.patch_sample_index[inside] >= 0).sum(axis=1)
+        return {"vertices_scored": int(len(inside)), "samples_per_patch_median": float(np.median(counts)),
+                "piston_error_p95_percent": 100.0 * float(np.percentile(piston_error, 95)),
+                "other_coefficients_p95_percent_of_piston": 100.0 * float(np.percentile(others, 95)),
+                "linear_residual_median_percent": 100.0 * float(np.median(residual)),
+                "linear_residual_p95_percent": 100.0 * float(np.percentile(residual, 95)),
+                "linear_residual_nmax8_median_percent": 100.0 * float(np.median(residual_high))}
+
+    inside = interior_vertices(surface, config.r0)
+    result = columns(inside)
+    if centres is not None:
+        result["on_centres"] = columns(np.intersect1d(inside, centres))
+    return result
 
 
 def build_seconds(surface, config) -> tuple[float, float]:
@@ -176,11 +182,11 @@ def measure(surface, r0, n_samples, n_centres, backends, seed, regions=None) -> 
         polar = compute_polar(surface, samples, r0, backend=backend)
         backend_config = PatchConfig(**{**config.to_dict(), "backend": backend})
         rows["backends"][backend] = {"seconds_all_vertices": polar.seconds, **score(polar, exact, centres, r0, regions),
-                                     **patch_fit(surface, polar, samples, backend_config, seed)}
-        # The same fit on the reference's centres only, beside the exact coordinates' fit below.
-        rows["backends"][backend]["on_centres"] = patch_fit(surface, polar, samples, backend_config, seed, centres)
-    # The fit on exact coordinates: what the patch-fit targets can reach with perfect geodesics.
-    rows["exact_fit_on_centres"] = patch_fit(surface, exact_polar(exact, frames, r0), samples, config, seed, centres)
+                                     **patch_fit(surface, polar, samples, backend_config, seed, centres)}
+    # The fit on exact coordinates (only the reference's centres have patches): what the patch-fit targets
+    # can reach with perfect geodesics.
+    rows["exact_fit_on_centres"] = patch_fit(surface, exact_polar(exact, frames, r0), samples, config, seed,
+                                             centres)["on_centres"]
     return rows
 
 

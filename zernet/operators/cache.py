@@ -143,9 +143,9 @@ def read_payload(path: str | os.PathLike, key: str | None = None) -> dict[str, n
     """Read a file written by :func:`write_payload`; ``ValueError`` naming the file if it cannot be trusted.
     The checksum is verified on the first read of this version of the file in this process (module docstring)."""
     path = Path(path)
-    data = path.read_bytes()
-    status = path.stat()
+    status = path.stat()  # before the read: a file replaced meanwhile is then checked on its next read
     version = (str(path.resolve()), status.st_size, status.st_mtime_ns)
+    data = path.read_bytes()
     arrays = unpack_payload(data, key=key, name=str(path), check_sum=version not in _CHECKED)
     _CHECKED.add(version)
     return arrays
