@@ -24,7 +24,13 @@ import torch
 import zernet.operators.directional as directional_operators
 from zernet.fourier import fourier_rotation_matrix, fourier_to_samples, rotate_fourier, samples_to_fourier, trig_table
 from zernet.nn.conv import ZernikeConv
-from zernet.nn.directional import DirectionalLifting, DirectionalPooling, DirectionalReLU, DirectionalZernikeConv
+from zernet.nn.directional import (
+    DirectionalLayerNorm,
+    DirectionalLifting,
+    DirectionalPooling,
+    DirectionalReLU,
+    DirectionalZernikeConv,
+)
 from zernet.nn.models import DirectionalZerNet
 from zernet.nn.reference import MatrixOperator
 from meshes import random_frames
@@ -312,13 +318,18 @@ def test_gradcheck_float64():
 # ------------------------------------------------------------------------------------ model
 
 
-def _model_invariance(nonlinearity, pooling, delta, s=4, seed=12):
+def _model_invariance(nonlinearity, pooling, delta, s=4, seed=12, norm=None):
     torch.manual_seed(seed)
     op = _synthetic_operator(n=16, seed=seed)
     op_turned = _gauge_transform(op, delta)
     model = DirectionalZerNet(
-        3, 5, widths=(6, 6, 8, 10), k=K, angular_resolution=s, pooling=pooling, nonlinearity=nonlinearity
+        3, 5, widths=(6, 6, 8, 10), k=K, angular_resolution=s, pooling=pooling, nonlinearity=nonlinearity, norm=norm
     ).eval()
+    if norm:
+        with torch.no_grad():  # away from the identity initialisation, so the test sees the affine part
+            for layer in model.norms:
+                layer.weight.uniform_(0.5, 1.5)
+                layer.bias.uniform_(-0.5, 0.5)
     if nonlinearity == "norm":
         with torch.no_grad():
             for act in model.acts:
@@ -333,6 +344,37 @@ def test_model_invariant_for_any_turn_with_norm_nonlinearity_and_continuous_pool
     delta = np.random.default_rng(13).uniform(-np.pi, np.pi, 16)
     y, y_turned = _model_invariance("norm", "continuous", delta)
     torch.testing.assert_close(y_turned, y, rtol=0, atol=5e-6 * y.abs().max().item())
+
+
+def test_model_with_layer_norm_invariant_for_any_turn():
+    delta = np.random.default_rng(16).uniform(-np.pi, np.pi, 16)
+    y, y_turned = _model_invariance("norm", "continuous", delta, norm="layer")
+    torch.testing.assert_close(y_turned, y, rtol=0, atol=5e-6 * y.abs().max().item())
+    with pytest.raises(ValueError, match="equivariant"):
+        DirectionalZerNet(3, 5, widths=(6, 10), k=K, norm="batch")
+
+
+@pytest.mark.parametrize("order", [0, 1, 3])
+def test_layer_norm_is_the_layer_norm_of_the_sampled_channels_and_commutes_with_turns(order):
+    torch.manual_seed(17)
+    n, c, samples = 6, 5, 64  # 64 > 2 * 2L angles sample the squares of an order-L function exactly
+    norm = DirectionalLayerNorm(c).double()
+    with torch.no_grad():
+        norm.weight.uniform_(0.5, 1.5)
+        norm.bias.uniform_(-1, 1)
+    x = torch.randn(n, 2 * order + 1, c, dtype=torch.float64)
+    y = norm(x)
+    # the reference: a layer norm over all channels and directions of the sampled functions
+    values = fourier_to_samples(x, samples, dim=1)  # (N, s, C)
+    flat = values.reshape(n, -1)
+    normalised = (flat - flat.mean(1, keepdim=True)) / torch.sqrt(flat.var(1, unbiased=False, keepdim=True) + norm.eps)
+    expected = normalised.view(n, samples, c) * norm.weight + norm.bias
+    torch.testing.assert_close(fourier_to_samples(y, samples, dim=1), expected, rtol=0, atol=1e-12)
+    delta = torch.from_numpy(np.random.default_rng(18).uniform(-np.pi, np.pi, (n, 1)))
+    torch.testing.assert_close(norm(rotate_fourier(x, delta, dim=1)), rotate_fourier(y, delta, dim=1), rtol=0, atol=1e-12)
+    assert torch.autograd.gradcheck(norm, (x.clone().requires_grad_(),))
+    with pytest.raises(ValueError, match="2L \\+ 1"):
+        norm(torch.randn(n, 2, c, dtype=torch.float64))
 
 
 def test_model_invariant_for_turns_by_multiples_of_2pi_over_s():

@@ -58,6 +58,7 @@ __all__ = [
     "DirectionalLifting",
     "DirectionalPooling",
     "DirectionalReLU",
+    "DirectionalLayerNorm",
 ]
 
 
@@ -351,3 +352,53 @@ class DirectionalReLU(nn.Module):
         return f"{self.channels}, order={self.order}, mode={self.mode!r}" + (
             f", s={self.angular_resolution}" if self.mode == "regular" else ""
         )
+
+
+class DirectionalLayerNorm(nn.Module):
+    r"""Layer normalisation of directional channels, equivariant for every rotation.
+
+    Each vertex's ``C`` channels are functions on the circle; they are normalised together, as a layer norm
+    of their values over all channels and directions would:
+
+    .. math::
+        μ = \frac{1}{C}\sum_c a_{0,c}, \qquad
+        σ^2 = \frac{1}{C}\sum_c \frac{1}{2π}\int_0^{2π} (h_c(ψ) - μ)^2 dψ
+            = \frac{1}{C}\sum_c \Big[(a_{0,c} - μ)^2 + \tfrac12 \sum_{ℓ \ge 1} a_{ℓ,c}^2 + b_{ℓ,c}^2\Big],
+
+    ``h_c ← γ_c (h_c - μ) / \sqrt{σ^2 + ε} + β_c``. ``μ`` and ``β`` touch only ``a_0``; ``σ`` and the per-channel
+    gain ``γ`` are the same for every order, and a rotation keeps every ``|(a_ℓ, b_ℓ)|``: so the layer commutes
+    with :func:`zernet.fourier.rotate_fourier` for any angle, whatever the order ``L`` of its input.
+
+    Args:
+        channels: ``C``.
+        eps: ``ε``.
+
+    Shapes:
+        - input / output: ``(N, 2L + 1, C)``.
+    """
+
+    def __init__(self, channels: int, eps: float = 1e-5) -> None:
+        super().__init__()
+        self.channels, self.eps = int(channels), float(eps)
+        self.weight = nn.Parameter(torch.ones(self.channels))
+        self.bias = nn.Parameter(torch.zeros(self.channels))
+
+    def reset_parameters(self) -> None:
+        nn.init.ones_(self.weight)
+        nn.init.zeros_(self.bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """``(N, 2L + 1, C)`` -> ``(N, 2L + 1, C)``."""
+        if x.dim() != 3 or x.shape[2] != self.channels or x.shape[1] % 2 != 1:
+            raise ValueError(f"DirectionalLayerNorm expects (N, 2L + 1, {self.channels}), got {tuple(x.shape)}")
+        mean = x[:, :1].mean(dim=2, keepdim=True)
+        centred = torch.cat([x[:, :1] - mean, x[:, 1:]], dim=1)
+        # mean of cos² and sin² over the circle is 1/2: the orders >= 1 weigh half of a_0
+        squares = centred.square()
+        power = squares[:, 0] + 0.5 * squares[:, 1:].sum(dim=1)
+        scale = torch.rsqrt(power.mean(dim=1) + self.eps)[:, None, None]
+        y = centred * scale * self.weight
+        return torch.cat([y[:, :1] + self.bias, y[:, 1:]], dim=1)
+
+    def extra_repr(self) -> str:
+        return f"{self.channels}, eps={self.eps}"

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from zernet.nn.directional import DirectionalPooling, DirectionalReLU, DirectionalZernikeConv
+from zernet.nn.directional import DirectionalLayerNorm, DirectionalPooling, DirectionalReLU, DirectionalZernikeConv
 from zernet.zernike import n_max_for
 
 from .base import SurfaceModel, resolve_widths
@@ -18,8 +18,9 @@ __all__ = ["DirectionalZerNet"]
 class DirectionalZerNet(SurfaceModel):
     r"""ZerNet with direction-preserving convolutions (paper section 4.4).
 
-    ``DirectionalLifting(w_0) -> act -> (DirectionalZernikeConv(w_i), act)_i -> DirectionalZernikeConv(w_last,
-    final_order) -> DirectionalPooling -> ReLU -> Lin(widths[-1]), ReLU -> Dropout -> Lin(out_channels)``
+    ``DirectionalLifting(w_0) -> [norm] -> act -> (DirectionalZernikeConv(w_i), [norm], act)_i ->
+    DirectionalZernikeConv(w_last, final_order) -> [norm] -> DirectionalPooling -> ReLU -> Lin(widths[-1]), ReLU
+    -> Dropout -> Lin(out_channels)``
 
     Between convolution blocks every feature keeps its direction axis as Fourier coefficients of order
     ``L`` (default ``(s - 1) // 2``: ``L = 1`` at the paper's ``s = 4``); ``act`` is
@@ -41,6 +42,8 @@ class DirectionalZerNet(SurfaceModel):
         pooling: ``"continuous"`` (default), ``"discrete"`` or ``"mean"`` at the end.
         nonlinearity: ``"regular"`` (ReLU at the ``s`` angles, default) or ``"norm"``.
         dropout: dropout probability before the output layer.
+        norm: ``None`` (paper) or ``"layer"``: :class:`~zernet.nn.directional.DirectionalLayerNorm` after every
+            convolution (equivariant for every rotation; a batch norm has no equivariant form here).
         final_order: Fourier order kept by the last convolution (``None``: ``n_max + L``, the whole
             response; ``configs/faust_directional.yaml`` uses 1).
 
@@ -67,6 +70,7 @@ class DirectionalZerNet(SurfaceModel):
         nonlinearity: str = "regular",
         dropout: float = 0.25,
         final_order: int | None = None,
+        norm: str | None = None,
     ) -> None:
         super().__init__()
         widths = resolve_widths(widths, None)
@@ -80,8 +84,13 @@ class DirectionalZerNet(SurfaceModel):
         self.final_order = None if final_order is None else int(final_order)
         if self.final_order is not None and self.final_order < 0:
             raise ValueError(f"final_order must be >= 0, got {final_order}")
+        if norm not in (None, "none", "layer"):
+            raise ValueError(f"{type(self).__name__}: norm must be None or 'layer' (batch norm has no "
+                             f"rotation-equivariant form for directional channels), got {norm!r}")
+        self.norm_name = None if norm in (None, "none") else norm
         conv_widths = widths[:-1]
         self.convs = nn.ModuleList()
+        self.norms = nn.ModuleList()
         self.acts = nn.ModuleList()
         channels, in_order = self.in_channels, 0
         for i, width in enumerate(conv_widths):
@@ -90,6 +99,7 @@ class DirectionalZerNet(SurfaceModel):
             if last:
                 out_order = n_max + in_order if self.final_order is None else self.final_order
             self.convs.append(DirectionalZernikeConv(channels, width, n_max=n_max, order=in_order, out_order=out_order))
+            self.norms.append(DirectionalLayerNorm(width) if self.norm_name else nn.Identity())
             if not last:
                 self.acts.append(DirectionalReLU(width, order, mode=nonlinearity, angular_resolution=s))
             channels, in_order = width, order
@@ -109,7 +119,7 @@ class DirectionalZerNet(SurfaceModel):
         directional = self.directional_operator(geometry)
         h = x
         for i, conv in enumerate(self.convs):
-            h = conv(h, geometry.operators[0] if i == 0 else directional)
+            h = self.norms[i](conv(h, geometry.operators[0] if i == 0 else directional))
             if i < len(self.acts):
                 h = self.acts[i](h)
         h = torch.relu(self.pool(h))
