@@ -146,6 +146,16 @@ def test_loss_decreases_on_an_overfittable_task(tmp_path, cache_dir):
     assert metrics["epochs_trained"] == 8
 
 
+def test_training_flushes_denormals(tmp_path, cache_dir):
+    """Denormal floats (late softmax gradients) would run through the CPU's slow path: training sets them to 0."""
+    if not torch.set_flush_denormal(False):
+        pytest.skip("this CPU has no flush-to-zero mode")
+    denormal = torch.tensor([1e-39])
+    assert (denormal * 1.0).item() != 0.0
+    train(tiny_config(cache_dir, epochs=1, patience=None), tmp_path / "run", progress=False, workers=0)
+    assert (denormal * 1.0).item() == 0.0
+
+
 def test_resume_gives_the_same_weights_as_an_uninterrupted_run(tmp_path, cache_dir):
     full = tiny_config(cache_dir, epochs=4, patience=None)
     train(full, tmp_path / "full", progress=False, workers=0)

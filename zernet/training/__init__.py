@@ -24,13 +24,13 @@ from zernet.training.evaluation import evaluate, summary_line
 from zernet.training.loop import RESUME_CHANGEABLE, train
 from zernet.training.predict import predict
 from zernet.training.run_dir import write_json
-from zernet.training.runtime import keep_freed_memory, precision_autocast, resolve_device
+from zernet.training.runtime import flush_denormals, keep_freed_memory, precision_autocast, resolve_device
 from zernet.training.schedule import epoch_learning_rate, epoch_order, step_groups
 
 __all__ = [
     "ConfigError", "DEFAULT_CONFIG", "RunConfig", "load_config", "apply_overrides", "parse_config", "read_config",
     "resolve_config", "build_dataset", "load_data", "model_spec", "build_model_from_spec", "train", "evaluate",
     "predict", "summary_line", "write_json", "load_checkpoint", "checkpoint_path", "CHECKPOINT_FORMAT",
-    "epoch_order", "epoch_learning_rate", "step_groups", "precision_autocast", "keep_freed_memory",
+    "epoch_order", "epoch_learning_rate", "step_groups", "precision_autocast", "keep_freed_memory", "flush_denormals",
     "resolve_device", "check_model_config", "RESUME_CHANGEABLE",
 ]

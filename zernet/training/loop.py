@@ -67,7 +67,7 @@ from zernet.training.run_dir import (
     write_json,
     write_plots,
 )
-from zernet.training.runtime import resolve_device
+from zernet.training.runtime import flush_denormals, resolve_device
 from zernet.training.schedule import seed_everything, set_rng_state
 from zernet.training.stopping import BUDGET, Monitor, initial_state, record_epoch, reopen_if_budget_raised
 from zernet.training.targets import feature_stats, target_stats
@@ -195,6 +195,7 @@ def _run(config: RunConfig, run_dir: Path, checkpoint: dict | None, progress: bo
     """Build, fit, select, test."""
     if config.train.threads:
         torch.set_num_threads(int(config.train.threads))
+    flush_denormals()  # tiny softmax gradients would otherwise slow late epochs down by 2x
     logger.info(("resuming" if checkpoint else "starting") + f" run in {run_dir} on {ctx.device} "
                 f"({torch.get_num_threads()} CPU threads"
                 + (f", {ctx.world_size} ranks, {ctx.backend})" if ctx.distributed else ")"))
