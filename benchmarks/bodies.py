@@ -83,8 +83,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--data", type=Path, default=None, help="bodies folder (default data/bodies-TOPOLOGY-COUNT)")
     p.add_argument("--runs", type=Path, default=ROOT / "runs" / "bench_bodies", help="run folders")
     p.add_argument("--keep", action="store_true",
-                   help="reuse the results in STEM.json of (task, model) pairs whose configuration is unchanged "
-                        "(an interrupted benchmark continues; models can be added)")
+                   help="reuse the results in STEM.json of (task, model) pairs whose configuration is unchanged, "
+                        "and continue an interrupted pair from its last trained epoch (models can be added)")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "bodies",
                    help="output stem: writes STEM.md, STEM.json and STEM.png")
     return p.parse_args(argv)
@@ -161,17 +161,33 @@ def test_accuracy(run_dir: Path, name: str, dataset, indices) -> float:
     return hits / total
 
 
+CURVE_FILE = "bench_test_curve.json"  # in each run folder: the test curve so far, so --keep continues a pair
+
+
+def trained_curve(run_dir: Path, config) -> list[float]:
+    """The test curve of the epochs already trained in ``run_dir`` with this configuration (``[]`` if none): an
+    interrupted pair continues from its last epoch instead of starting over."""
+    path, last = run_dir / CURVE_FILE, run_dir / "last.pt"
+    if not (path.is_file() and last.is_file()):
+        return []
+    stored = json.loads(path.read_text())
+    trained = load_checkpoint(last)["state"]["epoch"]
+    same = stored.get("config") == json.loads(json.dumps(plain(config.to_dict())))
+    return list(stored["test_curve"]) if same and len(stored["test_curve"]) == trained else []
+
+
 def run_one(task: str, model: str, bodies: Path, args) -> dict:
     """Train ``model`` on ``task`` epoch by epoch, scoring every epoch's model on the test bodies."""
     config = parse_config(run_config(task, model, bodies, args))
     dataset = build_dataset(config, progress=False, workers=1)
     test = list(dataset.splits["test"])
     run_dir = args.runs / f"{task}-{model}"
-    test_curve = []
-    for epoch in range(1, args.epochs + 1):
+    test_curve = trained_curve(run_dir, config) if args.keep else []
+    for epoch in range(len(test_curve) + 1, args.epochs + 1):
         epoch_config = parse_config(apply_overrides(config.to_dict(), [f"train.epochs={epoch}"]))
         train(epoch_config, run_dir, resume=epoch > 1, overwrite=epoch == 1, progress=False, workers=1)
         test_curve.append(test_accuracy(run_dir, "last.pt", dataset, test))
+        write_json(run_dir / CURVE_FILE, {"config": plain(config.to_dict()), "test_curve": test_curve})
         print(f"  {task} {model} epoch {epoch}: test accuracy {test_curve[-1]:.4f}", flush=True)
     state = load_checkpoint(run_dir / "last.pt")["state"]
     selected = test_scores(run_dir, "best.pt", dataset, test)
