@@ -9,6 +9,8 @@ from __future__ import annotations
 import copy
 import json
 import shutil
+import subprocess
+import sys
 from types import SimpleNamespace
 
 import numpy as np
@@ -147,13 +149,28 @@ def test_loss_decreases_on_an_overfittable_task(tmp_path, cache_dir):
 
 
 def test_training_flushes_denormals(tmp_path, cache_dir):
-    """Denormal floats (late softmax gradients) would run through the CPU's slow path: training sets them to 0."""
+    """Denormal floats (late softmax gradients) would run through the CPU's slow path: training reads them as 0."""
     if not torch.set_flush_denormal(False):
         pytest.skip("this CPU has no flush-to-zero mode")
-    denormal = torch.tensor([1e-39])
-    assert (denormal * 1.0).item() != 0.0
+    denormals = torch.from_numpy(np.full(8, 1e-39, dtype=np.float32))
+    assert (denormals * 1.0).abs().max().item() > 0
     train(tiny_config(cache_dir, epochs=1, patience=None), tmp_path / "run", progress=False, workers=0)
-    assert (denormal * 1.0).item() == 0.0
+    assert (denormals * 1.0).abs().max().item() == 0.0
+
+
+def test_the_command_flushes_denormals_on_every_thread():
+    """The BLAS threads too, in a fresh process: the flag is set before any of them starts."""
+    if not torch.set_flush_denormal(False):
+        pytest.skip("this CPU has no flush-to-zero mode")
+    script = (
+        "import numpy as np, torch\n"
+        "from zernet.training import flush_denormals\n"
+        "flush_denormals(); torch.set_num_threads(2)\n"
+        "d = torch.from_numpy(np.full((1024, 1024), 1e-39, dtype=np.float32))\n"
+        "print((d @ torch.ones(1024, 64)).abs().max().item())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout
+    assert float(out) == 0.0
 
 
 def test_resume_gives_the_same_weights_as_an_uninterrupted_run(tmp_path, cache_dir):

@@ -66,5 +66,10 @@ def flush_denormals() -> bool:
     development machine, and FAUST-sized epochs 8-11 took 1.6-2.1x the first ones. Zero is as good an
     answer for such values. Called at the start of every training run; returns False where the CPU has no
     such mode (the setting is then unchanged).
+
+    The mode is a per-thread CPU flag that new threads take from the thread starting them, and the BLAS
+    library keeps its threads once started: call this before the first matrix product of the process (the
+    ``zernet`` command and the benchmarks do, first thing) so that every thread has it. Training calls it
+    again for its own thread.
     """
     return bool(torch.set_flush_denormal(True))
