@@ -54,7 +54,7 @@ import torch  # noqa: E402
 from zernet.data.bodies import TOPOLOGIES, write_bodies  # noqa: E402
 from zernet.io_utils import atomic_write_bytes, plain, write_json  # noqa: E402
 from zernet.training import (  # noqa: E402
-    apply_overrides, build_dataset, flush_denormals, load_checkpoint, load_config, parse_config, train,
+    apply_overrides, build_dataset, load_checkpoint, load_config, parse_config, train,
 )
 from zernet.training.evaluation import evaluate_members  # noqa: E402
 from zernet.training.predict import model_from_checkpoint, predict_record  # noqa: E402
@@ -322,7 +322,6 @@ def _relative(value):
 
 
 def main(argv=None) -> int:
-    flush_denormals()  # before any thread pool starts (zernet.training.flush_denormals)
     args = parse_args(argv)
     bodies = ensure_bodies(args)
     kept = kept_results(args, bodies)

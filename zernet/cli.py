@@ -35,7 +35,6 @@ from zernet.training import (
     check_model_config,
     checkpoint_path,
     evaluate,
-    flush_denormals,
     keep_freed_memory,
     load_checkpoint,
     load_config,
@@ -480,7 +479,6 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     debug = bool(getattr(args, "debug", False))
     keep_freed_memory()
-    flush_denormals()  # before any thread pool starts, so every thread inherits it
     previous_showwarning = warnings.showwarning
     warnings.showwarning = _one_line_warnings(args.command)
     try:

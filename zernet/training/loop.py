@@ -195,7 +195,6 @@ def _run(config: RunConfig, run_dir: Path, checkpoint: dict | None, progress: bo
     """Build, fit, select, test."""
     if config.train.threads:
         torch.set_num_threads(int(config.train.threads))
-    flush_denormals()  # tiny softmax gradients would otherwise slow late epochs down by 2x
     logger.info(("resuming" if checkpoint else "starting") + f" run in {run_dir} on {ctx.device} "
                 f"({torch.get_num_threads()} CPU threads"
                 + (f", {ctx.world_size} ranks, {ctx.backend})" if ctx.distributed else ")"))
@@ -206,8 +205,9 @@ def _run(config: RunConfig, run_dir: Path, checkpoint: dict | None, progress: bo
                 f"loss {objective.loss}, lr {config.train.lr} ({config.train.lr_schedule}), "
                 f"{config.train.shapes_per_step} shape(s) per step")
     monitor = Monitor.for_task(objective.task)
-    _fit(model, optimizer, state, dataset, splits, record, objective, monitor, config.train, ctx, run_dir,
-         progress, logger)
+    with flush_denormals():  # tiny softmax gradients would otherwise slow late epochs down by 2-3x
+        _fit(model, optimizer, state, dataset, splits, record, objective, monitor, config.train, ctx, run_dir,
+             progress, logger)
     if not ctx.is_main:
         # Rank 0 alone evaluates the selected model on the test split and writes metrics.json.
         return {"rank": ctx.rank, "epochs_trained": state["epoch"], "best_epoch": state["best_epoch"],

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 
@@ -57,19 +58,22 @@ def keep_freed_memory() -> bool:
     return bool(mallopt(m_mmap_max, 0)) and bool(mallopt(m_trim_threshold, 2**30))
 
 
-def flush_denormals() -> bool:
-    """Make the CPU treat denormal floats (below ~1.2e-38 in float32) as zero, for the whole process.
+@contextlib.contextmanager
+def flush_denormals():
+    """Within the block, the CPU reads and writes denormal floats (below ~1.2e-38 in float32) as zero.
 
     Late in a correspondence run the softmax gives most of the 6,890 classes probabilities of ``e^-90`` and
     less, so the output layer's gradient fills with denormals, and x86 CPUs compute on them through a slow
-    microcode path: a matrix product with denormal inputs took 160x its normal time on the 2-core
-    development machine, and FAUST-sized epochs 8-11 took 1.6-2.1x the first ones. Zero is as good an
-    answer for such values. Called at the start of every training run; returns False where the CPU has no
-    such mode (the setting is then unchanged).
-
-    The mode is a per-thread CPU flag that new threads take from the thread starting them, and the BLAS
-    library keeps its threads once started: call this before the first matrix product of the process (the
-    ``zernet`` command and the benchmarks do, first thing) so that every thread has it. Training calls it
-    again for its own thread.
+    path: a matrix product with denormal inputs took 160x its normal time on the 2-core development machine,
+    and training steps with a converged model's weights 3.1x theirs (``benchmarks/bench_denormals.py``).
+    Training runs its epochs inside this block. Only there: the flag is process-wide for the calling thread,
+    and some compiled geometry code (the shape features) crashes under it, so it is switched off again on
+    leaving. The flag is per thread; BLAS threads started before the block keep theirs, so at several threads
+    part of the gain remains. Does nothing where the CPU has no such mode.
     """
-    return bool(torch.set_flush_denormal(True))
+    supported = torch.set_flush_denormal(True)
+    try:
+        yield supported
+    finally:
+        if supported:
+            torch.set_flush_denormal(False)
