@@ -47,6 +47,9 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    for name in ("config.yaml", args.checkpoint):
+        if not (args.run / name).is_file():
+            raise SystemExit(f"{args.run}: no {name} here; --run must be a finished training run folder")
 
     config = read_config(args.run / "config.yaml")
     dataset = build_dataset(config, progress=False, workers=1)
