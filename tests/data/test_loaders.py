@@ -26,7 +26,7 @@ from zernet.data import (
 )
 from zernet.data.cache import shape_cache_path
 from zernet.data.dataset import carve_validation
-from zernet.data.faust import load_faust
+from zernet.data.faust import load_faust, registration_numbers
 from zernet.data.features import MEMBRANE_PRESTRESSES, default_features, feature_channels
 from zernet.data.regression import leave_one_out_splits, load_aneurysm, load_regression
 from zernet.data.segmentation import face_to_vertex_labels, load_segmentation
@@ -228,6 +228,21 @@ def test_faust_layout_splits_and_targets(fake_faust):
     assert dataset[0].surface.area == pytest.approx(AREA)
     for other_root in (root / "MPI-FAUST", folder):  # also accepted as root
         assert load_faust(other_root, **kwargs).names == dataset.names
+    ranged = load_faust(root, **{**kwargs, "train_indices": "0:4", "test_indices": "4:6"})
+    assert ranged.names == dataset.names and ranged.splits == dataset.splits
+
+
+def test_registration_ranges_follow_the_slice_convention_and_bad_ones_are_named():
+    assert registration_numbers("0:180", "train_indices") == list(range(180))
+    assert registration_numbers(" 180:200", "test_indices") == list(range(180, 200))
+    assert registration_numbers(range(3), "train_indices") == [0, 1, 2]
+    for bad in ("5:5", "0-180", "a:3", "3:"):
+        with pytest.raises(DatasetError, match=f"train_indices {bad!r}"):
+            registration_numbers(bad, "train_indices")
+    with pytest.raises(DatasetError, match="quoted range"):
+        registration_numbers(620, "test_indices")  # YAML 1.1 reads an unquoted 10:20 as 620
+    with pytest.raises(DatasetError, match="negative"):
+        registration_numbers([3, -1], "test_indices")
 
 
 def test_faust_errors_name_the_problem(fake_faust, tmp_path):

@@ -182,3 +182,13 @@ def test_the_former_data_strict_maps_to_on_error_with_a_deprecation_warning(tmp_
         with pytest.warns(FutureWarning, match=f"data.strict is deprecated: use data.on_error: {on_error}"):
             parsed = parse_config(config)
         assert parsed.data.on_error == on_error and "strict" not in parsed.to_dict()["data"]
+
+
+def test_faust_splits_take_lists_or_quoted_ranges(tmp_path):
+    config = {"data": {"kind": "faust", "root": str(tmp_path), "train_indices": "0:180", "test_indices": [180, 181]}}
+    parsed = parse_config(config)
+    assert parsed.data.options["train_indices"] == "0:180" and parsed.data.options["test_indices"] == [180, 181]
+    for bad in (620, "0-180", "9:3"):  # 620: YAML's reading of an unquoted 10:20
+        config["data"]["train_indices"] = bad
+        with pytest.raises(ConfigError, match=r"data.train_indices must be a list of integers or a quoted range"):
+            parse_config(config)

@@ -81,5 +81,6 @@ segmentation/labels/train/body_XXX.txt, segmentation/labels/test/body_XXX.txt
 correspondence/training/registrations/tr_reg_XXX.ply
     the same meshes under FAUST's names (tr_reg_XXX = body_XXX): the correspondence class of a vertex is
     its index. Split: 000-{layout.n_train - 1:03d} train, {layout.n_train:03d}-{last:03d} test.
-Read them with zernet's configs bodies_segmentation.yaml and bodies_correspondence.yaml.
+Read them with zernet's configs bodies_segmentation.yaml and bodies_correspondence.yaml (this folder's
+split: --set data.train_indices=0:{layout.n_train} data.test_indices={layout.n_train}:{last + 1}).
 """

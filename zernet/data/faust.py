@@ -30,7 +30,8 @@ from zernet.data.source import ShapeSource, file_key
 from zernet.operators import PatchConfig
 from zernet.geometry import Surface, load_surface
 
-__all__ = ["FAUST_AREA", "FAUST_VERTICES", "load_faust", "find_registrations", "faust_patch_configs"]
+__all__ = ["FAUST_AREA", "FAUST_VERTICES", "load_faust", "registration_numbers", "find_registrations",
+           "faust_patch_configs"]
 
 FAUST_AREA = 15000.0
 FAUST_VERTICES = 6890
@@ -82,6 +83,29 @@ def _load_registration(path: str, n_vertices: int, faces_digest: str, reference:
     return surface, np.arange(n_vertices, dtype=np.int64)
 
 
+def registration_numbers(value: Sequence[int] | str, name: str) -> list[int]:
+    """The registration numbers ``value`` selects: a list of ints, or ``"START:STOP"`` for START, ..., STOP - 1
+    (Python's slice convention, so ``"0:180"`` and ``"180:200"`` split 200 bodies). ``DatasetError`` naming
+    ``name`` for anything else."""
+    if isinstance(value, str):
+        start, colon, stop = value.partition(":")
+        if not colon or not start.strip().isdigit() or not stop.strip().isdigit() or int(start) >= int(stop):
+            raise DatasetError(f"FAUST: {name} {value!r} is not a list of registration numbers or a range "
+                               f"'START:STOP' with START < STOP (e.g. '0:180')")
+        return list(range(int(start), int(stop)))
+    if isinstance(value, int):  # e.g. YAML 1.1 reads an unquoted 10:20 as the base-60 number 620
+        raise DatasetError(f"FAUST: {name} is the number {value}; give a list of registration numbers or a "
+                           f"quoted range such as '0:180'")
+    try:
+        numbers = [int(i) for i in value]
+    except (TypeError, ValueError):
+        raise DatasetError(f"FAUST: {name} must be a list of registration numbers or 'START:STOP', "
+                           f"got {value!r}") from None
+    if any(i < 0 for i in numbers):
+        raise DatasetError(f"FAUST: {name} has negative registration numbers: {[i for i in numbers if i < 0][:5]}")
+    return numbers
+
+
 def load_faust(
     root: str | os.PathLike,
     train_indices: Sequence[int] = range(0, 80),
@@ -94,7 +118,8 @@ def load_faust(
 
     Args:
         root: see the module docstring.
-        train_indices, test_indices: registration numbers XXX of each split (defaults: the standard split).
+        train_indices, test_indices: registration numbers XXX of each split (defaults: the standard split),
+            as a list or as ``"START:STOP"`` (``"0:180"``: 0 to 179), see :func:`registration_numbers`.
         n_vertices: the expected vertex count of every registration (None: take the first file's).
         area: target surface area (default 15000; None keeps the files' scale).
         options: the shared :class:`~zernet.data.options.LoaderOptions`. FAUST's defaults:
@@ -106,7 +131,8 @@ def load_faust(
     """
     options = options.with_defaults(n_val=8, patch_configs=faust_patch_configs())
     folder = find_registrations(root)
-    train_indices, test_indices = [int(i) for i in train_indices], [int(i) for i in test_indices]
+    train_indices = registration_numbers(train_indices, "train_indices")
+    test_indices = registration_numbers(test_indices, "test_indices")
     overlap = sorted(set(train_indices) & set(test_indices))
     if overlap:
         raise DatasetError(f"FAUST: registrations {overlap[:5]} are in both the train and the test split")

@@ -34,7 +34,8 @@ from typing import Any, ClassVar
 
 import yaml
 
-from zernet.data import DATASET_KINDS, ON_ERROR_CHOICES, data_option_names
+from zernet.data import DATASET_KINDS, ON_ERROR_CHOICES, DatasetError, data_option_names
+from zernet.data.faust import registration_numbers
 from zernet.nn.models import available_models
 from zernet.operators import PatchConfig
 
@@ -80,6 +81,7 @@ class Rule:
     """What one configuration value may be; :meth:`check` raises a :class:`ConfigError` naming the key."""
 
     kind: str                        # "int" | "number" | "str" | "bool" | "int_list" | "str_list" | "names" | "path"
+                                     # | "indices" (a list of integers or "START:STOP")
     optional: bool = False           # None allowed
     minimum: float | None = None     # value >= minimum
     positive: bool = False           # value > 0
@@ -92,7 +94,9 @@ class Rule:
         else:
             text = {"int": "an integer", "number": "a number", "str": "a string", "bool": "true or false",
                     "int_list": "a list of integers", "str_list": "a list of strings",
-                    "names": "a name or a list of names", "path": "a folder path"}[self.kind]
+                    "names": "a name or a list of names", "path": "a folder path",
+                    "indices": "a list of integers or a quoted range 'START:STOP' (YAML reads an unquoted "
+                               "10:20 as the number 620)"}[self.kind]
         if self.minimum is not None:
             text += f" >= {self.minimum}"
         if self.positive:
@@ -118,6 +122,12 @@ class Rule:
             return isinstance(value, (list, tuple)) and all(_is_int(v) for v in value)
         if self.kind == "str_list":
             return isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value)
+        if self.kind == "indices":
+            try:
+                registration_numbers(value, "")
+            except DatasetError:
+                return False
+            return True
         if self.kind == "names":
             return isinstance(value, str) or (isinstance(value, (list, tuple))
                                               and all(isinstance(v, (str, int)) for v in value))
@@ -201,7 +211,7 @@ class DataSection(_Section):
         "n_shapes": Rule("int", minimum=1), "n_vertices": Rule("int", minimum=1, optional=True),
         "num_classes": Rule("int", minimum=1), "test_fraction": Rule("number", minimum=0, below=1, optional=True),
         "class_names": Rule("str_list", optional=True), "label_kind": Rule("str", choices=("auto", "vertex", "face")),
-        "test": Rule("names", optional=True), "train_indices": Rule("int_list"), "test_indices": Rule("int_list"),
+        "test": Rule("names", optional=True), "train_indices": Rule("indices"), "test_indices": Rule("indices"),
         "target_exponent": Rule("number"), "workers": Rule("int", minimum=0, optional=True),
     }
 
