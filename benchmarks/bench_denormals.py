@@ -20,19 +20,19 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import statistics
-import time
+import sys
 from pathlib import Path
 
 import torch
 
-from zernet.distributed import DistributedContext
 from zernet.io_utils import atomic_write_bytes
 from zernet.training import load_checkpoint
 from zernet.training.build import build_dataset
 from zernet.training.config import read_config
-from zernet.training.epoch import Objective, train_one_epoch
 from zernet.training.predict import model_from_checkpoint
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from step_timing import alternate, print_medians, seconds_per_step  # noqa: E402  (shared timing loop)
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results" / "bench_denormals.json"
@@ -58,32 +58,20 @@ def main() -> None:
     epoch = checkpoint["state"]["epoch"]  # the steps use that epoch's learning rate
     model = model_from_checkpoint(checkpoint, torch.device("cpu"))
     weights = copy.deepcopy(model.state_dict())
-    objective = Objective("classification", "cross_entropy", None, None)
-    context = DistributedContext()
 
-    def seconds_per_step(flush: bool) -> float:
+    def timed(flush: bool) -> float:
         torch.set_flush_denormal(flush)
         model.load_state_dict(weights)
         optimizer = torch.optim.Adam(model.parameters(), lr=config.train.lr)
-        started = time.perf_counter()
-        train_one_epoch(model, model, optimizer, dataset, shapes, epoch, config.train, objective, context,
-                        progress=False)
-        return (time.perf_counter() - started) / len(shapes)
+        return seconds_per_step(model, optimizer, dataset, shapes, epoch, config.train)
 
     if not torch.set_flush_denormal(True):
         raise SystemExit("this CPU has no flush-to-zero mode: nothing to compare")
-    seconds_per_step(True)  # warm-up: first products, allocator, operator cache
-    times = {"denormals kept": [], "flushed to zero": []}
-    for _ in range(args.rounds):
-        times["denormals kept"].append(seconds_per_step(False))
-        times["flushed to zero"].append(seconds_per_step(True))
-    medians = {name: statistics.median(values) for name, values in times.items()}
-    print(f"{len(shapes)} training shapes of {args.run} (weights after epoch {epoch}), 1 thread, {args.rounds} rounds")
-    print(f"{'denormals':16} {'s / step':>9}")
-    for name, value in medians.items():
-        print(f"{name:16} {value:9.2f}")
-    ratio = medians["denormals kept"] / medians["flushed to zero"]
-    print(f"steps with denormals flushed are {ratio:.2f}x as fast")
+    timed(True)  # warm-up: first products, allocator, operator cache
+    times = alternate({"denormals kept": lambda: timed(False), "flushed to zero": lambda: timed(True)}, args.rounds)
+    medians, ratio = print_medians(
+        f"{len(shapes)} training shapes of {args.run} (weights after epoch {epoch}), 1 thread, {args.rounds} rounds",
+        "denormals", times, faster="flushed to zero")
     result = {"run": str(args.run), "epoch": epoch, "shapes": len(shapes), "threads": 1, "rounds": args.rounds,
               "seconds_per_step": times, "median_seconds_per_step": medians, "speedup": ratio}
     args.output.parent.mkdir(parents=True, exist_ok=True)

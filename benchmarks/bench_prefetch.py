@@ -19,18 +19,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
+import sys
 from pathlib import Path
 
 import torch
 
 import zernet.training.epoch as epoch_module
-from zernet.distributed import DistributedContext
 from zernet.io_utils import atomic_write_bytes
 from zernet.training.build import build_dataset, build_model_from_spec, model_spec
 from zernet.training.config import load_config, parse_config
-from zernet.training.epoch import Objective, train_one_epoch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from step_timing import alternate, print_medians, seconds_per_step  # noqa: E402  (shared timing loop)
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results" / "bench_prefetch.json"
@@ -65,31 +65,20 @@ def main() -> None:
     spec = model_spec(config.model, dataset.in_channels, dataset.num_classes, dataset.patch_configs)
     model = build_model_from_spec(spec)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.train.lr)
-    objective = Objective("classification", "cross_entropy", None, None)
-    context = DistributedContext()
     shipped = epoch_module.prefetched
 
-    def seconds_per_step(reader) -> float:
+    def timed(reader) -> float:
         epoch_module.prefetched = reader
         try:
-            started = time.perf_counter()
-            train_one_epoch(model, model, optimizer, dataset, shapes, 1, config.train, objective, context, progress=False)
-            return (time.perf_counter() - started) / len(shapes)
+            return seconds_per_step(model, optimizer, dataset, shapes, 1, config.train)
         finally:
             epoch_module.prefetched = shipped
 
-    seconds_per_step(shipped)  # warm-up: first products, allocator
-    times = {"sequential": [], "prefetched": []}
-    for _ in range(args.rounds):
-        times["sequential"].append(seconds_per_step(sequential))
-        times["prefetched"].append(seconds_per_step(shipped))
-    medians = {name: statistics.median(values) for name, values in times.items()}
-    print(f"{len(shapes)} FAUST-sized training shapes (streamed), {args.threads} threads, {args.rounds} rounds")
-    print(f"{'reading':12} {'s / step':>9}")
-    for name, value in medians.items():
-        print(f"{name:12} {value:9.2f}")
-    ratio = medians["sequential"] / medians["prefetched"]
-    print(f"prefetched steps are {ratio:.2f}x as fast")
+    timed(shipped)  # warm-up: first products, allocator
+    times = alternate({"sequential": lambda: timed(sequential), "prefetched": lambda: timed(shipped)}, args.rounds)
+    medians, ratio = print_medians(
+        f"{len(shapes)} FAUST-sized training shapes (streamed), {args.threads} threads, {args.rounds} rounds",
+        "reading", times, faster="prefetched")
     result = {"shapes": len(shapes), "threads": args.threads, "rounds": args.rounds, "seconds_per_step": times,
               "median_seconds_per_step": medians, "speedup": ratio}
     args.output.parent.mkdir(parents=True, exist_ok=True)
