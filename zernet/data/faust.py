@@ -16,6 +16,7 @@ not correspond, and training on it would teach wrong labels).
 from __future__ import annotations
 
 import hashlib
+import operator
 import os
 from collections.abc import Sequence
 from functools import partial
@@ -97,8 +98,8 @@ def registration_numbers(value: Sequence[int] | str, name: str) -> list[int]:
         raise DatasetError(f"FAUST: {name} is the number {value}; give a list of registration numbers or a "
                            f"quoted range such as '0:180'")
     try:
-        numbers = [int(i) for i in value]
-    except (TypeError, ValueError):
+        numbers = [operator.index(i) for i in value]  # integers only: 1.5 is refused, not truncated
+    except TypeError:
         raise DatasetError(f"FAUST: {name} must be a list of registration numbers or 'START:STOP', "
                            f"got {value!r}") from None
     if any(i < 0 for i in numbers):
