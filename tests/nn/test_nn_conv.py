@@ -238,6 +238,29 @@ class PlainOperator:
         return self.op.apply(x)
 
 
+def test_operator_basis_order_is_the_order_the_forward_asks_for():
+    # What data pipelines prepare ahead (zernet.training.batch.model_basis_orders) must be exactly what the
+    # forward pass requests, or the preparation is wasted and the reordering is paid in the forward again.
+    op, x = setup()
+    asked = []
+
+    class Recording(MatrixOperator):
+        def apply(self, x, basis_order=None):
+            asked.append(basis_order)
+            return super().apply(x, basis_order=basis_order)
+
+    recording = Recording(op.matrix, op.k)
+    for conv in (ZernikeConv(4, 3, angular_resolution=16), ZernikeConv(4, 3, angular_resolution=4, pooling="continuous"),
+                 ZernikeConv(4, 3, angular_resolution=1), ZernikeConv(4, 3, angular_resolution=8, pooling="mean"),
+                 RotatedKernelConv(4, 3, angular_resolution=8)):
+        asked.clear()
+        conv(x, recording)
+        assert asked == [conv.operator_basis_order()]
+    assert ZernikeConv(4, 3, angular_resolution=16).operator_basis_order() == harmonic_plan(5, 16).perm
+    assert ZernikeConv(4, 3, angular_resolution=1).operator_basis_order() is None
+    assert RotatedKernelConv(4, 3, angular_resolution=8).operator_basis_order() is None
+
+
 @pytest.mark.parametrize("s,pooling", [(4, "max"), (8, "max"), (16, "max"), (5, "none"), (4, "continuous")])
 def test_coefficients_in_plan_order_equal_the_gathered_ones(s, pooling):
     # ZernikeConv asks an operator that can for F grouped by frequency; the result and the gradients must

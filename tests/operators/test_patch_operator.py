@@ -186,6 +186,24 @@ def test_apply_in_another_basis_order_is_the_gathered_apply():
             op.apply(x, basis_order=bad)
 
 
+def test_to_prepares_the_basis_orders_asked_for():
+    # A data pipeline prepares the reordered matrices ahead (PatchOperator.to with basis_orders), so the
+    # forward pass finds them built: apply adds no tensors, and the values are those of the gathered apply.
+    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3))
+    order = tuple(np.random.default_rng(2).permutation(op.k).tolist())
+    other_k = tuple(range(op.k + 5))[::-1]  # an order for another n_max (multi-scale models): skipped
+    assert op.to("cpu", basis_orders=[order, other_k]) is op
+    prepared = set(op._tensors)
+    assert prepared == {(torch.float32, torch.device("cpu"), order)}  # only what was asked for
+    x = torch.randn(op.n_vertices, 2)
+    torch.testing.assert_close(op.apply(x, basis_order=order), op.apply(x)[:, list(order)])
+    assert (torch.float32, torch.device("cpu"), order) in op._tensors and len(op._tensors) == 2  # + natural order
+    op.to("cpu", basis_orders=[order])  # already there: nothing rebuilt
+    assert len(op._tensors) == 2
+    with pytest.raises(ValueError, match="permutation"):
+        op.to("cpu", basis_orders=[(0,) * op.k])
+
+
 # ---------------------------------------------------------------------- truncated patches, components
 def test_boundary_sparse_and_isolated_vertices_are_finite():
     vertices, faces = grid_mesh(11, 0.5)

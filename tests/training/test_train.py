@@ -35,7 +35,8 @@ from zernet.training import (
     step_groups,
     train,
 )
-from zernet.training.batch import Batch
+from zernet.training.batch import Batch, model_basis_orders
+from zernet.training.build import build_model_from_spec
 from zernet.training.config import TrainSection
 from zernet.training.losses import compute_loss
 from zernet.training.predict import predict_record
@@ -86,6 +87,25 @@ def test_evaluate_and_predict_agree_with_training(finished_run, cache_dir):
     assert prediction.shape == (200,) and prediction.dtype == np.int64
     assert probabilities.shape == (200, 4)
     np.testing.assert_allclose(probabilities.sum(axis=1), 1.0, rtol=1e-5)
+
+
+def test_batches_hold_the_operator_matrices_the_model_reads(finished_run):
+    # Batches are built on the read-ahead thread; the reordered operator matrices the harmonic
+    # convolutions read must be built there too, so the forward pass builds none.
+    run_dir, _ = finished_run
+    checkpoint = load_checkpoint(run_dir / "best.pt")
+    model = build_model_from_spec(checkpoint["model_spec"])
+    orders = model_basis_orders(model)
+    convs = [m for m in model.modules() if hasattr(m, "operator_basis_order")]
+    assert convs and orders == (convs[0].operator_basis_order(),) and orders[0] is not None
+    dataset = build_dataset(checkpoint["config"], progress=False)
+    batch = Batch([dataset[0]], torch.device("cpu"), None, checkpoint.get("feature_stats"), None, orders)
+    operator = batch.geometry.operators[0]
+    prepared = set(operator._tensors)
+    assert (torch.float32, torch.device("cpu"), orders[0]) in prepared
+    with torch.no_grad():
+        model(batch.features, batch.geometry)
+    assert set(operator._tensors) == prepared
 
 
 def test_ensemble_averages_the_members_probabilities(finished_run, cache_dir, tmp_path):
@@ -381,7 +401,8 @@ def test_feature_standardisation_is_stored_and_used_by_predict(tmp_path, cache_d
     assert probabilities.shape == (200, 4) and np.isfinite(probabilities).all()
     # What every batch (training, validation, predict) feeds the model: (x - mean) / std per channel.
     raw = np.asarray(surface.vertices, np.float32)
-    record = SimpleNamespace(features=raw, name="x", target=None, geometry=SimpleNamespace(to=lambda device: None))
+    record = SimpleNamespace(features=raw, name="x", target=None,
+                             geometry=SimpleNamespace(to=lambda device, basis_orders=(): None))
     batch = Batch([record], torch.device("cpu"), None, checkpoint["feature_stats"])
     expected = (raw - np.array(checkpoint["feature_stats"]["mean"])) / np.array(checkpoint["feature_stats"]["std"])
     np.testing.assert_allclose(batch.features.numpy(), expected, rtol=1e-5, atol=1e-5)

@@ -371,18 +371,26 @@ class ZernikeConv(nn.Module):
     @float32_forward
     def forward(self, x: Tensor, operator) -> Tensor:
         """``x`` ``(N, C_in)`` -> ``(N, C_out)`` (``(N, s, C_out)`` for ``pooling="none"``)."""
-        plan = self._plan()
         # Ask the operator for the coefficients grouped by frequency when it can (saves a gather of F
         # forward and backward); any operator with a plain apply(x) works too.
-        ordered = (
-            plan is not None and not plan.identity and len(plan.perm) == self.k
-            and getattr(operator, "accepts_basis_order", False)
-        )
-        F = self.coefficients(x, operator, basis_order=plan.perm) if ordered else self.coefficients(x, operator)
+        order = self.operator_basis_order() if getattr(operator, "accepts_basis_order", False) else None
+        ordered = order is not None
+        F = self.coefficients(x, operator, basis_order=order) if ordered else self.coefficients(x, operator)
         out = self._pooled_response(F, ordered)
         if self.bias is not None:
             out = out + self.bias
         return out
+
+    def operator_basis_order(self) -> tuple | None:
+        """The basis order this layer asks of operators that accept one (``None``: the natural order).
+
+        Data pipelines prepare the operator's matrices in this order ahead of the forward pass
+        (:meth:`zernet.operators.PatchOperator.to`), so the reordering is not paid inside it.
+        """
+        plan = self._plan()
+        if plan is None or plan.identity or len(plan.perm) != self.k:
+            return None
+        return tuple(int(i) for i in plan.perm)
 
     def _plan(self) -> HarmonicPlan | None:
         """The harmonic plan this layer's pooling needs (``None``: ``s = 1``, one plain contraction)."""

@@ -116,8 +116,12 @@ class MatrixOperator:
 
     __call__ = apply
 
-    def to(self, device) -> "MatrixOperator":
-        """Device placement happens lazily per call (tensors cached per dtype and device); returns self."""
+    def to(self, device, basis_orders: Sequence[tuple] = ()) -> "MatrixOperator":
+        """Builds the float32 tensors of ``basis_orders`` (as :meth:`zernet.operators.PatchOperator.to`) on
+        ``device``; others are built on first use (cached per dtype and device). Returns self."""
+        for order in basis_orders:
+            if len(order) == self.k:
+                self._tensors(torch.float32, torch.device(device), checked_basis_order(order, self.k))
         return self
 
     @staticmethod

@@ -76,9 +76,14 @@ class Geometry:
             return self
         return replace(self, directional=[build_directional_operator(op, order) for op in self.operators])
 
-    def to(self, device) -> Geometry:
-        """A copy with tensors (and operators that have ``to``) on ``device``."""
-        ops = [op.to(device) if hasattr(op, "to") else op for op in self.operators]
+    def to(self, device, basis_orders: Sequence[tuple] = ()) -> Geometry:
+        """A copy with tensors (and operators that have ``to``) on ``device``; operators that accept a basis
+        order also prepare ``basis_orders`` (:meth:`~zernet.operators.PatchOperator.to`)."""
+        ops = [
+            (op.to(device, basis_orders) if getattr(op, "accepts_basis_order", False) else op.to(device))
+            if hasattr(op, "to") else op
+            for op in self.operators
+        ]
         move = lambda t: None if t is None else t.to(device)  # noqa: E731
         return Geometry(ops, move(self.edge_index), move(self.batch), [op.to(device) for op in self.directional])
 

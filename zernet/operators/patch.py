@@ -35,6 +35,7 @@ import json
 import os
 import time
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -239,15 +240,23 @@ class PatchOperator:
 
     __call__ = apply
 
-    def to(self, device) -> PatchOperator:
+    def to(self, device, basis_orders: Sequence[tuple] = ()) -> PatchOperator:
         """Move the cached torch tensors to ``device`` (the next :meth:`apply` there needs no conversion).
+
+        ``basis_orders``: the orders the model's layers will ask :meth:`apply` for
+        (:meth:`zernet.nn.ZernikeConv.operator_basis_order`; orders of another ``k`` are skipped); their
+        float32 tensors are built now, so a data pipeline pays for them on its read-ahead thread, not
+        inside the forward pass. Without any, the natural order is built.
 
         Returns ``self``; the numpy/scipy data stay on the host. Tensors for other devices are dropped.
         """
         device = torch.device(device)
+        wanted = {(torch.float32, checked_basis_order(order, self.k)) for order in basis_orders if len(order) == self.k}
         if self._tensors and all(have == device for _, have, _ in self._tensors):
-            return self  # already there: training calls this every step
-        kinds = {(dtype, order) for dtype, _, order in self._tensors} or {(torch.float32, None)}
+            for dtype, order in wanted:  # already there (training calls this every step): add what is missing
+                self._torch_matrices(dtype, device, order)
+            return self
+        kinds = {(dtype, order) for dtype, _, order in self._tensors} | wanted or {(torch.float32, None)}
         self._tensors = {}
         for dtype, order in kinds:
             self._torch_matrices(dtype, device, order)

@@ -10,13 +10,24 @@ import torch
 from zernet.operators import Geometry
 from zernet.training.targets import standardise, standardise_features
 
-__all__ = ["Batch", "with_directional", "model_directional_order"]
+__all__ = ["Batch", "with_directional", "model_directional_order", "model_basis_orders"]
 
 
 def model_directional_order(model: torch.nn.Module) -> int | None:
     """Fourier order of the directional operators ``model`` reads (None: it needs none); sees through a
     DistributedDataParallel wrapper."""
     return getattr(getattr(model, "module", model), "directional_order", None)
+
+
+def model_basis_orders(model: torch.nn.Module) -> tuple[tuple, ...]:
+    """The basis orders the model's convolutions ask of the patch operators
+    (:meth:`zernet.nn.ZernikeConv.operator_basis_order`), each once; empty when all read the natural order."""
+    orders = []
+    for module in model.modules():
+        order = module.operator_basis_order() if hasattr(module, "operator_basis_order") else None
+        if order is not None and order not in orders:
+            orders.append(order)
+    return tuple(orders)
 
 
 def with_directional(record, order: int | None) -> Geometry:
@@ -32,10 +43,13 @@ def with_directional(record, order: int | None) -> Geometry:
 
 class Batch:
     """Features (standardised with ``feature_stats`` if given), targets (in trained units with
-    ``target_stats`` if given) and geometry of ``records``, on ``device``."""
+    ``target_stats`` if given) and geometry of ``records``, on ``device``; the patch operators hold their
+    matrices in ``basis_orders`` (:func:`model_basis_orders`), so building a batch on the read-ahead
+    thread leaves no operator work to the forward pass."""
 
     def __init__(self, records: Sequence, device: torch.device, target_stats: dict | None = None,
-                 feature_stats: dict | None = None, directional_order: int | None = None):
+                 feature_stats: dict | None = None, directional_order: int | None = None,
+                 basis_orders: Sequence[tuple] = ()):
         self.names = [r.name for r in records]
         self.sizes = [len(r.features) for r in records]
         self.features = torch.from_numpy(np.concatenate([np.asarray(r.features, np.float32) for r in records]))
@@ -44,7 +58,7 @@ class Batch:
             self.features = standardise_features(self.features, feature_stats)
         geometries = [with_directional(r, directional_order) for r in records]
         geometry = geometries[0] if len(geometries) == 1 else Geometry.concatenate(geometries)
-        self.geometry = geometry.to(device)
+        self.geometry = geometry.to(device, basis_orders)
         self.target = None
         if records[0].target is not None:
             target = np.concatenate([np.asarray(r.target) for r in records])

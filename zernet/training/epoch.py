@@ -13,7 +13,7 @@ from zernet import metrics as zmetrics
 from zernet.distributed import DistributedContext
 from zernet.threads import prefetched
 from zernet.training.augment import augment_records
-from zernet.training.batch import Batch, model_directional_order
+from zernet.training.batch import Batch, model_basis_orders, model_directional_order
 from zernet.training.config import TrainSection
 from zernet.training.losses import compute_loss
 from zernet.training.runtime import precision_autocast
@@ -54,12 +54,13 @@ def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: tor
     classification = objective.task == "classification"
     loss_sum, hit_sum, vertex_sum = 0.0, 0.0, 0
     directional = model_directional_order(net)
+    basis_orders = model_basis_orders(net)
 
     def step_batch(numbered_group):
         step, group = numbered_group
         records = augment_records([dataset[i] for i in group], train, dataset.feature_kind,
                                   [c.n_max for c in dataset.patch_configs], epoch, step, directional)
-        return Batch(records, device, objective.target_stats, objective.feature_stats, directional)
+        return Batch(records, device, objective.target_stats, objective.feature_stats, directional, basis_orders)
 
     # The next step's shapes are read (from the cache, for a streamed data set) while this step computes.
     batches = prefetched(step_batch, enumerate(groups, start=1))
@@ -103,9 +104,11 @@ def validate(model: torch.nn.Module, dataset, indices: Sequence[int], device: to
     model.eval()
     losses, scores = [], []
     directional = model_directional_order(model)
+    basis_orders = model_basis_orders(model)
 
     def shape_batch(i):
-        return i, Batch([dataset[i]], device, objective.target_stats, objective.feature_stats, directional)
+        return i, Batch([dataset[i]], device, objective.target_stats, objective.feature_stats, directional,
+                        basis_orders)
 
     for i, batch in prefetched(shape_batch, indices):
         output = model(batch.features, batch.geometry)

@@ -11,7 +11,7 @@ import torch
 from zernet.data import prepare_record
 from zernet.operators import PatchConfig
 from zernet.geometry import load_surface
-from zernet.training.batch import Batch, model_directional_order
+from zernet.training.batch import Batch, model_basis_orders, model_directional_order
 from zernet.training.build import build_model_from_spec
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
 from zernet.training.runtime import resolve_device
@@ -33,7 +33,8 @@ def predict_record(members: Sequence[tuple], record, device) -> tuple[np.ndarray
     outputs = []
     for model, checkpoint in members:
         model.eval()
-        batch = Batch([record], device, None, checkpoint.get("feature_stats"), model_directional_order(model))
+        batch = Batch([record], device, None, checkpoint.get("feature_stats"), model_directional_order(model),
+                      model_basis_orders(model))
         output = model(batch.features, batch.geometry).float()
         if task == "classification":
             outputs.append(torch.softmax(output, dim=1))
