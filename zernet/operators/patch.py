@@ -172,7 +172,6 @@ class PatchOperator:
         self.ridge_weights = ridge_weights(config.n_max)
         if self.matrix.shape != (self.n_vertices * self.k, self.n_vertices):
             raise ValueError(f"operator matrix has shape {self.matrix.shape}, expected {(self.n_vertices * self.k, self.n_vertices)}")
-        self._transpose: scipy.sparse.csr_matrix | None = None  # built with the first torch tensors
         self._tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # (dtype, device, basis order)
         self._basis: np.ndarray | None = None
         self.cache_file: Path | None = None
@@ -205,17 +204,14 @@ class PatchOperator:
         self, dtype: torch.dtype, device: torch.device, basis_order: tuple | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """CSR tensors of A and Aᵀ (rows in ``basis_order`` within each vertex) for this dtype and device,
-        built on first use and kept."""
+        built on first use and kept. Below float64 the rows are reordered and transposed in float32 (the
+        same values, half the bytes to move: a FAUST-sized operator is built on every training step)."""
         key = (dtype, device, basis_order)
         if key not in self._tensors:
-            if basis_order is None:
-                if self._transpose is None:
-                    self._transpose = self.matrix.T.tocsr()
-                matrix, transpose = self.matrix, self._transpose
-            else:
-                matrix = reorder_basis_rows(self.matrix, self.k, basis_order)
-                transpose = matrix.T.tocsr()
-            self._tensors[key] = tuple(to_torch_csr(m, dtype, device) for m in (matrix, transpose))
+            matrix = self.matrix if dtype == torch.float64 else self.matrix.astype(np.float32)
+            if basis_order is not None:
+                matrix = reorder_basis_rows(matrix, self.k, basis_order)
+            self._tensors[key] = tuple(to_torch_csr(m, dtype, device) for m in (matrix, matrix.T.tocsr()))
         return self._tensors[key]
 
     def apply(self, x: torch.Tensor, basis_order: tuple | None = None) -> torch.Tensor:

@@ -63,8 +63,8 @@ def to_torch_csr(matrix: scipy.sparse.csr_matrix, dtype: torch.dtype, device: to
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
         return torch.sparse_csr_tensor(
-            torch.from_numpy(matrix.indptr.astype(index_dtype)),
-            torch.from_numpy(matrix.indices.astype(index_dtype)),
+            torch.from_numpy(matrix.indptr.astype(index_dtype, copy=False)),  # shared, not copied: read only
+            torch.from_numpy(matrix.indices.astype(index_dtype, copy=False)),
             torch.from_numpy(matrix.data).to(dtype),
             size=matrix.shape,
             check_invariants=False,
