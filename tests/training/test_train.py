@@ -153,7 +153,7 @@ def test_ensemble_members_must_match(finished_run, cache_dir, tmp_path):
     other = tiny_config(cache_dir, epochs=1)
     other["data"]["seed"] = 5  # another train/val/test split
     train(other, tmp_path / "other", progress=False, workers=0)
-    with pytest.raises(ConfigError, match="data section differs"):
+    with pytest.raises(ConfigError, match=r"data section differs \(seed: 5 vs 0\)"):
         evaluate([run_a, tmp_path / "other"], progress=False)
 
 

@@ -114,13 +114,23 @@ def check_ensemble(paths: Sequence[Path], checkpoints: Sequence[dict]) -> None:
     def data_section(checkpoint):
         return {k: v for k, v in checkpoint["config"]["data"].items() if k != "root"}
 
+    def short(value) -> str:  # a split of hundreds of indices would bury the message
+        text = repr(value)
+        return text if len(text) <= 60 else text[:57] + "..."
+
+    def difference(a, b) -> str:
+        if isinstance(a, dict) and isinstance(b, dict):
+            keys = [k for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+            return "; ".join(f"{k}: {short(a.get(k))} vs {short(b.get(k))}" for k in keys)
+        return f"{short(a)} vs {short(b)}"
+
     first = checkpoints[0]
     for path, checkpoint in zip(paths[1:], checkpoints[1:]):
         for what, value in (("task", lambda c: c["task"]), ("number of classes", lambda c: c["num_classes"]),
                             ("preprocessing", lambda c: c["preprocess"]), ("data section", data_section)):
             if value(checkpoint) != value(first):
                 raise ConfigError(f"cannot ensemble {path} with {paths[0]}: their {what} differs "
-                                  f"({value(checkpoint)!r} vs {value(first)!r})")
+                                  f"({difference(value(checkpoint), value(first))})")
 
 
 def evaluate(run_dir_or_checkpoint, dataset=None, split: str = "test", progress: bool = True,
