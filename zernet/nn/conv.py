@@ -374,9 +374,9 @@ class ZernikeConv(nn.Module):
         # Ask the operator for the coefficients grouped by frequency when it can (saves a gather of F
         # forward and backward); any operator with a plain apply(x) works too.
         order = self.operator_basis_order() if getattr(operator, "accepts_basis_order", False) else None
-        ordered = order is not None
-        F = self.coefficients(x, operator, basis_order=order) if ordered else self.coefficients(x, operator)
-        out = self._pooled_response(F, ordered)
+        # (subclasses such as the paper's formulation override coefficients(x, operator) without an order)
+        F = self.coefficients(x, operator) if order is None else self.coefficients(x, operator, basis_order=order)
+        out = self._pooled_response(F, ordered=order is not None)
         if self.bias is not None:
             out = out + self.bias
         return out

@@ -21,7 +21,13 @@ import scipy.sparse as sp
 import torch
 from torch import Tensor
 
-from zernet.operators import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
+from zernet.operators import (
+    SparseApply,
+    basis_orders_of_size,
+    checked_basis_order,
+    reorder_basis_rows,
+    to_torch_csr,
+)
 from zernet.zernike import n_max_for, rotate_coefficients
 
 from .conv import ZernikeConv
@@ -119,9 +125,8 @@ class MatrixOperator:
     def to(self, device, basis_orders: Sequence[tuple] = ()) -> "MatrixOperator":
         """Builds the float32 tensors of ``basis_orders`` (as :meth:`zernet.operators.PatchOperator.to`) on
         ``device``; others are built on first use (cached per dtype and device). Returns self."""
-        for order in basis_orders:
-            if len(order) == self.k:
-                self._tensors(torch.float32, torch.device(device), checked_basis_order(order, self.k))
+        for order in basis_orders_of_size(basis_orders, self.k):
+            self._tensors(torch.float32, torch.device(device), order)
         return self
 
     @staticmethod

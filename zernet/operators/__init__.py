@@ -13,7 +13,7 @@ from .batch import Geometry
 from .cache import FORMAT_VERSION, CacheWarning, cache_key
 from .directional import DirectionalOperator, build_directional_operator
 from .patch import PatchConfig, PatchOperator, assemble_operator, build_patch_operator, fit_patches, select_patches
-from .sparse import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
+from .sparse import SparseApply, basis_orders_of_size, checked_basis_order, reorder_basis_rows, to_torch_csr
 
 __all__ = [
     "PatchConfig",
@@ -25,6 +25,7 @@ __all__ = [
     "SparseApply",
     "to_torch_csr",
     "checked_basis_order",
+    "basis_orders_of_size",
     "reorder_basis_rows",
     "CacheWarning",
     "FORMAT_VERSION",

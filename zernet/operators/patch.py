@@ -58,7 +58,7 @@ from .cache import (
     write_payload,
 )
 from .fit import carry_to_vertices, fit_groups, fit_patches, ridge_weights
-from .sparse import SparseApply, checked_basis_order, reorder_basis_rows, to_torch_csr
+from .sparse import SparseApply, basis_orders_of_size, checked_basis_order, reorder_basis_rows, to_torch_csr
 
 __all__ = [
     "PatchConfig",
@@ -247,7 +247,7 @@ class PatchOperator:
         Returns ``self``; the numpy/scipy data stay on the host. Tensors for other devices are dropped.
         """
         device = torch.device(device)
-        wanted = {(torch.float32, checked_basis_order(order, self.k)) for order in basis_orders if len(order) == self.k}
+        wanted = {(torch.float32, order) for order in basis_orders_of_size(basis_orders, self.k)}
         if self._tensors and all(have == device for _, have, _ in self._tensors):
             for dtype, order in wanted:  # already there (training calls this every step): add what is missing
                 self._torch_matrices(dtype, device, order)

@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse
 import torch
 
-__all__ = ["SparseApply", "to_torch_csr", "checked_basis_order", "reorder_basis_rows"]
+__all__ = ["SparseApply", "to_torch_csr", "checked_basis_order", "basis_orders_of_size", "reorder_basis_rows"]
 
 
 class SparseApply(torch.autograd.Function):
@@ -43,6 +43,12 @@ def checked_basis_order(basis_order, k: int) -> tuple | None:
     if sorted(order) != list(range(k)):
         raise ValueError(f"basis_order must be a permutation of range({k}), got {order}")
     return None if order == tuple(range(k)) else order
+
+
+def basis_orders_of_size(basis_orders, k: int) -> set:
+    """The checked orders (:func:`checked_basis_order`) among ``basis_orders`` that have ``k`` entries; a
+    model's orders for other degrees (multi-scale models) are left out."""
+    return {checked_basis_order(order, k) for order in basis_orders if len(order) == k}
 
 
 def reorder_basis_rows(matrix: scipy.sparse.csr_matrix, k: int, basis_order: tuple) -> scipy.sparse.csr_matrix:
