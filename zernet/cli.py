@@ -171,6 +171,9 @@ def _add_evaluate_command(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--out", type=Path, default=None,
                    help="metrics file to write (default for one run: inside RUN_DIR; an ensemble writes only here)")
     p.add_argument("--split", default="test", help="split to evaluate: test (default), val or train")
+    p.add_argument("--refine-rings", type=int, nargs="+", default=None, metavar="N",
+                   help="correspondence: average the predicted probabilities over N rings of mesh neighbours; "
+                        "several: the best on the validation split (default: the run's eval.refine_rings)")
     p.add_argument("--device", default=None, help="override the run's device (cpu, cuda, ...)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_evaluate)
@@ -311,7 +314,7 @@ def _cmd_evaluate(args) -> int:
     runs = args.run_dir if len(args.run_dir) > 1 else args.run_dir[0]
     # The same policy as preprocess and train: a shape that fails stops the command unless --skip-bad.
     metrics = evaluate(runs, split=args.split, progress=not args.no_progress, device=args.device,
-                       on_error="skip" if args.skip_bad else "raise")
+                       on_error="skip" if args.skip_bad else "raise", refine_rings=args.refine_rings)
     what = f"ensemble of {len(args.run_dir)}, " if len(args.run_dir) > 1 else ""
     skipped = f"; {len(metrics['skipped'])} shapes skipped" if metrics.get("skipped") else ""
     print(f"{args.split} ({what}{metrics['n_shapes']} shapes{skipped}): {summary_line(metrics)}")

@@ -29,7 +29,7 @@ TODAYS_FORMAT = {
               "standardize_targets": True, "target_transform": "none", "standardize_features": False,
               "patience": 6, "seed": 0, "shapes_per_step": 1, "device": "auto", "threads": None,
               "grad_clip": None, "precision": "float32", "augment_rotation": "none", "augment_scale": 0.0},
-    "eval": {"renders": 3, "plots": True},
+    "eval": {"renders": 3, "plots": True, "refine_rings": [0]},
     "cache_dir": ".zernet-cache",
 }
 

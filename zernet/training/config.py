@@ -340,6 +340,18 @@ class EvalSection(_Section):
 
     renders: int = _rule(3, "int", minimum=0)   # test shapes rendered (prediction, truth, error)
     plots: bool = _rule(True, "bool")           # write plots at all
+    # Correspondence: the predicted probabilities averaged over this many rings of mesh neighbours
+    # (zernet.training.refine); a number, or candidates of which the best on the validation split is used.
+    refine_rings: list[int] = _rule((0,), "int_list")
+
+    def __post_init__(self) -> None:
+        if _is_int(self.refine_rings):
+            object.__setattr__(self, "refine_rings", [self.refine_rings])
+        super().__post_init__()
+        object.__setattr__(self, "refine_rings", list(self.refine_rings))  # a plain list in YAML and JSON
+        if not self.refine_rings or min(self.refine_rings) < 0:
+            raise ConfigError(f"eval.refine_rings must be a non-empty list of integers >= 0, got "
+                              f"{list(self.refine_rings)!r}")
 
 
 _SECTIONS = {"data": DataSection, "patch": PatchSection, "model": ModelSection, "train": TrainSection,

@@ -17,10 +17,27 @@ from zernet.training.build import build_dataset
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
 from zernet.training.config import ConfigError
 from zernet.training.predict import model_from_checkpoint, predict_record
+from zernet.training.refine import refine_correspondence
 from zernet.training.runtime import resolve_device
 from zernet.training.targets import unstandardise
 
-__all__ = ["evaluate", "evaluate_members", "check_ensemble", "summary_line"]
+__all__ = ["evaluate", "evaluate_members", "select_refine_rings", "check_ensemble", "summary_line"]
+
+
+def _kind(checkpoint: dict) -> str:
+    """correspondence | segmentation | regression: what a checkpoint's model predicts."""
+    if checkpoint["task"] != "classification":
+        return "regression"
+    return "correspondence" if checkpoint.get("correspondence", False) else "segmentation"
+
+
+def _refined(probabilities: np.ndarray, record, rings: int) -> np.ndarray:
+    """Correspondence by vertex index: every shape has the template's connectivity, so the record's faces
+    serve for both the shape and the template."""
+    faces = record.surface.faces
+    if faces is None:
+        raise ValueError(f"shape {record.name}: refining a correspondence needs a triangle mesh")
+    return refine_correspondence(probabilities, faces, faces, rings).argmax(axis=1)
 
 
 def _score_shape(kind: str, record, pred: np.ndarray, target: np.ndarray, n_classes: int | None):
@@ -38,25 +55,28 @@ def _score_shape(kind: str, record, pred: np.ndarray, target: np.ndarray, n_clas
 
 
 def evaluate_members(members: Sequence[tuple], dataset, indices: Sequence[int], device, progress: bool,
-                     keep: int = 3) -> tuple[dict, list[dict]]:
+                     keep: int = 3, refine_rings: int = 0) -> tuple[dict, list[dict]]:
     """Metrics of the model (or ensemble) ``members`` (a list of ``(model, checkpoint)``, see
     :func:`~zernet.training.predict.predict_record`) on the shapes at ``indices`` and the predictions of
-    the first ``keep``."""
+    the first ``keep``. A correspondence is scored after refinement over ``refine_rings`` rings
+    (:mod:`zernet.training.refine`; other tasks ignore it), and its unrefined scores are kept beside."""
     checkpoint = members[0][1]
-    task = checkpoint["task"]
-    correspondence = task == "classification" and checkpoint.get("correspondence", False)
-    kind = "correspondence" if correspondence else ("segmentation" if task == "classification" else "regression")
+    task, kind = checkpoint["task"], _kind(checkpoint)
+    refine_rings = refine_rings if kind == "correspondence" else 0
     n_classes = None if checkpoint.get("num_classes") is None else int(checkpoint["num_classes"])
     per_shape: dict[str, dict] = {}
     kept: list[dict] = []
-    errors_all, confusion, label_counts = [], None, None
+    errors_all, unrefined_errors, confusion, label_counts = [], [], None, None
     for position, i in enumerate(tqdm(indices, desc="evaluating", unit="shape", leave=False,
                                       disable=not progress)):
         record = dataset[i]
         if record.target is None:
             raise ValueError(f"shape {record.name} has no ground truth to evaluate against")
-        pred, _ = predict_record(members, record, device)
+        pred, probabilities = predict_record(members, record, device)
         target = np.asarray(record.target)
+        if refine_rings:
+            unrefined_errors.append(zmetrics.geodesic_errors(record.surface, pred, target))
+            pred = _refined(probabilities, record, refine_rings)
         per_shape[record.name], errors, shape_confusion = _score_shape(kind, record, pred, target, n_classes)
         if kind == "correspondence":
             errors_all.append(errors)
@@ -74,6 +94,10 @@ def evaluate_members(members: Sequence[tuple], dataset, indices: Sequence[int], 
         result["summary"] = {k: v for k, v in scores.items() if not k.startswith("curve_")}
         result["error_curve"] = {"radii": scores["curve_radii"], "fractions": scores["curve_fractions"]}
         result["baseline"] = {"chance_accuracy": 1.0 / float(checkpoint["num_classes"])}
+        result["refine_rings"] = refine_rings
+        if refine_rings:  # what the refinement changed, on the same split
+            unrefined = zmetrics.correspondence_scores(unrefined_errors)
+            result["unrefined_summary"] = {k: v for k, v in unrefined.items() if not k.startswith("curve_")}
     elif kind == "segmentation":
         result["summary"] = zmetrics.segmentation_scores(confusion=confusion)
         result["baseline"] = {"majority_class_accuracy": float(label_counts.max() / label_counts.sum())}
@@ -86,6 +110,40 @@ def evaluate_members(members: Sequence[tuple], dataset, indices: Sequence[int], 
             result["baseline"] = _training_mean_baseline(stats, dataset, indices)
     result["per_shape"] = per_shape
     return result, kept
+
+
+def select_refine_rings(members: Sequence[tuple], dataset, candidates: Sequence[int], device,
+                        progress: bool) -> tuple[int, dict | None]:
+    """The refinement rings to use and how they were chosen: the only candidate, or (correspondence) the one
+    whose exact accuracy on the ``val`` split is highest, the fewest rings on a tie.
+
+    Returns ``(rings, choice)`` with ``choice`` None when nothing was chosen, else
+    ``{"split": "val", "accuracy": {rings: exact accuracy}, "rings": chosen}`` for ``metrics.json``.
+    """
+    candidates = sorted(set(int(c) for c in candidates))
+    if not candidates or candidates[0] < 0:
+        raise ConfigError(f"refine rings must be one or more integers >= 0, got {candidates}")
+    if _kind(members[0][1]) != "correspondence":
+        return 0, None
+    if len(candidates) == 1:
+        return candidates[0], None
+    indices = dataset.splits.get("val", [])
+    if not indices:
+        raise ConfigError(f"eval.refine_rings lists several candidates ({candidates}) but the data set has no "
+                          "validation split to choose among them: give one number")
+    hits = {rings: 0 for rings in candidates}
+    total = 0
+    for i in tqdm(indices, desc="choosing refine rings", unit="shape", leave=False, disable=not progress):
+        record = dataset[i]
+        pred, probabilities = predict_record(members, record, device)
+        target = np.asarray(record.target)
+        total += len(target)
+        for rings in candidates:
+            refined = pred if rings == 0 else _refined(probabilities, record, rings)
+            hits[rings] += int(np.sum(refined == target))
+    accuracy = {rings: hits[rings] / total for rings in candidates}
+    chosen = max(candidates, key=lambda rings: (accuracy[rings], -rings))
+    return chosen, {"split": "val", "accuracy": {str(k): v for k, v in accuracy.items()}, "rings": chosen}
 
 
 def _training_mean_baseline(stats: dict, dataset, indices: Sequence[int]) -> dict:
@@ -104,6 +162,9 @@ def summary_line(metrics: dict) -> str:
             "segmentation": ("accuracy", "mean_class_accuracy", "mean_iou"),
             "regression": ("MAPE", "RRMSE", "PCC", "HR10", "HR20", "HR30")}.get(metrics.get("kind"), ())
     parts = [f"{key} {summary[key]:.4f}" for key in keys if key in summary]
+    if "unrefined_summary" in metrics:
+        parts.append(f"(refined over {metrics['refine_rings']} rings; unrefined accuracy "
+                     f"{metrics['unrefined_summary']['accuracy']:.4f})")
     for key, value in metrics.get("baseline", {}).items():
         parts.append(f"(baseline {key} {value:.4f})")
     return ", ".join(parts)
@@ -134,7 +195,8 @@ def check_ensemble(paths: Sequence[Path], checkpoints: Sequence[dict]) -> None:
 
 
 def evaluate(run_dir_or_checkpoint, dataset=None, split: str = "test", progress: bool = True,
-             device: str | None = None, on_error: str | None = None) -> dict:
+             device: str | None = None, on_error: str | None = None,
+             refine_rings: int | Sequence[int] | None = None) -> dict:
     """Evaluate a trained model (a run folder's ``best.pt``, or any checkpoint file) on one split; given
     several, evaluate their ensemble.
 
@@ -150,6 +212,8 @@ def evaluate(run_dir_or_checkpoint, dataset=None, split: str = "test", progress:
         device: overrides the configured ``train.device``.
         on_error: overrides the stored ``data.on_error`` when the data set is rebuilt: ``"skip"`` evaluates
             without the shapes that fail to load (listed under ``"skipped"``).
+        refine_rings: correspondence refinement (:mod:`zernet.training.refine`): a ring radius, or
+            candidates chosen among on the validation split; None: the run's ``eval.refine_rings``.
 
     Returns:
         The same metrics dictionary that training writes to ``metrics.json`` (for an ensemble,
@@ -174,7 +238,13 @@ def evaluate(run_dir_or_checkpoint, dataset=None, split: str = "test", progress:
         others = ", ".join(name for name, members in sorted(dataset.splits.items()) if members)
         raise ConfigError(f"split {split!r} of the data set is empty (splits with shapes: {others or 'none'})")
     members = [(model_from_checkpoint(checkpoint, device), checkpoint) for checkpoint in checkpoints]
-    metrics, _ = evaluate_members(members, dataset, indices, device, progress, keep=0)
+    if refine_rings is None:
+        refine_rings = config.get("eval", {}).get("refine_rings", (0,))  # older runs: no refinement
+    rings, choice = select_refine_rings(members, dataset, [refine_rings] if isinstance(refine_rings, int)
+                                        else refine_rings, device, progress)
+    metrics, _ = evaluate_members(members, dataset, indices, device, progress, keep=0, refine_rings=rings)
+    if choice is not None:
+        metrics["refine_choice"] = choice
     best_epochs = [c["state"]["best_epoch"] for c in checkpoints]
     epochs = [c["state"]["epoch"] for c in checkpoints]
     metrics.update({"split": split, "checkpoint": [str(p) for p in paths] if many else str(paths[0]),

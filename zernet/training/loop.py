@@ -53,9 +53,9 @@ from zernet.training.checkpoint import (
     make_checkpoint,
     save_epoch_checkpoints,
 )
-from zernet.training.config import ConfigError, RunConfig, TrainSection, parse_config
+from zernet.training.config import ConfigError, EvalSection, RunConfig, TrainSection, parse_config
 from zernet.training.epoch import Objective, train_one_epoch, validate
-from zernet.training.evaluation import evaluate_members, summary_line
+from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
 from zernet.training.init_from import InitSource, describe as describe_init, initialise_from, load_init_source
 from zernet.training.losses import check_loss_targets, resolve_loss
 from zernet.training.run_dir import (
@@ -212,7 +212,8 @@ def _run(config: RunConfig, run_dir: Path, checkpoint: dict | None, progress: bo
         # Rank 0 alone evaluates the selected model on the test split and writes metrics.json.
         return {"rank": ctx.rank, "epochs_trained": state["epoch"], "best_epoch": state["best_epoch"],
                 "stop_reason": state["stop_reason"]}
-    metrics, predictions = _test(model, state, dataset, splits, monitor, run_dir, ctx.device, progress, logger)
+    metrics, predictions = _test(model, state, dataset, splits, monitor, config.eval, run_dir, ctx.device, progress,
+                                 logger)
     metrics["preprocess_seconds"] = preprocess_seconds
     metrics["skipped"] = [{"name": name, "reason": reason} for name, reason in dataset.failures.items()]
     return _report(metrics, predictions, state["history"], dataset, config, run_dir, logger)
@@ -371,16 +372,28 @@ def _fit(model, optimizer, state: dict, dataset, splits: _Splits, record: RunRec
                 f"{state['best_epoch']} ({monitor.name} {best_text})")
 
 
-def _test(model, state: dict, dataset, splits: _Splits, monitor: Monitor, run_dir: Path, device,
-          progress: bool, logger) -> tuple[dict, list[dict]]:
-    """The selected model (best.pt) on the test split (the validation split if there is none)."""
+def _test(model, state: dict, dataset, splits: _Splits, monitor: Monitor, evaluation: EvalSection, run_dir: Path,
+          device, progress: bool, logger) -> tuple[dict, list[dict]]:
+    """The selected model (best.pt) on the test split (the validation split if there is none); a
+    correspondence refined as ``evaluation.refine_rings`` says."""
     best = load_checkpoint(run_dir / "best.pt")
     model.load_state_dict(best["model"])
     if splits.test:
         split, indices = "test", splits.test
     else:
         split, indices = "val", splits.val
-    metrics, predictions = evaluate_members([(model, best)], dataset, indices, device, progress)
+    members = [(model, best)]
+    candidates = evaluation.refine_rings
+    if len(candidates) > 1 and not splits.val:
+        logger.warning(f"no validation split to choose eval.refine_rings among {list(candidates)}: using "
+                       f"{min(candidates)}")
+        candidates = [min(candidates)]
+    rings, choice = select_refine_rings(members, dataset, candidates, device, progress)
+    metrics, predictions = evaluate_members(members, dataset, indices, device, progress, refine_rings=rings)
+    if choice is not None:
+        metrics["refine_choice"] = choice
+        logger.info(f"refine rings {rings}, chosen on the validation split (exact accuracy by rings: "
+                    + ", ".join(f"{k}: {v:.4f}" for k, v in choice["accuracy"].items()) + ")")
     metrics.update({
         "split": split,
         "checkpoint": "best.pt",

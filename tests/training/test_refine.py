@@ -1,0 +1,159 @@
+"""Correspondence refinement: the ring average, what averaging over both neighbourhoods does to a map, and
+how evaluation scores, reports and chooses it."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from meshes import icosphere
+from zernet.data import LoaderOptions, load_faust
+from zernet.operators import PatchConfig
+from zernet.training.config import ConfigError, EvalSection
+from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
+from zernet.training.refine import ring_average, refine_correspondence
+
+
+def test_ring_average_is_the_mean_over_the_vertices_within_so_many_edges(tetrahedron_surface, sphere_surface):
+    # On a tetrahedron every vertex neighbours every other: one ring averages all four equally.
+    np.testing.assert_allclose(ring_average(tetrahedron_surface.faces, 4, 1).toarray(), np.full((4, 4), 0.25))
+    np.testing.assert_array_equal(ring_average(tetrahedron_surface.faces, 4, 0).toarray(), np.eye(4))
+    # On the icosphere (valence 5 or 6) one ring holds the vertex and its v neighbours; two rings add the
+    # vertices two edges away: 1 + 5 + 10 around a valence-5 vertex, 1 + 6 + 12 around most valence-6 ones.
+    faces, n = sphere_surface.faces, sphere_surface.n_vertices
+    valence = np.bincount(faces.ravel(), minlength=n)  # a closed mesh has as many faces as edges at a vertex
+    assert set(np.unique(valence)) == {5, 6}
+    for rings, expected in ((1, valence + 1), (2, None)):
+        average = ring_average(faces, n, rings)
+        np.testing.assert_allclose(np.asarray(average.sum(axis=1)).ravel(), 1.0, rtol=1e-6)
+        np.testing.assert_allclose(1.0 / average.diagonal(), average.getnnz(axis=1), rtol=1e-5)  # equal weights
+        if expected is not None:
+            np.testing.assert_array_equal(average.getnnz(axis=1), expected)
+    two_rings = ring_average(faces, n, 2).getnnz(axis=1)
+    assert set(two_rings[valence == 5]) == {16} and np.median(two_rings[valence == 6]) == 19
+
+
+def test_ring_average_refuses_bad_faces_and_radii(tetrahedron_surface):
+    with pytest.raises(ValueError, match="outside"):
+        ring_average(tetrahedron_surface.faces, 3, 1)
+    with pytest.raises(ValueError, match="rings"):
+        ring_average(tetrahedron_surface.faces, 4, -1)
+
+
+def test_a_true_map_stays_and_a_wrong_vertex_takes_its_neighbourhood_answer(sphere_surface):
+    faces, n = sphere_surface.faces, sphere_surface.n_vertices
+    identity = np.eye(n, dtype=np.float32)
+    # The identity map is its own refinement: (A Aᵀ)(i, j) = |ring(i) ∩ ring(j)| / (|ring(i)| |ring(j)|) is
+    # largest at j = i (one ring: 1/(v+1) against 4/((v+1)(v'+1)) for a neighbour).
+    for rings in (1, 2, 3):
+        np.testing.assert_array_equal(refine_correspondence(identity, faces, faces, rings).argmax(1), np.arange(n))
+    # One vertex sent to the far side of the sphere comes back; every other vertex stays.
+    wrong = identity.copy()
+    far = int(np.argmin(sphere_surface.vertices @ sphere_surface.vertices[7]))
+    wrong[7] = 0.0
+    wrong[7, far] = 1.0
+    np.testing.assert_array_equal(wrong.argmax(1)[7], far)
+    np.testing.assert_array_equal(refine_correspondence(wrong, faces, faces, 1).argmax(1), np.arange(n))
+
+
+def test_refinement_keeps_rows_normalised_and_zero_rings_change_nothing(sphere_surface):
+    rng = np.random.default_rng(0)
+    n = sphere_surface.n_vertices
+    probabilities = rng.random((n, n)).astype(np.float32)
+    probabilities /= probabilities.sum(axis=1, keepdims=True)
+    np.testing.assert_array_equal(refine_correspondence(probabilities, sphere_surface.faces,
+                                                        sphere_surface.faces, 0), probabilities)
+    refined = refine_correspondence(probabilities, sphere_surface.faces, sphere_surface.faces, 3)
+    np.testing.assert_allclose(refined.sum(axis=1), 1.0, rtol=1e-5)
+    with pytest.raises(ValueError, match="rings"):
+        refine_correspondence(probabilities, sphere_surface.faces, sphere_surface.faces, -1)
+
+
+def test_refinement_follows_a_reindexing_of_either_mesh():
+    """Renumbering the shape's vertices permutes the rows; renumbering the template's permutes the columns."""
+    shape, template = icosphere(1, noise=0.05, seed=1), icosphere(1)
+    n, m = shape.n_vertices, template.n_vertices
+    rng = np.random.default_rng(3)
+    probabilities = rng.dirichlet(np.full(m, 0.1), size=n).astype(np.float32)
+    refined = refine_correspondence(probabilities, shape.faces, template.faces, 2)
+    rows, cols = rng.permutation(n), rng.permutation(m)
+    rows_inverse, cols_inverse = np.argsort(rows), np.argsort(cols)
+    # New vertex a of the shape is old vertex rows[a]: its faces use the inverse permutation.
+    renumbered = refine_correspondence(probabilities[rows][:, cols], rows_inverse[shape.faces],
+                                       cols_inverse[template.faces], 2)
+    np.testing.assert_allclose(renumbered, refined[rows][:, cols], rtol=1e-5, atol=1e-7)
+
+
+# ------------------------------------------------------------------------------- evaluation with refinement
+class _KnownMap(torch.nn.Module):
+    """Predicts the identity map except that a few vertices point at the far side of the sphere."""
+
+    def __init__(self, vertices: np.ndarray, wrong: list[int]):
+        super().__init__()
+        logits = torch.full((len(vertices), len(vertices)), -10.0)
+        logits.fill_diagonal_(10.0)
+        for i in wrong:
+            logits[i, i] = 0.0
+            logits[i, int(np.argmin(vertices @ vertices[i]))] = 10.0
+        self.register_buffer("logits", logits)
+
+    def forward(self, features, geometry):
+        return self.logits
+
+
+@pytest.fixture(scope="module")
+def spheres_in_faust_layout(tmp_path_factory):
+    """Five noisy icospheres sharing one connectivity: 3 train (1 of them validation), 2 test."""
+    root = tmp_path_factory.mktemp("faust")
+    folder = root / "MPI-FAUST" / "training" / "registrations"
+    folder.mkdir(parents=True)
+    for i in range(5):
+        sphere = icosphere(2, noise=0.02, seed=i)
+        trimesh.Trimesh(sphere.vertices, sphere.faces, process=False).export(folder / f"tr_reg_{i:03d}.ply")
+    options = LoaderOptions(patch_configs=[PatchConfig(r0=1.2, n_samples=1500, patch_size=30, n_max=2)],
+                            cache_dir=root / "cache", n_val=1, workers=0, progress=False)
+    return load_faust(root, train_indices=range(3), test_indices=[3, 4], n_vertices=None, area=100.0,
+                      options=options)
+
+
+def test_evaluation_scores_the_refined_map_and_keeps_the_unrefined_beside(spheres_in_faust_layout):
+    dataset = spheres_in_faust_layout
+    vertices = dataset[0].surface.vertices - dataset[0].surface.vertices.mean(axis=0)
+    members = [(_KnownMap(vertices, wrong=[5, 40, 100]), {"task": "classification", "correspondence": True,
+                                                          "num_classes": 162})]
+    test, device = dataset.splits["test"], torch.device("cpu")
+    raw, _ = evaluate_members(members, dataset, test, device, progress=False, keep=0)
+    assert raw["refine_rings"] == 0 and "unrefined_summary" not in raw
+    assert raw["summary"]["accuracy"] == pytest.approx(1 - 3 / 162)
+    refined, _ = evaluate_members(members, dataset, test, device, progress=False, keep=0, refine_rings=1)
+    assert refined["summary"]["accuracy"] == 1.0 and refined["summary"]["mean_geodesic_error"] == 0.0
+    assert refined["unrefined_summary"] == raw["summary"]
+    assert "refined over 1 rings; unrefined accuracy 0.9815" in summary_line(refined)
+    # Chosen on the validation split: the fewest rings among the best.
+    rings, choice = select_refine_rings(members, dataset, [3, 0, 1], device, progress=False)
+    assert rings == 1 and choice["split"] == "val"
+    assert choice["accuracy"] == {"0": pytest.approx(1 - 3 / 162), "1": 1.0, "3": 1.0}
+    assert select_refine_rings(members, dataset, [2], device, progress=False) == (2, None)
+    with pytest.raises(ConfigError, match="integers >= 0"):
+        select_refine_rings(members, dataset, [-1], device, progress=False)
+
+
+def test_refinement_is_ignored_by_segmentation_and_needs_a_validation_split(spheres_in_faust_layout):
+    dataset = spheres_in_faust_layout
+    segmentation = [(_KnownMap(dataset[0].surface.vertices, wrong=[]), {"task": "classification",
+                                                                        "num_classes": 162})]
+    assert select_refine_rings(segmentation, dataset, [0, 4], torch.device("cpu"), progress=False) == (0, None)
+    correspondence = [(segmentation[0][0], {"task": "classification", "correspondence": True, "num_classes": 162})]
+    no_validation = dataset.subset(dataset.splits["train"] + dataset.splits["test"])
+    no_validation.splits.pop("val", None)
+    with pytest.raises(ConfigError, match="no validation split"):
+        select_refine_rings(correspondence, no_validation, [0, 4], torch.device("cpu"), progress=False)
+
+
+def test_the_eval_section_takes_a_number_or_candidates():
+    assert EvalSection(refine_rings=2).refine_rings == [2]
+    assert EvalSection(refine_rings=[0, 1, 2]).refine_rings == [0, 1, 2]
+    assert EvalSection().refine_rings == [0]
+    for bad in ([], [-1], "two"):
+        with pytest.raises(ConfigError, match="eval.refine_rings"):
+            EvalSection(refine_rings=bad)
