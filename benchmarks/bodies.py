@@ -16,6 +16,8 @@ dropout, ...), and reports per model:
 - the model selected on validation (never on the test bodies): exact correspondence accuracy and the geodesic
   error curve from 0 to 10 % of the geodesic diameter (:func:`zernet.metrics.correspondence_scores`, the
   Princeton protocol), or segmentation accuracy with the IoU of each part;
+- correspondence refined by averaging over mesh rings (:mod:`zernet.training.refine`), the radius chosen on
+  the validation bodies among ``--refine-rings``: its scores beside the unrefined ones, for every model;
 - wall time per epoch (training and validation, this machine, ``--threads`` threads) and the training time
   until the first epoch whose model reaches the target on the test bodies (``--target``).
 
@@ -56,7 +58,7 @@ from zernet.io_utils import atomic_write_bytes, plain, write_json  # noqa: E402
 from zernet.training import (  # noqa: E402
     apply_overrides, build_dataset, load_checkpoint, load_config, parse_config, train,
 )
-from zernet.training.evaluation import evaluate_members  # noqa: E402
+from zernet.training.evaluation import evaluate_members, select_refine_rings  # noqa: E402
 from zernet.training.predict import model_from_checkpoint, predict_record  # noqa: E402
 
 MODELS = ("zernet", "zernet-multiscale", "zernet-directional", "paper-zernet", "feastnet")
@@ -80,6 +82,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads per training (default 1)")
     p.add_argument("--target", type=float, nargs=2, default=(0.97, 0.97), metavar=("CORR", "SEG"),
                    help="test accuracy targets for correspondence and segmentation (default 0.97 0.97)")
+    p.add_argument("--refine-rings", type=int, nargs="+", default=[0, 1, 2, 3], metavar="N",
+                   help="correspondence refinement radii to choose among on validation (default 0 1 2 3)")
     p.add_argument("--set", dest="overrides", nargs="+", default=[], metavar="KEY=VALUE",
                    help="overrides applied to every run's configuration (e.g. train.lr=1e-3)")
     p.add_argument("--data", type=Path, default=None, help="bodies folder (default data/bodies-TOPOLOGY-COUNT)")
@@ -136,23 +140,26 @@ def run_config(task: str, model: str, bodies: Path, args) -> dict:
     # Trained one epoch at a time (run_one): the cosine schedule, if any, spans the whole budget.
     config["train"].update({"epochs": args.epochs, "lr_schedule_epochs": args.epochs, "patience": None,
                             "seed": args.seed, "threads": args.threads, "device": "cpu"})
-    config["eval"] = {"renders": 0, "plots": False}
+    config["eval"] = {"renders": 0, "plots": False}  # refinement is chosen once, for the selected model
     config["cache_dir"] = str(ROOT / ".zernet-cache")
     return apply_overrides(config, args.overrides)
 
 
-def test_scores(run_dir: Path, name: str, dataset, indices) -> dict:
-    """Scores of the checkpoint ``name`` of ``run_dir`` on the shapes ``indices``."""
-    checkpoint = load_checkpoint(run_dir / name)
-    model = model_from_checkpoint(checkpoint, torch.device("cpu"))
-    metrics, _ = evaluate_members([(model, checkpoint)], dataset, indices, torch.device("cpu"), progress=False,
-                                  keep=0)
+def selected_scores(run_dir: Path, dataset, indices, refine_rings) -> dict:
+    """Scores of the selected model (``best.pt``) of ``run_dir`` on the shapes ``indices``; a correspondence
+    refined over the rings (among ``refine_rings``) that score best on the validation bodies."""
+    checkpoint = load_checkpoint(run_dir / "best.pt")
+    members = [(model_from_checkpoint(checkpoint, torch.device("cpu")), checkpoint)]
+    rings, choice = select_refine_rings(members, dataset, refine_rings, torch.device("cpu"), progress=False)
+    metrics, _ = evaluate_members(members, dataset, indices, torch.device("cpu"), progress=False, keep=0,
+                                  refine_rings=rings)
+    metrics["refine_choice"] = choice
     return metrics
 
 
 def test_accuracy(run_dir: Path, name: str, dataset, indices) -> float:
     """Vertex accuracy (exact correspondence, or correct part) of a checkpoint, pooled over the shapes: the
-    ``accuracy`` of :func:`test_scores` without the geodesic distances, cheap enough for every epoch."""
+    ``accuracy`` of :func:`selected_scores` without refinement or geodesic distances, cheap enough for every epoch."""
     checkpoint = load_checkpoint(run_dir / name)
     members = [(model_from_checkpoint(checkpoint, torch.device("cpu")), checkpoint)]
     hits = total = 0
@@ -192,9 +199,10 @@ def run_one(task: str, model: str, bodies: Path, args) -> dict:
         write_json(run_dir / CURVE_FILE, {"config": plain(config.to_dict()), "test_curve": test_curve})
         print(f"  {task} {model} epoch {epoch}: test accuracy {test_curve[-1]:.4f}", flush=True)
     state = load_checkpoint(run_dir / "last.pt")["state"]
-    selected = test_scores(run_dir, "best.pt", dataset, test)
-    if abs(selected["summary"]["accuracy"] - test_curve[state["best_epoch"] - 1]) > 1e-9:
-        print(f"  warning: the selected model scores {selected['summary']['accuracy']:.4f}, its epoch's curve point "
+    selected = selected_scores(run_dir, dataset, test, args.refine_rings)
+    unrefined = selected.get("unrefined_summary", selected["summary"])
+    if abs(unrefined["accuracy"] - test_curve[state["best_epoch"] - 1]) > 1e-9:
+        print(f"  warning: the selected model scores {unrefined['accuracy']:.4f}, its epoch's curve point "
               f"{test_curve[state['best_epoch'] - 1]:.4f}", flush=True)
     history = state["history"]
     seconds = [float(h["seconds"]) for h in history]
@@ -207,7 +215,9 @@ def run_one(task: str, model: str, bodies: Path, args) -> dict:
         "test_curve": test_curve, "val_curve": [h.get("val_accuracy") for h in history],
         "train_curve": [h.get("train_accuracy") for h in history],
         "seconds_per_epoch": float(np.mean(seconds)), "train_seconds": float(np.sum(seconds)),
-        "best_epoch": state["best_epoch"], "selected": selected["summary"],
+        "best_epoch": state["best_epoch"], "selected": unrefined,
+        "refine_rings": selected.get("refine_rings", 0), "refine_choice": selected.get("refine_choice"),
+        "refined": selected["summary"] if selected.get("refine_rings") else None,
         "error_curve": selected.get("error_curve"), "target": target,
         "epochs_to_target": None if reached is None else reached + 1,
         "seconds_to_target": None if reached is None else float(np.sum(seconds[:reached + 1])),
@@ -236,13 +246,15 @@ def markdown(results: list[dict], args) -> str:
         lr = rows[0]["config"]["train"]["lr"]
         lines += [f"## {task} (lr {lr}, target {_pct(rows[0]['target'])} % on test)", ""]
         if task == "correspondence":
-            lines += ["| model | params | exact % | <=1 % diam | <=2.5 % | <=5 % | best epoch | s/epoch | "
-                      "epochs (s) to target |", "|---|---|---|---|---|---|---|---|---|"]
+            lines += ["| model | params | exact % | <=1 % diam | <=2.5 % | <=5 % | refined: rings, exact %, <=1 % | "
+                      "best epoch | s/epoch | epochs (s) to target |", "|---|---|---|---|---|---|---|---|---|---|"]
             for r in rows:
-                s = r["selected"]
+                s, refined = r["selected"], r.get("refined")
+                refined_text = "none chosen" if not refined else (
+                    f"{r['refine_rings']}, {_pct(refined['accuracy'])}, {_pct(refined['within_0.01'])}")
                 lines.append(f"| {r['model']} | {r['parameters']:,} | {_pct(s['accuracy'])} | {_pct(s['within_0.01'])} "
-                             f"| {_pct(s['within_0.025'])} | {_pct(s['within_0.05'])} | {r['best_epoch']} | "
-                             f"{r['seconds_per_epoch']:.1f} | {_to_target(r)} |")
+                             f"| {_pct(s['within_0.025'])} | {_pct(s['within_0.05'])} | {refined_text} | "
+                             f"{r['best_epoch']} | {r['seconds_per_epoch']:.1f} | {_to_target(r)} |")
         else:
             lines += ["| model | params | accuracy % | mean IoU | per-part IoU | best epoch | s/epoch | "
                       "epochs (s) to target |", "|---|---|---|---|---|---|---|---|"]
@@ -283,7 +295,7 @@ def plot(results: list[dict], path: Path) -> None:
             curve = r["error_curve"]
             ax.plot(100 * np.asarray(curve["radii"]), 100 * np.asarray(curve["fractions"]), label=r["model"])
         ax.set(xlabel="geodesic error (% of diameter)", ylabel="% correspondences", xlim=(0, 10), ylim=(0, 100),
-               title="correspondence: error curve (selected models)")
+               title="correspondence: error curve (selected, refined)")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()

@@ -196,6 +196,9 @@ def _add_predict_command(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--colormap", default=None,
                    help="matplotlib colormap for the .ply (default: tab10/tab20 for a few classes, hsv for "
                         "many, viridis for values)")
+    p.add_argument("--refine-rings", type=int, default=None, metavar="N",
+                   help="correspondence: average the probabilities over N rings of mesh neighbours (default: "
+                        "what the run chose on its validation split; 0: off)")
     p.add_argument("--device", default=None, help="override the run's device (cpu, cuda, ...)")
     p.set_defaults(func=_cmd_predict)
 
@@ -341,7 +344,8 @@ def _cmd_predict(args) -> int:
     path = checkpoint_path(args.run_dir)
     checkpoint = load_checkpoint(path)
     surface = load_surface(args.mesh, repair=args.repair)
-    result = predict(path, surface, probabilities=args.probabilities, device=args.device, repair=args.repair)
+    result = predict(path, surface, probabilities=args.probabilities, device=args.device, repair=args.repair,
+                     refine_rings=args.refine_rings)
     prediction, probabilities = result if args.probabilities else (result, None)
 
     prefix = Path(args.out)

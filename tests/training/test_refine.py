@@ -10,6 +10,8 @@ from meshes import icosphere
 from zernet.data import LoaderOptions, load_faust
 from zernet.operators import PatchConfig
 from zernet.training.config import ConfigError, EvalSection
+from zernet.training import evaluate, predict, train
+from zernet.training.checkpoint import load_checkpoint
 from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
 from zernet.training.refine import ring_average, refine_correspondence
 
@@ -101,18 +103,27 @@ class _KnownMap(torch.nn.Module):
         return self.logits
 
 
+PATCH = {"r0": 1.2, "n_samples": 1500, "patch_size": 30, "n_max": 2}
+
+
 @pytest.fixture(scope="module")
-def spheres_in_faust_layout(tmp_path_factory):
-    """Five noisy icospheres sharing one connectivity: 3 train (1 of them validation), 2 test."""
+def faust_root(tmp_path_factory):
+    """Five noisy icospheres sharing one connectivity, in FAUST's layout."""
     root = tmp_path_factory.mktemp("faust")
     folder = root / "MPI-FAUST" / "training" / "registrations"
     folder.mkdir(parents=True)
     for i in range(5):
         sphere = icosphere(2, noise=0.02, seed=i)
         trimesh.Trimesh(sphere.vertices, sphere.faces, process=False).export(folder / f"tr_reg_{i:03d}.ply")
-    options = LoaderOptions(patch_configs=[PatchConfig(r0=1.2, n_samples=1500, patch_size=30, n_max=2)],
-                            cache_dir=root / "cache", n_val=1, workers=0, progress=False)
-    return load_faust(root, train_indices=range(3), test_indices=[3, 4], n_vertices=None, area=100.0,
+    return root
+
+
+@pytest.fixture(scope="module")
+def spheres_in_faust_layout(faust_root):
+    """3 train (1 of them validation), 2 test."""
+    options = LoaderOptions(patch_configs=[PatchConfig(**PATCH)], cache_dir=faust_root / "cache", n_val=1,
+                            workers=0, progress=False)
+    return load_faust(faust_root, train_indices=range(3), test_indices=[3, 4], n_vertices=None, area=100.0,
                       options=options)
 
 
@@ -157,3 +168,29 @@ def test_the_eval_section_takes_a_number_or_candidates():
     for bad in ([], [-1], "two"):
         with pytest.raises(ConfigError, match="eval.refine_rings"):
             EvalSection(refine_rings=bad)
+
+
+def test_a_trained_run_stores_its_template_and_choice_and_predict_applies_them(faust_root, tmp_path):
+    config = {"data": {"kind": "faust", "root": str(faust_root), "train_indices": [0, 1, 2], "test_indices": [3, 4],
+                       "val_count": 1, "n_vertices": 162, "workers": 0},
+              "patch": {"area": 100.0, "scales": [PATCH]},
+              "model": {"name": "zernet", "widths": [8, 16], "angular_resolution": 2, "dropout": 0.0},
+              "train": {"epochs": 1, "seed": 0, "threads": 1, "lr": 1e-2},
+              "eval": {"renders": 0, "plots": False, "refine_rings": [0, 1, 2]},
+              "cache_dir": str(faust_root / "cache")}
+    metrics = train(config, tmp_path / "run", progress=False)
+    best = load_checkpoint(tmp_path / "run" / "best.pt")
+    assert best["refine_rings"] == metrics["refine_choice"]["rings"] == metrics["refine_rings"]
+    assert sorted(metrics["refine_choice"]["accuracy"]) == ["0", "1", "2"]
+    surface = icosphere(2, noise=0.02, seed=3)
+    np.testing.assert_array_equal(best["template_faces"].numpy(), surface.faces)
+    # predict refines a new surface as the run chose; any other radius on request, 0 turns it off.
+    _, raw = predict(tmp_path / "run", surface, probabilities=True, refine_rings=0)
+    for rings in (1, 2):
+        expected = refine_correspondence(raw, surface.faces, surface.faces, rings).argmax(axis=1)
+        np.testing.assert_array_equal(predict(tmp_path / "run", surface, refine_rings=rings), expected)
+    np.testing.assert_array_equal(predict(tmp_path / "run", surface),
+                                  predict(tmp_path / "run", surface, refine_rings=best["refine_rings"]))
+    # evaluate chooses again on the validation split, with the same outcome as training.
+    again = evaluate(tmp_path / "run", progress=False)
+    assert again["refine_choice"] == metrics["refine_choice"] and again["summary"] == metrics["summary"]

@@ -38,6 +38,7 @@ class RunRecord:
     target_exponent: float       # area exponent of the regression target (predict returns a surface's own units)
     feature_stats: dict | None
     preprocess: dict             # see zernet.training.build.preprocess_spec
+    template_faces: torch.Tensor | None = None  # correspondence: (F, 3) faces of the template (refinement)
 
 
 def cpu_state_dict(module_or_optimizer) -> dict:
@@ -70,6 +71,7 @@ def make_checkpoint(record: RunRecord, model: torch.nn.Module, optimizer: torch.
         "target_exponent": record.target_exponent,
         "feature_stats": record.feature_stats,
         "preprocess": record.preprocess,
+        "template_faces": record.template_faces,
         "model": cpu_state_dict(model),
         "optimizer": cpu_state_dict(optimizer),
         "state": copy.deepcopy(state),

@@ -1,4 +1,5 @@
-"""Scoring a trained model or an ensemble on a split: metrics, baselines and the one-line summary."""
+"""Scoring a trained model or an ensemble on a split: metrics, baselines, the correspondence refinement
+chosen on validation, and the one-line summary."""
 
 from __future__ import annotations
 

@@ -36,7 +36,7 @@ import torch
 from zernet.data import PreprocessError, SkippedShapesWarning
 from zernet.data.preprocess import failure_listing
 from zernet.distributed import DistributedContext, is_main, setup as setup_distributed
-from zernet.io_utils import plain
+from zernet.io_utils import atomic_save_torch, plain
 from zernet.training.augment import check_augmentation
 from zernet.training.build import (
     build_model_from_spec,
@@ -287,12 +287,16 @@ def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict 
     targets = _target_scaling(config.train, task, dataset, splits, checkpoint, logger)
     check_loss_targets(loss_name, dataset, splits.train + splits.val)
     features = _feature_scaling(config.train, dataset, splits, checkpoint, logger)
+    correspondence = is_correspondence(dataset, config.data.kind)
+    # Correspondence by vertex index: every shape has the template's connectivity, the first one's included.
+    template_faces = (torch.as_tensor(first.surface.faces, dtype=torch.int64)
+                      if correspondence and first.surface.faces is not None else None)
     record = RunRecord(
         config=config.to_dict(), model_spec=spec, task=task,
         num_classes=None if dataset.num_classes is None else int(dataset.num_classes),
-        correspondence=is_correspondence(dataset, config.data.kind), target_stats=targets,
+        correspondence=correspondence, target_stats=targets,
         target_exponent=float(dataset.info.get("target_exponent") or 0.0), feature_stats=features,
-        preprocess=preprocess_spec(dataset))
+        preprocess=preprocess_spec(dataset), template_faces=template_faces)
     return record, Objective(task, loss_name, targets, features)
 
 
@@ -394,6 +398,9 @@ def _test(model, state: dict, dataset, splits: _Splits, monitor: Monitor, evalua
         metrics["refine_choice"] = choice
         logger.info(f"refine rings {rings}, chosen on the validation split (exact accuracy by rings: "
                     + ", ".join(f"{k}: {v:.4f}" for k, v in choice["accuracy"].items()) + ")")
+    if best.get("correspondence") and best.get("refine_rings") != rings:
+        best["refine_rings"] = rings  # what `predict` applies to a new surface
+        atomic_save_torch(best, run_dir / "best.pt")
     metrics.update({
         "split": split,
         "checkpoint": "best.pt",

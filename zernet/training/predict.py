@@ -14,6 +14,7 @@ from zernet.geometry import load_surface
 from zernet.training.batch import Batch, model_basis_orders, model_directional_order
 from zernet.training.build import build_model_from_spec
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
+from zernet.training.refine import refine_correspondence
 from zernet.training.runtime import resolve_device
 from zernet.training.targets import destandardise, untransform
 
@@ -54,7 +55,8 @@ def model_from_checkpoint(checkpoint: dict, device: torch.device) -> torch.nn.Mo
 
 
 def predict(checkpoint: str | Path, surface, probabilities: bool = False, device: str | None = None,
-            cache_dir: str | Path | None = None, progress: bool = False, repair: bool = False):
+            cache_dir: str | Path | None = None, progress: bool = False, repair: bool = False,
+            refine_rings: int | None = None):
     """Per-vertex predictions of a trained model on a new surface.
 
     Args:
@@ -64,6 +66,9 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
         probabilities: classification only — also return the (N, C) softmax probabilities.
         repair: merge duplicate vertices and drop degenerate faces first (the repair training offers as
             ``data.repair``); the prediction is then one value per vertex of the repaired surface.
+        refine_rings: correspondence only: average the probabilities over this many rings of mesh neighbours
+            on the surface and on the template (:mod:`zernet.training.refine`); None: the number the run
+            chose on its validation split (0 for runs that chose none).
 
     Returns:
         (N,) int64 class indices or (N,) float32 values (regression: in the surface's own units — the model
@@ -85,6 +90,10 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
     device = resolve_device(device or config["train"]["device"])
     model = model_from_checkpoint(checkpoint, device)
     pred, probs = predict_record([(model, checkpoint)], record, device)
+    rings = checkpoint.get("refine_rings", 0) if refine_rings is None else refine_rings
+    if rings:
+        probs = _refined_probabilities(checkpoint, record, probs, rings)
+        pred = probs.argmax(axis=1)
     if checkpoint["task"] == "classification":
         pred = pred.astype(np.int64)
     else:
@@ -95,3 +104,17 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
             raise ValueError("probabilities exist only for classification models")
         return pred, probs.astype(np.float32)
     return pred
+
+
+def _refined_probabilities(checkpoint: dict, record, probabilities: np.ndarray, rings: int) -> np.ndarray:
+    """Correspondence refinement of a new surface's probabilities, against the template the run stored."""
+    if not checkpoint.get("correspondence"):
+        raise ValueError("refine_rings applies to correspondence models only; this one predicts "
+                         + ("values" if checkpoint["task"] == "regression" else "segmentation classes"))
+    template = checkpoint.get("template_faces")
+    if template is None:
+        raise ValueError("this checkpoint stores no template mesh (it was written before zernet refined "
+                         "correspondences): predict with refine_rings=0, or train the run again")
+    if record.surface.faces is None:
+        raise ValueError(f"{record.name}: refining a correspondence needs a triangle mesh, not a point cloud")
+    return refine_correspondence(probabilities, record.surface.faces, np.asarray(template), rings)
