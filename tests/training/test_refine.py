@@ -1,12 +1,15 @@
 """Correspondence refinement: the ring average, what averaging over both neighbourhoods does to a map, and
 how evaluation scores, reports and chooses it."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
 import trimesh
 
 from meshes import icosphere
+from zernet.cli import main
 from zernet.data import LoaderOptions, load_faust
 from zernet.operators import PatchConfig
 from zernet.training.config import ConfigError, EvalSection
@@ -194,3 +197,15 @@ def test_a_trained_run_stores_its_template_and_choice_and_predict_applies_them(f
     # evaluate chooses again on the validation split, with the same outcome as training.
     again = evaluate(tmp_path / "run", progress=False)
     assert again["refine_choice"] == metrics["refine_choice"] and again["summary"] == metrics["summary"]
+    # The command line: evaluate and predict take a radius of their own.
+    mesh = tmp_path / "new.ply"
+    trimesh.Trimesh(surface.vertices, surface.faces, process=False).export(mesh)
+    assert main(["evaluate", str(tmp_path / "run"), "--refine-rings", "2", "--no-progress",
+                 "--out", str(tmp_path / "two.json")]) == 0
+    two = json.loads((tmp_path / "two.json").read_text())
+    assert two["refine_rings"] == 2 and "refine_choice" not in two
+    assert two["unrefined_summary"] == again.get("unrefined_summary", again["summary"])
+    assert main(["predict", str(tmp_path / "run"), str(mesh), "--refine-rings", "2", "--out",
+                 str(tmp_path / "pred")]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "pred.npy"),
+                                  refine_correspondence(raw, surface.faces, surface.faces, 2).argmax(axis=1))
