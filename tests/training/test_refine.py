@@ -194,6 +194,12 @@ def test_a_trained_run_stores_its_template_and_choice_and_predict_applies_them(f
         np.testing.assert_array_equal(predict(tmp_path / "run", surface, refine_rings=rings), expected)
     np.testing.assert_array_equal(predict(tmp_path / "run", surface),
                                   predict(tmp_path / "run", surface, refine_rings=best["refine_rings"]))
+    # A checkpoint without a template (written before refinement existed), or of another task, says so.
+    for change, message in (({"template_faces": None}, "stores no template mesh"),
+                            ({"correspondence": False}, "correspondence models only")):
+        torch.save({**best, **change}, tmp_path / "changed.pt")
+        with pytest.raises(ValueError, match=message):
+            predict(tmp_path / "changed.pt", surface, refine_rings=1)
     # evaluate chooses again on the validation split, with the same outcome as training.
     again = evaluate(tmp_path / "run", progress=False)
     assert again["refine_choice"] == metrics["refine_choice"] and again["summary"] == metrics["summary"]
