@@ -302,7 +302,7 @@ def test_relative_l1_loss_is_the_mape_of_the_predictions(transform):
 
 
 def test_relative_l1_loss_refuses_zero_targets(tmp_path, cache_dir, monkeypatch):
-    build = loop.load_data
+    build = loop.build_dataset
 
     def with_a_zero(*args, **kwargs):  # the first training shape gets a zero target at vertex 3
         dataset = build(*args, **kwargs)
@@ -317,7 +317,7 @@ def test_relative_l1_loss_refuses_zero_targets(tmp_path, cache_dir, monkeypatch)
         dataset.target = patched
         return dataset
 
-    monkeypatch.setattr(loop, "load_data", with_a_zero)
+    monkeypatch.setattr(loop, "build_dataset", with_a_zero)
     config = tiny_config(cache_dir, loss="relative_l1", epochs=1)
     config["data"]["task"] = "regression"
     with pytest.raises(ConfigError, match=r"relative_l1 divides by the target, but shape \S+ has 0 at vertex 3"):

@@ -25,6 +25,7 @@ __all__ = [
     "default_features",
     "feature_parts",
     "feature_channels",
+    "needs_patch_operators",
     "shape_descriptors",
     "curvature_descriptors",
     "membrane_descriptors",
@@ -153,6 +154,11 @@ def curvature_descriptors(surface: Surface, radii: Sequence[float]) -> np.ndarra
         ball = scipy.sparse.csr_matrix((areas[cols], (rows, cols)), shape=(n, n))
         columns.append(radius * (ball @ curvature) / (ball @ np.ones(n)))
     return np.stack(columns, axis=1).astype(np.float32)
+
+
+def needs_patch_operators(kind: str) -> bool:
+    """Whether feature ``kind`` is computed from the surface's patch operators ("shape", "curvature")."""
+    return any(part in ("shape", "curvature") for part in feature_parts(kind))
 
 
 def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_dir=None) -> np.ndarray:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 
 from zernet.data.dataset import DatasetError
-from zernet.data.features import feature_parts
+from zernet.data.features import feature_parts, needs_patch_operators
 from zernet.data.preprocess import as_patch_configs
 
 __all__ = ["LoaderOptions", "SHARED_OPTIONS", "ON_ERROR_CHOICES"]
@@ -50,6 +50,9 @@ class LoaderOptions:
             ``dataset.failures``).
         repair: merge duplicate vertices and drop degenerate faces while validating the surfaces.
         progress: show a progress bar while preprocessing.
+        patch_operators: build the patch operators (False: every record's geometry holds only the mesh
+            edges, for a model that reads nothing else, such as FeaStNet: no geodesic patches are computed
+            or read; the features must not need them).
     """
 
     patch_configs: tuple | None = None
@@ -61,12 +64,16 @@ class LoaderOptions:
     on_error: str = "raise"
     repair: bool = False
     progress: bool = True
+    patch_operators: bool = True
 
     def __post_init__(self):
         configs = self.patch_configs
         # One PatchConfig, a dict or a list of either; empty means "the data set's default", like None.
         object.__setattr__(self, "patch_configs", tuple(as_patch_configs(configs)) if configs else None)
         feature_parts(self.feature_kind)  # an unknown feature kind fails here, before any file is read
+        if not self.patch_operators and needs_patch_operators(self.feature_kind):
+            raise DatasetError(f"features {self.feature_kind!r} are computed from the patch operators, "
+                               "which patch_operators=False leaves out")
         if self.on_error not in ON_ERROR_CHOICES:
             raise DatasetError(f"on_error must be one of {', '.join(ON_ERROR_CHOICES)}, got {self.on_error!r}")
 
@@ -79,7 +86,7 @@ class LoaderOptions:
         """The keyword arguments of :func:`~zernet.data.preprocess.build_dataset` these options give."""
         if self.n_val is None:
             raise ValueError("LoaderOptions.build_arguments needs n_val: call with_defaults first")
-        return {"patch_configs": self.patch_configs, "cache_dir": self.cache_dir, "n_val": self.n_val,
+        return {"patch_configs": self.patch_configs if self.patch_operators else (), "cache_dir": self.cache_dir, "n_val": self.n_val,
                 "seed": self.seed, "feature_kind": self.feature_kind, "workers": self.workers,
                 "on_error": self.on_error, "repair": self.repair, "progress": self.progress}
 

@@ -101,15 +101,13 @@ def failure_listing(failures: dict[str, str], total: int) -> str:
 
 
 def as_patch_configs(configs) -> list[PatchConfig]:
-    """Accept one PatchConfig, a dict, or a list of either; return a non-empty list of PatchConfig."""
+    """Accept one PatchConfig, a dict, or a list of either; return a list of PatchConfig. An empty list
+    builds no patch operators: the data of a model that reads only the mesh graph (FeaStNet)."""
     if configs is None:
         raise DatasetError("no patch configuration given (need at least one PatchConfig, e.g. {'r0': 5.5})")
     if isinstance(configs, (PatchConfig, dict)):
         configs = [configs]
-    result = [c if isinstance(c, PatchConfig) else PatchConfig(**dict(c)) for c in configs]
-    if not result:
-        raise DatasetError("no patch configuration given (need at least one PatchConfig, e.g. {'r0': 5.5})")
-    return result
+    return [c if isinstance(c, PatchConfig) else PatchConfig(**dict(c)) for c in configs]
 
 
 def mesh_edge_index(surface: Surface, k_cloud: int = 8) -> torch.Tensor:

@@ -201,7 +201,7 @@ def load_regression(
     if not root.is_dir():
         raise DatasetError(f"regression folder {root} does not exist" if not root.exists()
                            else f"regression root {root} is a file; give the folder of meshes and value files")
-    if not options.patch_configs:
+    if options.patch_operators and not options.patch_configs:
         raise DatasetError("regression: give patch_configs (a patch radius suited to the surfaces' area)")
     sources, missing = [], []
     for path in find_meshes(root, MESH_EXTENSIONS + (".mat",)):

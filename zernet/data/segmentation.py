@@ -353,7 +353,7 @@ def load_segmentation(
     train_names = [name for name in names if name not in set(test_names)]
     class_names = resolve_class_names(class_names, num_classes, label_root)
 
-    if not options.patch_configs:
+    if options.patch_operators and not options.patch_configs:
         raise DatasetError("segmentation: give patch_configs (e.g. [{'r0': 5.5}] for human bodies at area 15000)")
     # The shape loader repairs (so the labels follow the merged vertices); the pipeline must not repair again.
     return build_dataset(

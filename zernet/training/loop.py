@@ -39,10 +39,10 @@ from zernet.distributed import DistributedContext, is_main, setup as setup_distr
 from zernet.io_utils import atomic_save_torch, plain
 from zernet.training.augment import check_augmentation
 from zernet.training.build import (
+    build_dataset,
     build_model_from_spec,
     check_model_config,
     is_correspondence,
-    load_data,
     model_spec,
     preprocess_spec,
 )
@@ -226,7 +226,7 @@ def _load_dataset(config: RunConfig, progress: bool, workers, ctx: DistributedCo
         # Skipped shapes are written to train.log (below) instead of being warned about as well.
         warnings.simplefilter("ignore", SkippedShapesWarning)
         try:
-            dataset = load_data(config.data, config.patch, config.cache_dir, progress=progress, workers=workers)
+            dataset = build_dataset(config, progress=progress, workers=workers)
         except PreprocessError as error:
             _log_file_only(logger, f"stopped before training: {failure_listing(error.failures, error.total)}")
             raise

@@ -1,7 +1,7 @@
 """The models on surfaces and their registry.
 
 - ``registry.py``: :func:`build_model`, :func:`register_model`, :data:`MODEL_REGISTRY`,
-  :func:`directional_order`.
+  :func:`directional_order`, :func:`reads_patch_operators`.
 - ``base.py``: :class:`SurfaceModel` (the model contract), :class:`ZerNetBase` (the constructor the ZerNet
   families share), default widths per task and the small module helpers.
 - ``zernet.py``: :class:`ZerNet`, :class:`MultiScaleZerNet` and their :class:`ZernikeBlock`.
@@ -21,7 +21,9 @@ from .base import (
 from .baselines import FeaStNet
 from .directional import DirectionalZerNet
 from .paper import PaperZernikeConv, PaperZerNet, ridge_normal_matrix
-from .registry import MODEL_REGISTRY, available_models, build_model, directional_order, register_model
+from .registry import (
+    MODEL_REGISTRY, available_models, build_model, directional_order, reads_patch_operators, register_model,
+)
 from .zernet import MultiScaleZerNet, ZernikeBlock, ZerNet
 
 __all__ = [
@@ -30,6 +32,7 @@ __all__ = [
     "available_models",
     "build_model",
     "directional_order",
+    "reads_patch_operators",
     "TASK_WIDTHS",
     "resolve_widths",
     "activation_module",

@@ -66,6 +66,9 @@ class FeaStNet(SurfaceModel):
         - output: ``(N, C_out)`` unnormalised scores (or regression values).
     """
 
+    #: It reads only ``geometry.edge_index``: its runs build no patch operators.
+    reads_patch_operators = False
+
     def __init__(
         self,
         in_channels: int,

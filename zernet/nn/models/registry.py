@@ -15,7 +15,8 @@ from .directional import DirectionalZerNet
 from .paper import PaperZerNet
 from .zernet import MultiScaleZerNet, ZerNet
 
-__all__ = ["MODEL_REGISTRY", "register_model", "available_models", "build_model", "directional_order"]
+__all__ = ["MODEL_REGISTRY", "register_model", "available_models", "build_model", "directional_order",
+           "reads_patch_operators"]
 
 MODEL_REGISTRY: dict[str, Callable[..., nn.Module]] = {
     "zernet": ZerNet,
@@ -77,3 +78,10 @@ def directional_order(name: str, **options) -> int | None:
     need none."""
     order_for = getattr(_builder(name), "directional_order_for", None)
     return None if order_for is None else order_for(**options)
+
+
+def reads_patch_operators(name: str) -> bool:
+    """Whether the model ``name`` reads ``geometry.operators`` (the patch operators). Builders that set
+    ``reads_patch_operators = False`` (graph baselines such as FeaStNet, which read only the mesh edges) are
+    trained and run on data sets without them, so they never wait for geodesic patches."""
+    return bool(getattr(_builder(name), "reads_patch_operators", True))
