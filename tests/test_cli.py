@@ -175,3 +175,11 @@ def test_advice_in_messages_names_only_options_the_command_has(command):
         for word in advice.replace("(", " ").replace(")", " ").split():
             if word.startswith("--"):
                 assert word.split("=")[0] in options, (command, advice)
+
+
+def test_preprocess_of_a_feastnet_config_builds_no_operators(tmp_path, capsys):
+    config = cli_config(tmp_path / "cache")
+    config["model"] = {"name": "feastnet", "widths": [8, 8, 16]}
+    assert main(["preprocess", str(write_config(tmp_path / "feast.yaml", config)), "--workers", "0"]) == 0
+    assert "no patch operators built: model feastnet reads only the mesh edges" in capsys.readouterr().out
+    assert not list((tmp_path / "cache").glob("*.npz")) and list((tmp_path / "cache" / "shapes").glob("*.npz"))
