@@ -261,7 +261,7 @@ def _cmd_preprocess(args) -> int:
     seconds = time.perf_counter() - started
     print(f"preprocessed {dataset.summary() if hasattr(dataset, 'summary') else len(dataset)} "
           f"in {seconds:.1f} s; cache: {config.cache_dir}")
-    if not getattr(dataset, "patch_configs", True):
+    if not dataset.patch_configs:
         print(f"no patch operators built: model {config.model.name} reads only the mesh edges")
     failures = getattr(dataset, "failures", {})
     if failures:

@@ -156,9 +156,13 @@ def curvature_descriptors(surface: Surface, radii: Sequence[float]) -> np.ndarra
     return np.stack(columns, axis=1).astype(np.float32)
 
 
+#: Feature parts computed from the surface's patch operators.
+OPERATOR_PARTS = ("shape", "curvature")
+
+
 def needs_patch_operators(kind: str) -> bool:
-    """Whether feature ``kind`` is computed from the surface's patch operators ("shape", "curvature")."""
-    return any(part in ("shape", "curvature") for part in feature_parts(kind))
+    """Whether feature ``kind`` has a part computed from the surface's patch operators (:data:`OPERATOR_PARTS`)."""
+    return any(part in OPERATOR_PARTS for part in feature_parts(kind))
 
 
 def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_dir=None) -> np.ndarray:
@@ -178,7 +182,7 @@ def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_
     """
     columns = []
     for part in feature_parts(kind):
-        if part in ("shape", "curvature") and not operators:
+        if part in OPERATOR_PARTS and not operators:
             raise DatasetError(f"feature part {part!r} of {kind!r} needs the surface's patch operators")
         if part == "xyz":
             columns.append(default_features(surface))

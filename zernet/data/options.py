@@ -86,8 +86,8 @@ class LoaderOptions:
         """The keyword arguments of :func:`~zernet.data.preprocess.build_dataset` these options give."""
         if self.n_val is None:
             raise ValueError("LoaderOptions.build_arguments needs n_val: call with_defaults first")
-        return {"patch_configs": self.patch_configs if self.patch_operators else (), "cache_dir": self.cache_dir, "n_val": self.n_val,
-                "seed": self.seed, "feature_kind": self.feature_kind, "workers": self.workers,
+        return {"patch_configs": self.patch_configs if self.patch_operators else (), "cache_dir": self.cache_dir,
+                "n_val": self.n_val, "seed": self.seed, "feature_kind": self.feature_kind, "workers": self.workers,
                 "on_error": self.on_error, "repair": self.repair, "progress": self.progress}
 
 

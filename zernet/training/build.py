@@ -22,8 +22,8 @@ from zernet.training.config import ConfigError, DataSection, ModelSection, Patch
 from zernet.operators import PatchConfig
 from zernet.zernike import num_bases
 
-__all__ = ["build_dataset", "load_data", "needs_operators", "check_model_config", "model_spec", "build_model_from_spec", "is_correspondence",
-           "preprocess_spec"]
+__all__ = ["build_dataset", "load_data", "needs_operators", "check_model_config", "model_spec",
+           "build_model_from_spec", "is_correspondence", "preprocess_spec"]
 
 
 def build_dataset(config: Mapping[str, Any] | RunConfig, progress: bool = True, workers: int | None = None,
