@@ -157,7 +157,7 @@ def test_bodies_command_writes_the_loader_layouts(tmp_path, capsys):
 
 def test_bad_shape_and_repair_options_are_offered_where_they_apply(capsys):
     for command, option in (("preprocess", "--skip-bad"), ("train", "--skip-bad"), ("evaluate", "--skip-bad"),
-                            ("predict", "--repair")):
+                            ("predict", "--backend")):
         with pytest.raises(SystemExit):
             main([command, "--help"])
         assert option in capsys.readouterr().out, (command, option)

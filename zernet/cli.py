@@ -25,7 +25,7 @@ from zernet.data.bodies import TOPOLOGIES as BODY_TOPOLOGIES
 from zernet.data.bodies import write_bodies
 from zernet.distributed import is_main
 from zernet.io_utils import atomic_write_bytes, write_json
-from zernet.geometry import SurfaceError, load_surface
+from zernet.geometry import SurfaceError, read_surface, repair_surface
 from zernet.training import (
     RESUME_CHANGEABLE,
     ConfigError,
@@ -183,16 +183,21 @@ def _add_predict_command(sub, parents: list[argparse.ArgumentParser]) -> None:
     """The ``zernet predict`` subcommand."""
     p = sub.add_parser("predict", parents=parents, help="predict per-vertex values on a new surface",
                        description="Run the model of RUN_DIR on MESH (a .ply/.obj/.off/.stl mesh, a .mat surface "
-                                   "or a point cloud). Writes PREFIX.npy (per-vertex class index or value) and "
+                                   "or a point cloud, whichever the run was trained on). Duplicate vertices are "
+                                   "merged and degenerate faces dropped; non-manifold edges, holes and several "
+                                   "components are used as they are. Writes PREFIX.npy (one class index or value "
+                                   "per vertex or point of MESH) and "
                                    "PREFIX.ply (the surface coloured by the prediction); with --probabilities "
                                    "also PREFIX_probabilities.npy (classification).")
     p.add_argument("run_dir", type=Path, help="a run folder written by 'zernet train' (or a .pt checkpoint)")
     p.add_argument("mesh", type=Path, help="the surface to predict on")
     p.add_argument("--out", required=True, metavar="PREFIX", help="output path prefix, e.g. out/shape1")
     p.add_argument("--probabilities", action="store_true", help="also write the per-class probabilities")
-    p.add_argument("--repair", action="store_true",
-                   help="merge duplicate vertices and drop degenerate faces first (as data.repair does for "
-                        "training); the outputs then have one value per vertex of the repaired mesh")
+    # Repairs are always made now (one value per vertex of MESH comes back); accepted for older scripts.
+    p.add_argument("--repair", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--backend", choices=["front", "fast", "accurate"], default=None,
+                   help="geodesic polar backend for MESH (default: the run's own, normally front; a point "
+                        "cloud is triangulated through its points for the front)")
     p.add_argument("--colormap", default=None,
                    help="matplotlib colormap for the .ply (default: tab10/tab20 for a few classes, hsv for "
                         "many, viridis for values)")
@@ -345,9 +350,12 @@ def _cmd_predict(args) -> int:
         raise FileNotFoundError(f"mesh not found: {args.mesh}")
     path = checkpoint_path(args.run_dir)
     checkpoint = load_checkpoint(path)
-    surface = load_surface(args.mesh, repair=args.repair)
-    result = predict(path, surface, probabilities=args.probabilities, device=args.device, repair=args.repair,
-                     refine_rings=args.refine_rings)
+    surface = read_surface(args.mesh)
+    repaired = repair_surface(surface)
+    if repaired.describe():
+        print(f"{args.mesh}: {repaired.describe()} (predictions are given back per vertex of the file)")
+    result = predict(path, surface, probabilities=args.probabilities, device=args.device,
+                     refine_rings=args.refine_rings, backend=args.backend)
     prediction, probabilities = result if args.probabilities else (result, None)
 
     prefix = Path(args.out)
@@ -362,8 +370,6 @@ def _cmd_predict(args) -> int:
     ply_path = prefix.parent / f"{prefix.name}.ply"
     _write_coloured_ply(ply_path, surface, prediction, checkpoint, args.colormap)
     written.append(ply_path)
-    if args.repair:
-        print(f"repaired {args.mesh}: {surface.n_vertices} vertices, {surface.n_faces} faces after the repair")
     if checkpoint["task"] == "classification":
         counts = np.bincount(prediction, minlength=1)
         print(f"predicted {len(prediction)} vertices of {args.mesh}: {np.count_nonzero(counts)} distinct classes")

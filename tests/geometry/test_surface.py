@@ -18,6 +18,7 @@ from zernet.geometry import (
     SurfaceWarning,
     load_surface,
     normalize_area,
+    repair_surface,
     sample_surface,
     validate_surface,
 )
@@ -209,12 +210,27 @@ def test_duplicate_vertices_name_both():
 
 
 @pytest.mark.parametrize("repair", [False, True])
-def test_non_manifold_edge_is_an_error_even_with_repair(repair):
+def test_non_manifold_edge_is_kept_with_a_warning(repair):
     vertices = np.vstack([TWO_TRIANGLES, [[0.5, 0.5, 1.0]]])
     # Edge (1, 2) is used by three faces.
-    message = mesh_error(vertices, [[0, 1, 2], [1, 3, 2], [1, 2, 4]], repair=repair)
-    assert "non-manifold edge between vertices 1 and 2" in message
-    assert "3 faces [0, 1, 2]" in message and "not even with repair=True" in message
+    surface = Surface(vertices, np.array([[0, 1, 2], [1, 3, 2], [1, 2, 4]]), name="bumpy.ply")
+    with pytest.warns(SurfaceWarning, match=r"bumpy.ply: 1 non-manifold edges \(first: between vertices 1 and 2, "
+                                            r"shared by 3 faces \[0, 1, 2\]\)"):
+        assert validate_surface(surface, repair=repair) is surface
+
+
+def test_repair_surface_maps_every_input_vertex():
+    # Vertex 4 duplicates vertex 1; face 2 is degenerate.
+    vertices = np.vstack([TWO_TRIANGLES, TWO_TRIANGLES[1]])
+    surface = Surface(vertices, np.array([[0, 1, 2], [4, 3, 2], [0, 0, 2]]), fields={"f": np.arange(5.0)})
+    repaired = repair_surface(surface)
+    assert repaired.surface.n_vertices == 4 and repaired.surface.n_faces == 2
+    np.testing.assert_array_equal(repaired.vertex_map, [0, 1, 2, 3, 1])
+    np.testing.assert_array_equal(repaired.surface.vertices[repaired.vertex_map], vertices)
+    assert repaired.describe() == "merged 1 duplicate vertices, dropped 1 degenerate faces"
+    clean = repair_surface(Surface(TWO_TRIANGLES, TWO_FACES))
+    np.testing.assert_array_equal(clean.vertex_map, np.arange(4))
+    assert clean.describe() == ""
 
 
 def test_field_length_mismatch():

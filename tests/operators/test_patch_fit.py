@@ -7,7 +7,7 @@ import pytest
 import trimesh
 from meshes import grid_mesh
 
-from zernet.geometry import BACKEND_VERSIONS, Surface, compute_polar, sample_surface
+from zernet.geometry import BACKEND_VERSIONS, Surface, compute_polar, mesh_from_cloud, sample_surface
 from zernet.operators import PatchConfig, build_patch_operator, cache_key
 from zernet.operators.fit import fit_patches, ridge_weights
 from zernet.zernike import num_bases, zernike_basis
@@ -81,14 +81,15 @@ def test_patch_size_none_takes_every_sample_within_r0_and_50_the_nearest():
     np.testing.assert_array_equal(paper.patch_sample_index, full.patch_sample_index[:, :50])  # the nearest 50
 
 
-def test_default_backend_is_front_for_meshes_and_fast_for_point_clouds():
+def test_default_backend_is_front_for_meshes_and_point_clouds(tmp_path):
     surface = bumpy_sphere()
     config = PatchConfig(r0=2.0, n_samples=800)
     assert cache_key(surface, config) == cache_key(surface, PatchConfig(r0=2.0, n_samples=800), "front")
+    # A cloud goes through the front on its triangulation: the same operator as that mesh's, cached under it.
     cloud = Surface(surface.vertices, None, name="cloud")
-    assert cache_key(cloud, config) == cache_key(cloud, config, "fast")
-    op = build_patch_operator(cloud, PatchConfig(r0=2.0, n_samples=cloud.n_vertices))
-    assert op.nnz > 0
+    op = build_patch_operator(cloud, config, cache_dir=tmp_path)
+    assert op.n_vertices == cloud.n_vertices and op.nnz > 0
+    assert [path.stem for path in tmp_path.glob("*.npz")] == [cache_key(mesh_from_cloud(cloud), config, "front")]
 
 
 def test_operator_of_another_backend_version_is_rebuilt(tmp_path, monkeypatch):

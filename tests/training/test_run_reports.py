@@ -3,7 +3,7 @@
 1. bad shapes: stop before training listing every failure (exit 2), or --skip-bad with the skipped shapes
    in train.log, metrics.json and the banner; the same policy in preprocess and evaluate;
 2. scores, banner and pictures labelled with the split they were computed on;
-5. errors that advise only what the command can do (predict --repair, --skip-bad), config errors before
+5. errors that advise only what the command can do (--skip-bad), config errors before
    any data, label files by file and line;
 6. class names from the data, never guessed;
 7. strict JSON, one warning for classes no shape has, one-line warnings, resume rules, file modes.
@@ -205,7 +205,7 @@ def test_a_run_whose_only_test_shape_is_dropped_reports_validation_scores_as_suc
 
 
 # ----------------------------------------------------------------------------- 5. advice the user can take
-def test_predict_repair_predicts_a_mesh_with_duplicate_vertices(skipped_run, tmp_path, capsys):
+def test_predict_repairs_a_mesh_and_answers_every_input_vertex(skipped_run, tmp_path, capsys):
     sphere = icosphere(subdivisions=1, noise=0.05, seed=3)
     vertices = np.vstack([sphere.vertices, sphere.vertices[:1]])
     faces = sphere.faces.copy()
@@ -213,11 +213,10 @@ def test_predict_repair_predicts_a_mesh_with_duplicate_vertices(skipped_run, tmp
     mesh = tmp_path / "dup.obj"
     mesh.write_text(trimesh.Trimesh(vertices, faces, process=False).export(file_type="obj"))
     prefix = tmp_path / "out" / "dup"
-    assert main(["predict", str(skipped_run["run"]), str(mesh), "--out", str(prefix)]) == 2
-    err = capsys.readouterr().err
-    assert "duplicate vertices" in err and "rerun with --repair" in err and "repair=True" not in err
-    assert main(["predict", str(skipped_run["run"]), str(mesh), "--out", str(prefix), "--repair"]) == 0
-    assert np.load(tmp_path / "out" / "dup.npy").shape == (len(vertices) - 1,)
+    assert main(["predict", str(skipped_run["run"]), str(mesh), "--out", str(prefix)]) == 0
+    assert "merged 1 duplicate vertices" in capsys.readouterr().out
+    prediction = np.load(tmp_path / "out" / "dup.npy")
+    assert prediction.shape == (len(vertices),) and prediction[-1] == prediction[0]
 
 
 @pytest.mark.parametrize("override, expected", [

@@ -4,7 +4,9 @@ Every loader (FAUST, segmentation, regression, synthetic) describes its shapes a
 objects and hands them to :func:`build_dataset`, which
 
 1. loads each shape (``source.load()`` returns the surface and its per-vertex target),
-2. validates it (:func:`~zernet.geometry.validate.validate_surface`) and scales it to the data set's area
+2. validates it (:func:`~zernet.geometry.validate.validate_surface`), triangulates a point cloud through its
+   own points for the front backend (:func:`~zernet.geometry.cloud_mesh.mesh_from_cloud`), and scales it to
+   the data set's area
    (:func:`~zernet.geometry.sampling.normalize_area`; a regression target scales with ``area ** target_exponent``),
 3. builds one patch operator per :class:`~zernet.operators.patch.PatchConfig` with
    :func:`~zernet.operators.patch.build_patch_operator` (which keeps its own on-disk cache under ``cache_dir``),
@@ -49,7 +51,8 @@ from zernet.data.pool import WORKER_DIED, pool_context, run_jobs, worker_init
 from zernet.data.source import ShapeSource, file_key
 from zernet.operators import Geometry
 from zernet.operators import PatchConfig, build_patch_operator
-from zernet.geometry import Surface, normalize_area, validate_surface
+from zernet.geometry import Surface, normalize_area, resolve_backend, validate_surface
+from zernet.geometry.cloud_mesh import mesh_from_cloud
 
 __all__ = [
     "ShapeSource",
@@ -128,9 +131,15 @@ def mesh_edge_index(surface: Surface, k_cloud: int = 8) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------------------------------ per-shape work
-def _normalise(surface: Surface, target, target_area: float | None, target_exponent: float, repair: bool):
-    """Validate, scale to ``target_area`` (None: keep), scale the target with its area exponent."""
+def _normalise(surface: Surface, target, target_area: float | None, target_exponent: float, repair: bool,
+               configs):
+    """Validate, triangulate a point cloud for the front backend, scale to ``target_area`` (None: keep),
+    scale the target with its area exponent."""
     surface = validate_surface(surface, repair=repair)
+    if surface.is_point_cloud and any(resolve_backend(surface, c.backend) == "front" for c in configs):
+        # Through its own points (same vertices): normals, area and patches then come from triangles,
+        # exactly as for a mesh, so a model trained on meshes reads the cloud's features the same way.
+        surface = mesh_from_cloud(surface)
     if target_area is None:
         return surface, (None if target is None else np.asarray(target)), 1.0
     carry = target is not None and target_exponent != 0
@@ -153,7 +162,7 @@ def _prepare_one(job: tuple) -> tuple[str, str | None]:
     source, configs, cache_dir, target_area, repair, cache_path = job
     try:
         surface, target = source.load()
-        surface, target, scale = _normalise(surface, target, target_area, source.target_exponent, repair)
+        surface, target, scale = _normalise(surface, target, target_area, source.target_exponent, repair, configs)
         if target is not None and np.asarray(target).shape[0] != surface.n_vertices:
             raise DatasetError(f"{surface.name}: target has {np.asarray(target).shape[0]} values but the surface "
                                f"has {surface.n_vertices} vertices")
@@ -275,7 +284,7 @@ def prepare_record(
     Returns a :class:`ShapeRecord` whose ``scale`` maps predictions back (see :class:`ShapeRecord`).
     """
     configs = as_patch_configs(patch_configs)
-    surface, target, scale = _normalise(surface, target, target_area, target_exponent, repair)
+    surface, target, scale = _normalise(surface, target, target_area, target_exponent, repair, configs)
     name = name or Path(surface.name).stem
     return _make_record(surface, target, scale, name, configs, None if cache_dir is None else str(cache_dir),
                         task, feature_kind)
@@ -358,7 +367,7 @@ def _record_loader(source: ShapeSource, configs, cache_dir: Path, target_area: f
         return _CachedRecord(path, source.name, configs, str(cache_dir), task, feature_kind)
     # No content key: nothing on disk to reload from, so this shape is built here and kept in memory.
     surface, target = source.load()
-    surface, target, scale = _normalise(surface, target, target_area, source.target_exponent, repair)
+    surface, target, scale = _normalise(surface, target, target_area, source.target_exponent, repair, configs)
     return _make_record(surface, target, scale, source.name, configs, str(cache_dir), task, feature_kind)
 
 

@@ -7,26 +7,32 @@ Modules, each with one job:
 - :mod:`~zernet.geometry.surface` — :class:`Surface`, :class:`SurfaceError`, :class:`SurfaceWarning`.
 - :mod:`~zernet.geometry.pointcloud` — array estimators for clouds (PCA normals, cell areas, curvature).
 - :mod:`~zernet.geometry.io` — :func:`load_surface` and the file readers.
-- :mod:`~zernet.geometry.validate` — :func:`validate_surface` and its checks and repairs.
+- :mod:`~zernet.geometry.validate` — :func:`validate_surface`, :func:`repair_surface` and the checks.
+- :mod:`~zernet.geometry.cloud_mesh` — :func:`mesh_from_cloud`: triangles through a cloud's own points.
 - :mod:`~zernet.geometry.sampling` — :func:`normalize_area`, :class:`SurfaceSamples`, :func:`sample_surface`.
 - :mod:`~zernet.geometry.polar` — :func:`compute_polar`, :func:`tangent_frames`, :func:`transport_angles`,
   with the backends in :mod:`~zernet.geometry.polar_fast` and :mod:`~zernet.geometry.polar_accurate`.
 - :mod:`~zernet.geometry.membrane` — :func:`membrane_stress`.
 """
 
-from zernet.geometry.io import load_surface
+from zernet.geometry.io import load_surface, read_surface
 from zernet.geometry.membrane import membrane_stress
 from zernet.geometry.polar import BACKEND_VERSIONS, BACKENDS, PolarCoordinates, resolve_backend, compute_polar, tangent_frames, transport_angles
 from zernet.geometry.sampling import SurfaceSamples, normalize_area, sample_surface
 from zernet.geometry.surface import Surface, SurfaceError, SurfaceWarning
-from zernet.geometry.validate import validate_surface
+from zernet.geometry.validate import RepairedSurface, repair_surface, validate_surface
+from zernet.geometry.cloud_mesh import mesh_from_cloud
 
 __all__ = [
     "Surface",
     "SurfaceError",
     "SurfaceWarning",
     "load_surface",
+    "read_surface",
     "validate_surface",
+    "repair_surface",
+    "RepairedSurface",
+    "mesh_from_cloud",
     "normalize_area",
     "SurfaceSamples",
     "sample_surface",

@@ -77,7 +77,8 @@ def front_polar(
         SurfaceError: for a point cloud (the front needs triangles), or mismatched frames.
     """
     if surface.is_point_cloud:
-        raise SurfaceError(f"{surface.name}: the front backend needs a triangle mesh, got a point cloud")
+        raise SurfaceError(f"{surface.name}: the front backend needs a triangle mesh, got a point cloud "
+                           "(zernet.geometry.cloud_mesh.mesh_from_cloud triangulates it through its points)")
     if not r0 > 0:
         raise ValueError(f"r0 must be positive, got {r0}")
     n = surface.n_vertices

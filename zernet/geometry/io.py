@@ -16,7 +16,7 @@ import trimesh
 from zernet.geometry.surface import Surface, SurfaceError
 from zernet.geometry.validate import merge_coincident, validate_surface
 
-__all__ = ["load_surface"]
+__all__ = ["load_surface", "read_surface"]
 
 _MESH_EXTENSIONS = (".ply", ".obj", ".off", ".stl")
 _CLOUD_EXTENSIONS = (".npy", ".xyz", ".txt")
@@ -58,6 +58,16 @@ def load_surface(path: str | os.PathLike, repair: bool = False, fields: Sequence
         SurfaceError: missing file, unknown extension, unreadable file, or any validation error; the
             message names the file.
     """
+    return validate_surface(read_surface(path, fields), repair=repair)
+
+
+def read_surface(path: str | os.PathLike, fields: Sequence[str] | None = None) -> Surface:
+    """Read a surface file as it is, without validation (:func:`load_surface` validates): for
+    :func:`zernet.geometry.repair_surface`, which maps a repaired surface back to the file's vertices.
+
+    Raises:
+        SurfaceError: missing file, unknown extension, unreadable file, unknown field name.
+    """
     name = os.fspath(path)
     if not os.path.isfile(name):
         raise SurfaceError(f"{name}: no such file")
@@ -73,7 +83,7 @@ def load_surface(path: str | os.PathLike, repair: bool = False, fields: Sequence
         raise SurfaceError(f"{name}: unknown surface file extension {extension!r} (known: {known})")
     if fields is not None:
         surface = _select_fields(surface, [str(key) for key in fields])
-    return validate_surface(surface, repair=repair)
+    return surface
 
 
 def _select_fields(surface: Surface, wanted: list[str]) -> Surface:

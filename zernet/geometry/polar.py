@@ -7,9 +7,10 @@ direction ``e1`` towards ``e2 = n × e1`` (so ``(e1, e2, n)`` is right-handed).
 
 Three backends (their speed and accuracy against exact geodesics are measured by
 ``benchmarks/bench_geodesics.py`` and ``benchmarks/bench_operator.py``). The default (``backend=None``,
-:func:`resolve_backend`) is ``"front"`` for a mesh and ``"fast"`` for a point cloud.
+:func:`resolve_backend`) is ``"front"``; a point cloud gets it through a triangulation of its own points
+(:mod:`zernet.geometry.cloud_mesh`), built before the polar coordinates by the operator builder.
 
-``"fast"`` (the default for point clouds, :mod:`zernet.geometry.polar_fast`)
+``"fast"`` (:mod:`zernet.geometry.polar_fast`)
     One k-d tree ball query of the samples around all vertices, then closed-form corrections, all
     vectorised:
 
@@ -37,7 +38,7 @@ Three backends (their speed and accuracy against exact geodesics are measured by
     lengths instead (distance is continuous across the cut) and only the angle from the vectors.
     Samples on other connected components (potpourri returns NaN there) are dropped.
 
-``"front"`` (the default for meshes, :mod:`zernet.geometry.front`)
+``"front"`` (the default, :mod:`zernet.geometry.front`)
     Local front propagation from every vertex over the triangles, bounded by ``r0`` (the geodesic polar
     coordinates update of Melvær and Reimers 2012), compiled with numba: distances are surface distances,
     so the far side of a fold (between fingers, across an armpit or the crotch) is never reached through
@@ -203,11 +204,12 @@ def wrap_angle(angle: np.ndarray) -> np.ndarray:
 
 # ====================================================================== entry point
 def resolve_backend(surface: Surface, backend: str | None) -> str:
-    """The backend used on ``surface``: ``backend``, or for ``None`` ``"front"`` on a mesh (surface
-    distances) and ``"fast"`` on a point cloud (the front needs triangles)."""
-    if backend is not None:
-        return backend
-    return "fast" if surface.is_point_cloud else "front"
+    """The backend used on ``surface``: ``backend``, or for ``None`` ``"front"`` (surface distances).
+
+    :func:`compute_polar` itself runs the front on meshes only; :func:`zernet.operators.build_patch_operator`
+    and the data pipeline first triangulate a point cloud through its own points
+    (:func:`zernet.geometry.cloud_mesh.mesh_from_cloud`), so the front serves clouds as well."""
+    return "front" if backend is None else backend
 
 
 def compute_polar(
@@ -223,8 +225,9 @@ def compute_polar(
         surface: mesh or point cloud, N vertices.
         samples: M samples on it (:func:`zernet.geometry.sample_surface`).
         r0: patch radius (absolute units), > 0.
-        backend: ``"fast"``, ``"accurate"``, ``"front"`` (see the module docstring) or ``None``
-            (:func:`resolve_backend`: front for a mesh, fast for a point cloud).
+        backend: ``"fast"``, ``"accurate"``, ``"front"`` (see the module docstring; the front needs a mesh:
+            triangulate a cloud first with :func:`zernet.geometry.cloud_mesh.mesh_from_cloud`) or ``None``
+            (:func:`resolve_backend`: front).
         n_jobs: worker processes for ``"accurate"`` (``None``: all available cores; ``1``: in this
             process). Ignored by ``"fast"``.
 

@@ -1,19 +1,22 @@
 """Checking a surface and repairing what can be repaired: finite coordinates, index ranges, duplicate
-vertices, degenerate faces, non-manifold edges.
+vertices, degenerate faces; reporting non-manifold edges (which every backend accepts).
 
-Public API: :func:`validate_surface`, :func:`check_faces`, :func:`check_manifold`, :func:`merge_coincident`.
+Public API: :func:`validate_surface`, :func:`repair_surface`, :class:`RepairedSurface`, :func:`check_faces`,
+:func:`check_manifold`, :func:`merge_coincident`.
 """
 
 from __future__ import annotations
 
 import logging
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 
 from zernet.geometry.surface import Surface, SurfaceError, SurfaceWarning
 
-__all__ = ["validate_surface", "check_faces", "check_manifold", "merge_coincident"]
+__all__ = ["validate_surface", "repair_surface", "RepairedSurface", "check_faces", "check_manifold",
+           "merge_coincident"]
 
 logger = logging.getLogger(__name__)
 
@@ -42,12 +45,12 @@ def validate_surface(surface: Surface, repair: bool = False) -> Surface:
     degenerate faces (a repeated      dropped (after merging, so faces collapsed by the merge go too)
     index) and zero-area faces
     (area <= 1e-12 · bbox diagonal²)
-    non-manifold edge (shared by      error even with ``repair=True``: which faces to drop is a
-    more than two faces)              modelling decision the user must make
     ================================  ==================================================================
 
-    Vertices that no face uses are kept (so vertex indices and fields stay aligned) and reported with a
-    :class:`SurfaceWarning`. Repairs are logged at INFO level on the ``zernet.geometry.validate`` logger.
+    Non-manifold edges (shared by more than two faces, as simplifiers, scanners and remeshers leave them)
+    and vertices that no face uses are kept and reported with a :class:`SurfaceWarning`: the polar
+    backends work on them (the front moves over the faces around each vertex, so a third face on an edge
+    is one more way forward; an unused vertex gets an empty patch), and vertex indices stay aligned. Repairs are logged at INFO level on the ``zernet.geometry.validate`` logger.
 
     Args:
         surface: the surface to check.
@@ -77,6 +80,48 @@ def validate_surface(surface: Surface, repair: bool = False) -> Surface:
     if not repaired:
         return surface
     return Surface(vertices, faces, normals, fields, name)
+
+
+@dataclass
+class RepairedSurface:
+    """A repaired surface and where each input vertex went.
+
+    Attributes:
+        surface: the repaired surface (duplicates merged, degenerate faces dropped).
+        vertex_map: (N_input,) int64 index in ``surface`` of every input vertex (a merged duplicate points
+            to the copy that was kept), so ``values[vertex_map]`` gives one value per input vertex.
+        merged: number of input vertices merged into another copy.
+        dropped_faces: number of degenerate or zero-area faces dropped.
+    """
+
+    surface: Surface
+    vertex_map: np.ndarray
+    merged: int = 0
+    dropped_faces: int = 0
+
+    def describe(self) -> str:
+        """One line saying what was repaired (empty when nothing was)."""
+        parts = []
+        if self.merged:
+            parts.append(f"merged {self.merged} duplicate vertices")
+        if self.dropped_faces:
+            parts.append(f"dropped {self.dropped_faces} degenerate faces")
+        return ", ".join(parts)
+
+
+def repair_surface(surface: Surface) -> RepairedSurface:
+    """:func:`validate_surface` with ``repair=True``, also returning where each input vertex went.
+
+    What cannot be repaired (empty, NaN, out-of-range faces) raises :class:`SurfaceError` as there. Use it
+    to predict on a user's file and hand back one value per *input* vertex: ``values[result.vertex_map]``.
+    """
+    n_input = surface.n_vertices
+    repaired = validate_surface(surface, repair=True)
+    if repaired is surface:
+        return RepairedSurface(surface, np.arange(n_input, dtype=np.int64))
+    _, vertex_map = coincident_numbering(surface.vertices)  # the numbering merge_coincident applied
+    dropped = surface.n_faces - repaired.n_faces
+    return RepairedSurface(repaired, vertex_map, n_input - repaired.n_vertices, dropped)
 
 
 def _check_not_empty(name: str, vertices: np.ndarray, faces: np.ndarray | None) -> None:
@@ -192,18 +237,24 @@ def check_faces(name: str, vertices: np.ndarray, faces: np.ndarray, repair: bool
     return faces, True
 
 
-def check_manifold(name: str, faces: np.ndarray) -> None:
-    """Raise for an edge shared by more than two faces (no repair: see :func:`validate_surface`)."""
+def check_manifold(name: str, faces: np.ndarray) -> int:
+    """Number of edges shared by more than two faces; a :class:`SurfaceWarning` names the first one.
+
+    Nothing is changed: every polar backend accepts non-manifold edges (see :func:`validate_surface`).
+    """
     pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
     edges, inverse, counts = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
-    if (counts > 2).any():
+    n_bad = int((counts > 2).sum())
+    if n_bad:
         worst = int(np.flatnonzero(counts > 2)[0])
         owners = np.flatnonzero(inverse.reshape(-1) == worst) // 3
-        raise SurfaceError(
-            f"{name}: non-manifold edge between vertices {edges[worst, 0]} and {edges[worst, 1]}: shared by "
-            f"{counts[worst]} faces {owners.tolist()} ({int((counts > 2).sum())} such edges); this cannot be "
-            "repaired automatically (not even with repair=True): remove the extra faces"
+        warnings.warn(
+            f"{name}: {n_bad} non-manifold edges (first: between vertices {edges[worst, 0]} and "
+            f"{edges[worst, 1]}, shared by {counts[worst]} faces {owners.tolist()}); kept: patches cross them",
+            SurfaceWarning,
+            stacklevel=3,
         )
+    return n_bad
 
 
 def merge_coincident(vertices, faces, normals, fields):
@@ -214,14 +265,19 @@ def merge_coincident(vertices, faces, normals, fields):
 
     Returns (vertices, faces, normals, fields) remapped; normals and fields take the kept copy's rows.
     """
+    kept, new_index = coincident_numbering(vertices)
+    merged_faces = None if faces is None else new_index[faces]
+    merged_normals = None if normals is None else normals[kept]
+    merged_fields = {key: value[kept] for key, value in fields.items()}
+    return vertices[kept], merged_faces, merged_normals, merged_fields
+
+
+def coincident_numbering(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How :func:`merge_coincident` numbers vertices: ``(kept, new_index)``, the (K,) lowest-numbered copy of
+    each distinct position in increasing order and the (N,) int64 new index of every vertex."""
     # +0.0 turns -0.0 into 0.0 so that the byte-wise row comparison of np.unique agrees with ==.
     _, first, inverse = np.unique(vertices + 0.0, axis=0, return_index=True, return_inverse=True)
     order = np.argsort(first)  # groups sorted by their lowest vertex index
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
-    kept = first[order]
-    new_index = rank[inverse.reshape(-1)]
-    merged_faces = None if faces is None else new_index[faces]
-    merged_normals = None if normals is None else normals[kept]
-    merged_fields = {key: value[kept] for key, value in fields.items()}
-    return vertices[kept], merged_faces, merged_normals, merged_fields
+    return first[order], rank[inverse.reshape(-1)].astype(np.int64)

@@ -18,8 +18,9 @@ exactly), the higher degrees are penalised more. Truncated patches (boundary ver
 fewer than k samples) stay well-posed: the modes their samples cannot see shrink to 0 (the least-squares
 counterpart of the paper's zero padding). A vertex with no sample within ``r0`` gets all-zero rows.
 
-Polar backend: ``backend=None`` (default) takes ``"front"`` (surface distances by front propagation) for
-a mesh and ``"fast"`` for a point cloud (the front needs triangles).
+Polar backend: ``backend=None`` (default) takes ``"front"`` (surface distances by front propagation). A
+point cloud is first triangulated through its own points (:func:`zernet.geometry.cloud_mesh.mesh_from_cloud`:
+same vertices, so the operator is still ``(N·k) × N`` over the points) and sampled like a mesh.
 
 ``subtract_center``: the fit is of ``f(sample) − f(p)``, i.e. ``A_p ← A_p − (P_p 1) e_pᵀ`` (still linear).
 
@@ -44,6 +45,7 @@ import scipy.sparse
 import torch
 
 from zernet.geometry import BACKENDS, Surface, compute_polar, resolve_backend, sample_surface
+from zernet.geometry.cloud_mesh import mesh_from_cloud
 from zernet.zernike import num_bases, zernike_basis
 
 from .cache import (
@@ -76,7 +78,8 @@ class PatchConfig:
 
     Attributes:
         r0: patch radius (absolute units; 5.5 for bodies at area 15000).
-        n_samples: number of area-uniform surface samples (ignored for point clouds: the points are used).
+        n_samples: number of area-uniform surface samples (on a point cloud: used by the front, which
+            samples its triangulation; ignored by "fast" and "accurate", which use the points).
         patch_size: ``None`` (default): every sample within ``r0`` (the patch covers the disk, so the fit gives
             the unit-disk coefficients); ``n``: the ``n`` nearest samples only (``50``: the paper's setting).
         n_max: highest Zernike degree (k = (n_max + 1)(n_max + 2) / 2; 5 -> 21).
@@ -84,8 +87,9 @@ class PatchConfig:
         subtract_center: fit ``f(sample) - f(p)`` instead of ``f(sample)``.
         ridge: regularisation relative to a full patch's typical eigenvalue, on every basis but the piston
             (:mod:`zernet.operators.fit`).
-        backend: polar-coordinate backend: ``None`` (default: ``"front"`` for meshes, ``"fast"`` for point
-            clouds), ``"front"`` (surface distances by front propagation; meshes), ``"fast"`` or ``"accurate"``.
+        backend: polar-coordinate backend: ``None`` (default: ``"front"``), ``"front"`` (surface distances by
+            front propagation; a point cloud is triangulated through its points first), ``"fast"`` or
+            ``"accurate"``.
         seed: seed of the surface sampling.
     """
 
@@ -371,6 +375,8 @@ def build_patch_operator(
         :class:`PatchOperator`.
     """
     backend = resolve_backend(surface, config.backend)
+    if backend == "front":
+        surface = mesh_from_cloud(surface)  # a mesh is returned unchanged
     key = cache_key(surface, config, backend)
     path = None
     if cache_dir is not None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import torch
 
 from zernet.data import prepare_record
 from zernet.operators import PatchConfig
-from zernet.geometry import load_surface
+from zernet.geometry import read_surface, repair_surface
 from zernet.training.batch import Batch, model_basis_orders, model_directional_order
 from zernet.training.build import build_model_from_spec
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
@@ -55,37 +56,47 @@ def model_from_checkpoint(checkpoint: dict, device: torch.device) -> torch.nn.Mo
 
 
 def predict(checkpoint: str | Path, surface, probabilities: bool = False, device: str | None = None,
-            cache_dir: str | Path | None = None, progress: bool = False, repair: bool = False,
-            refine_rings: int | None = None):
-    """Per-vertex predictions of a trained model on a new surface.
+            cache_dir: str | Path | None = None, progress: bool = False, refine_rings: int | None = None,
+            backend: str | None = None):
+    """Per-vertex predictions of a trained model on a new surface: a mesh or a point cloud, whatever the
+    training shapes were.
 
     Args:
         checkpoint: a run folder (its ``best.pt``) or a checkpoint file.
         surface: a :class:`~zernet.geometry.surface.Surface` or a path to a mesh / point-cloud file. It is
-            preprocessed exactly like the training shapes (area normalisation, features, patch operators).
+            repaired where it can be (:func:`~zernet.geometry.validate.repair_surface`: duplicate vertices
+            merged, degenerate faces dropped; non-manifold edges, holes and several components are used as
+            they are) and preprocessed like the training shapes (area normalisation, features, patch
+            operators; a point cloud is triangulated through its own points for the front backend).
         probabilities: classification only — also return the (N, C) softmax probabilities.
-        repair: merge duplicate vertices and drop degenerate faces first (the repair training offers as
-            ``data.repair``); the prediction is then one value per vertex of the repaired surface.
         refine_rings: correspondence only: average the probabilities over this many rings of mesh neighbours
             on the surface and on the template (:mod:`zernet.training.refine`); None: the number the run
             chose on its validation split (0 for runs that chose none).
+        backend: polar-coordinate backend for this surface (``"front"``, ``"fast"``, ``"accurate"``); None:
+            the run's own (every backend reads meshes and clouds alike).
 
     Returns:
-        (N,) int64 class indices or (N,) float32 values (regression: in the surface's own units — the model
-        predicts at the training area, and a target of area exponent e is divided by ``scale ** (2 e)``);
-        with ``probabilities=True`` a tuple (prediction, probabilities).
+        (N,) int64 class indices or (N,) float32 values, one per vertex of the *input* surface (a merged
+        duplicate gets its kept copy's value; regression: in the surface's own units — the model predicts at
+        the training area, and a target of area exponent e is divided by ``scale ** (2 e)``); with
+        ``probabilities=True`` a tuple (prediction, probabilities).
     """
     checkpoint = load_checkpoint(checkpoint_path(checkpoint))
     config, spec = checkpoint["config"], checkpoint["preprocess"]
     if not hasattr(surface, "vertices"):
-        surface = load_surface(surface, repair=repair)
+        surface = read_surface(surface)  # validated and repaired below, with the map back to its vertices
+    repaired = repair_surface(surface)
+    if progress and repaired.describe():
+        print(f"{surface.name}: {repaired.describe()}")
+    patch_configs = [PatchConfig(**c) for c in spec["patch_configs"]]
+    if backend is not None:
+        patch_configs = [dataclasses.replace(c, backend=backend) for c in patch_configs]
     record = prepare_record(
-        surface,
-        [PatchConfig(**c) for c in spec["patch_configs"]],
+        repaired.surface,
+        patch_configs,
         cache_dir=config["cache_dir"] if cache_dir is None else cache_dir,
         target_area=spec["area"],
         feature_kind=spec["feature_kind"],
-        repair=repair,
     )
     device = resolve_device(device or config["train"]["device"])
     model = model_from_checkpoint(checkpoint, device)
@@ -99,10 +110,11 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
     else:
         exponent = float(checkpoint.get("target_exponent", 0.0))  # older checkpoints: area-normalised
         pred = (pred / record.scale ** (2 * exponent)).astype(np.float32)
+    pred = pred[repaired.vertex_map]
     if probabilities:
         if probs is None:
             raise ValueError("probabilities exist only for classification models")
-        return pred, probs.astype(np.float32)
+        return pred, probs[repaired.vertex_map].astype(np.float32)
     return pred
 
 
