@@ -9,6 +9,11 @@ samples as in the paper's FAUST settings, plus any mesh passed with ``--mesh PAT
     .venv/bin/python benchmarks/bench_geodesics.py --centres 100
     .venv/bin/python benchmarks/bench_geodesics.py --mesh case.mat --area 100 --r0 0.6 --samples 8000
 
+Point clouds (backend ``cloud``): the same surface's vertices without faces, triangulated through
+themselves (:func:`zernet.geometry.mesh_from_cloud`) and measured by the front on that triangulation, at
+the same samples (each moved to the nearest point of the cloud's triangulation), against the same exact
+geodesics on the mesh the points came from; its build time is that of the whole point-cloud operator.
+
 Per backend: kept pairs whose exact distance exceeds 1.1 r0 (a fold crossed), true pairs (exact < 0.95 r0)
 dropped, radius error median / p95 in % of r0, angle error p95 (rad, r > 0.1 r0, after removing each
 centre's circular-mean offset; on the body also per body part), and the time for all vertices.
@@ -37,11 +42,14 @@ import time
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse
+import trimesh
 from scipy.spatial import cKDTree
 
 from zernet.data.bodies import generate_bodies
 from zernet.data.segmentation import HUMAN_PART_NAMES
-from zernet.geometry import PolarCoordinates, Surface, compute_polar, load_surface, normalize_area, sample_surface, tangent_frames
+from zernet.geometry import (PolarCoordinates, Surface, SurfaceSamples, compute_polar, load_surface, mesh_from_cloud,
+                             normalize_area, sample_surface, tangent_frames)
 from zernet.geometry.exact import ExactGeodesics
 from zernet.io_utils import atomic_write_bytes
 from zernet.operators import PatchConfig, assemble_operator, build_patch_operator
@@ -166,6 +174,27 @@ def build_seconds(surface, config) -> tuple[float, float]:
     return times[0], times[1]
 
 
+def cloud_polar(surface, samples, r0):
+    """The ``cloud`` backend (module docstring): polar coordinates of ``samples`` by the front on the
+    triangulation of ``surface``'s vertices, and those samples as seen on that triangulation."""
+    mesh = mesh_from_cloud(Surface(surface.vertices, None, name=surface.name))
+    # Nearest point among the triangles of the 8 nearest face centroids (no spatial index package needed).
+    triangles = mesh.vertices[mesh.faces]
+    _, candidate = cKDTree(triangles.mean(axis=1)).query(samples.points, k=8)
+    points = np.repeat(samples.points, 8, axis=0)
+    nearest = trimesh.triangles.closest_point(triangles[candidate.ravel()], points).reshape(-1, 8, 3)
+    best = np.argmin(np.linalg.norm(nearest - samples.points[:, None], axis=2), axis=1)
+    face = candidate[np.arange(len(best)), best]
+    closest = nearest[np.arange(len(best)), best]
+    corners = mesh.faces[face]
+    barycentric = trimesh.triangles.points_to_barycentric(mesh.vertices[corners], closest)
+    interpolation = scipy.sparse.csr_matrix((barycentric.ravel(), corners.ravel(),
+                                             np.arange(0, 3 * len(face) + 1, 3)), shape=(len(face), mesh.n_vertices))
+    on_cloud = SurfaceSamples(points=closest, normals=mesh.face_normals()[face], face_index=face.astype(np.int64),
+                              barycentric=barycentric, interpolation=interpolation)
+    return compute_polar(mesh, on_cloud, r0, backend="front"), on_cloud
+
+
 def measure(surface, r0, n_samples, n_centres, backends, seed, regions=None) -> dict:
     config = PatchConfig(r0=r0, n_samples=n_samples, seed=seed)
     first, second = build_seconds(surface, config)  # first: before anything else in this process
@@ -179,10 +208,17 @@ def measure(surface, r0, n_samples, n_centres, backends, seed, regions=None) -> 
             "build_first_seconds_per_1000_vertices": 1000.0 * first / surface.n_vertices,
             "build_second_seconds_per_1000_vertices": 1000.0 * second / surface.n_vertices}
     for backend in backends:
-        polar = compute_polar(surface, samples, r0, backend=backend)
-        backend_config = PatchConfig(**{**config.to_dict(), "backend": backend})
-        rows["backends"][backend] = {"seconds_all_vertices": polar.seconds, **score(polar, exact, centres, r0, regions),
-                                     **patch_fit(surface, polar, samples, backend_config, seed, centres)}
+        if backend == "cloud":
+            polar, backend_samples = cloud_polar(surface, samples, r0)
+            cloud_first, cloud_second = build_seconds(Surface(surface.vertices, None), config)
+            timing = {"build_first_seconds_per_1000_vertices": 1000.0 * cloud_first / surface.n_vertices,
+                      "build_second_seconds_per_1000_vertices": 1000.0 * cloud_second / surface.n_vertices}
+        else:
+            polar, backend_samples, timing = compute_polar(surface, samples, r0, backend=backend), samples, {}
+        backend_config = PatchConfig(**{**config.to_dict(), "backend": "front" if backend == "cloud" else backend})
+        rows["backends"][backend] = {"seconds_all_vertices": polar.seconds, **timing,
+                                     **score(polar, exact, centres, r0, regions),
+                                     **patch_fit(surface, polar, backend_samples, backend_config, seed, centres)}
     # The fit on exact coordinates (only the reference's centres have patches): what the patch-fit targets
     # can reach with perfect geodesics.
     rows["exact_fit_on_centres"] = patch_fit(surface, exact_polar(exact, frames, r0), samples, config, seed,
@@ -205,6 +241,10 @@ def print_rows(row) -> None:
               f"{b['other_coefficients_p95_percent_of_piston']:13.4f} {b['linear_residual_median_percent']:10.2f} "
               f"{b['linear_residual_p95_percent']:10.2f} {b['linear_residual_nmax8_median_percent']:9.2f}")
     for name, b in row["backends"].items():
+        if "build_second_seconds_per_1000_vertices" in b:
+            print(f"operator build ({name}): {b['build_first_seconds_per_1000_vertices']:.2f} s / 1000 vertices first, "
+                  f"{b['build_second_seconds_per_1000_vertices']:.2f} second")
+    for name, b in row["backends"].items():
         if b["angle_p95_rad_by_region"]:
             print(f"angle p95 by region ({name}): " + ", ".join(f"{region} {p95:.3f}" for region, p95 in b["angle_p95_rad_by_region"].items()))
     print(f"linear residual median on the {row['centres']} reference centres (interior ones), n_max 5 / 8:")
@@ -221,7 +261,7 @@ def main() -> None:
     parser.add_argument("--r0", type=float, default=5.5)
     parser.add_argument("--samples", type=int, default=12000)
     parser.add_argument("--centres", type=int, default=100)
-    parser.add_argument("--backends", nargs="+", default=["fast", "front"])
+    parser.add_argument("--backends", nargs="+", default=["fast", "front", "cloud"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-body", action="store_true", help="only the meshes passed with --mesh")
     parser.add_argument("--output", type=Path, default=RESULTS)

@@ -15,9 +15,7 @@ import time
 import warnings
 from pathlib import Path
 
-import matplotlib
 import numpy as np
-import trimesh
 
 from zernet.data import DatasetError, PreprocessError, SkippedShapesWarning
 from zernet.data.bodies import POSE_MODES as BODY_POSES
@@ -198,6 +196,9 @@ def _add_predict_command(sub, parents: list[argparse.ArgumentParser]) -> None:
     p.add_argument("--backend", choices=["front", "fast", "accurate"], default=None,
                    help="geodesic polar backend for MESH (default: the run's own, normally front; a point "
                         "cloud is triangulated through its points for the front)")
+    p.add_argument("--scale", type=float, default=None, metavar="S",
+                   help="multiply MESH's coordinates by S instead of scaling it to the training area: for a "
+                        "partial scan, whose area is not the whole shape's")
     p.add_argument("--colormap", default=None,
                    help="matplotlib colormap for the .ply (default: tab10/tab20 for a few classes, hsv for "
                         "many, viridis for values)")
@@ -355,7 +356,7 @@ def _cmd_predict(args) -> int:
     if repaired.describe():
         print(f"{args.mesh}: {repaired.describe()} (predictions are given back per vertex of the file)")
     result = predict(path, surface, probabilities=args.probabilities, device=args.device,
-                     refine_rings=args.refine_rings, backend=args.backend)
+                     refine_rings=args.refine_rings, backend=args.backend, scale=args.scale)
     prediction, probabilities = result if args.probabilities else (result, None)
 
     prefix = Path(args.out)
@@ -383,6 +384,9 @@ def _cmd_predict(args) -> int:
 
 def _write_coloured_ply(path: Path, surface, prediction, checkpoint: dict, colormap: str | None) -> None:
     """Write the surface (mesh or point cloud, original coordinates) with vertex colours from ``prediction``."""
+    import matplotlib  # here, not at start-up: `zernet --help` and the other commands do not pay for it
+    import trimesh
+
     if checkpoint["task"] == "classification":
         n_classes = int(checkpoint["num_classes"])
         name = colormap or ("tab10" if n_classes <= 10 else "tab20" if n_classes <= 20 else "hsv")

@@ -11,7 +11,7 @@ import torch
 
 from zernet.data import prepare_record
 from zernet.operators import PatchConfig
-from zernet.geometry import read_surface, repair_surface
+from zernet.geometry import Surface, read_surface, repair_surface
 from zernet.training.batch import Batch, model_basis_orders, model_directional_order
 from zernet.training.build import build_model_from_spec
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
@@ -57,7 +57,7 @@ def model_from_checkpoint(checkpoint: dict, device: torch.device) -> torch.nn.Mo
 
 def predict(checkpoint: str | Path, surface, probabilities: bool = False, device: str | None = None,
             cache_dir: str | Path | None = None, progress: bool = False, refine_rings: int | None = None,
-            backend: str | None = None):
+            backend: str | None = None, scale: float | None = None):
     """Per-vertex predictions of a trained model on a new surface: a mesh or a point cloud, whatever the
     training shapes were.
 
@@ -74,6 +74,9 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
             chose on its validation split (0 for runs that chose none).
         backend: polar-coordinate backend for this surface (``"front"``, ``"fast"``, ``"accurate"``); None:
             the run's own (every backend reads meshes and clouds alike).
+        scale: None (default): scale the surface to the training area, as the training shapes were; a
+            number: multiply its coordinates by this instead — for a partial scan, whose area is not the
+            whole shape's (e.g. the factor that takes the training shapes' units to the training area).
 
     Returns:
         (N,) int64 class indices or (N,) float32 values, one per vertex of the *input* surface (a merged
@@ -91,13 +94,19 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
     patch_configs = [PatchConfig(**c) for c in spec["patch_configs"]]
     if backend is not None:
         patch_configs = [dataclasses.replace(c, backend=backend) for c in patch_configs]
+    surface = repaired.surface
+    if scale is not None:
+        if not scale > 0:
+            raise ValueError(f"scale must be positive, got {scale}")
+        surface = Surface(surface.vertices * scale, surface.faces, surface.normals, surface.fields, surface.name)
     record = prepare_record(
-        repaired.surface,
+        surface,
         patch_configs,
         cache_dir=config["cache_dir"] if cache_dir is None else cache_dir,
-        target_area=spec["area"],
+        target_area=spec["area"] if scale is None else None,
         feature_kind=spec["feature_kind"],
     )
+    record_scale = record.scale if scale is None else scale
     device = resolve_device(device or config["train"]["device"])
     model = model_from_checkpoint(checkpoint, device)
     pred, probs = predict_record([(model, checkpoint)], record, device)
@@ -109,7 +118,7 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
         pred = pred.astype(np.int64)
     else:
         exponent = float(checkpoint.get("target_exponent", 0.0))  # older checkpoints: area-normalised
-        pred = (pred / record.scale ** (2 * exponent)).astype(np.float32)
+        pred = (pred / record_scale ** (2 * exponent)).astype(np.float32)
     pred = pred[repaired.vertex_map]
     if probabilities:
         if probs is None:
