@@ -241,6 +241,11 @@ def _add_bodies_command(sub, parents: list[argparse.ArgumentParser]) -> None:
                    help="rest, mild or varied joint rotations (default varied)")
     p.add_argument("--cache-dir", type=Path, default=Path(".zernet-cache"), metavar="DIR",
                    help="cache of the body model's topology and generated bodies (default .zernet-cache)")
+    p.add_argument("--forms", default=None, metavar="LIST",
+                   help="also write the bodies as scans come: a comma-separated list of remeshed, decimated, cloud, "
+                        "cloud-noisy, partial, or 'all' (default none; under OUT/forms, see docs/BODIES.md)")
+    p.add_argument("--forms-split", choices=("test", "all"), default="test",
+                   help="bodies that get forms: the test bodies or all (default test)")
     p.set_defaults(func=_cmd_bodies)
 
 
@@ -251,9 +256,12 @@ def _add_bodies_command(sub, parents: list[argparse.ArgumentParser]) -> None:
 
 def _cmd_bodies(args) -> int:
     layout = write_bodies(args.out, count=args.count, seed=args.seed, topology=args.topology, poses=args.poses,
-                          n_test=args.n_test, cache_dir=args.cache_dir, progress=True)
+                          n_test=args.n_test, cache_dir=args.cache_dir, progress=True, forms=args.forms,
+                          forms_split=args.forms_split)
     print(f"{args.count} bodies ({args.topology}, {args.poses} poses) written to {layout.root}; "
           f"see {layout.readme}")
+    if layout.forms is not None:
+        print(f"forms {', '.join(layout.forms.forms)} of the {args.forms_split} bodies: {layout.forms.root}")
     return 0
 
 

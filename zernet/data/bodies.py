@@ -77,7 +77,8 @@ own cache and compiles kernels) is built only when something is missing from tha
 
 This module is the public API; the work is done in ``bodies_pose`` (phenotype and pose draws, bone
 rotations), ``bodies_topology`` (shared connectivity, part labels, the only anny import),
-``bodies_generator`` (seeded, cached bodies) and ``bodies_layout`` (files the loaders read). The data kind
+``bodies_generator`` (seeded, cached bodies), ``bodies_layout`` (files the loaders read) and ``bodies_forms``
+(a body as scans come: remeshed, decimated, point clouds, one-sided; ground truth per vertex). The data kind
 ``"bodies"`` (:mod:`zernet.data.bodies_dataset`) trains on generated bodies without writing files.
 """
 
@@ -85,7 +86,10 @@ from __future__ import annotations
 
 from zernet.data.bodies_dataset import load_bodies
 from zernet.data.bodies_generator import GENERATOR_VERSION, Body, BodyGenerator, generate_bodies
-from zernet.data.bodies_layout import BodiesLayout, write_bodies
+from zernet.data.bodies_forms import (FORMS, BodyForm, closest_points, cloud_form, decimated_form, ground_truth,
+                                      make_forms, noisy_cloud_form, nonmanifold_edge_count, partial_form,
+                                      remeshed_form, resolve_forms)
+from zernet.data.bodies_layout import FORM_SPLITS, BodiesLayout, FormsLayout, write_bodies, write_forms
 from zernet.data.bodies_pose import POSE_MODES
 from zernet.data.bodies_topology import MISSING_EXTRA_MESSAGE, PART_BONES, TOPOLOGIES, BodyTopology, part_of_bone
 
@@ -103,4 +107,19 @@ __all__ = [
     "generate_bodies",
     "write_bodies",
     "load_bodies",
+    "FORMS",
+    "FORM_SPLITS",
+    "BodyForm",
+    "FormsLayout",
+    "make_forms",
+    "resolve_forms",
+    "remeshed_form",
+    "decimated_form",
+    "cloud_form",
+    "noisy_cloud_form",
+    "partial_form",
+    "closest_points",
+    "ground_truth",
+    "nonmanifold_edge_count",
+    "write_forms",
 ]

@@ -6,21 +6,64 @@ Layout (also described by the README.txt written into the output folder)::
     out_dir/segmentation/labels/{train,test}/body_XXX.txt   (one 0-based part label per vertex)
     out_dir/segmentation/labels/class_names.txt             (one part name per line, label order)
     out_dir/correspondence/training/registrations/tr_reg_XXX.ply  (the same meshes, FAUST's names)
+
+and, with ``forms`` (:mod:`zernet.data.bodies_forms`), for the test bodies (``forms_split="test"``) or all::
+
+    out_dir/forms/<form>/meshes/{train,test}/body_XXX.ply          (a mesh, or a point cloud: no faces)
+    out_dir/forms/<form>/labels/{train,test}/body_XXX.txt          (one 0-based part per vertex or point)
+    out_dir/forms/<form>/labels/class_names.txt
+    out_dir/forms/<form>/correspondence/{train,test}/body_XXX.txt  (template vertex per vertex or point)
+    out_dir/forms/details.json                                     (per form and body: counts, draws)
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+import textwrap
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import trimesh
+from tqdm.auto import tqdm
 
-from zernet.data.bodies_generator import GENERATOR_VERSION, Body, generate_bodies, package_version
+from zernet.data.bodies_forms import BodyForm, check_form_dependencies, make_forms, resolve_forms
+from zernet.data.bodies_generator import (GENERATOR_VERSION, SPLIT_CODES, Body, generate_bodies,
+                                          package_version)
+from zernet.data.dataset import DatasetError
 from zernet.data.segmentation import HUMAN_PART_NAMES
-from zernet.io_utils import atomic_write_bytes
+from zernet.io_utils import atomic_write_bytes, write_json
 
-__all__ = ["BodiesLayout", "write_bodies"]
+__all__ = ["BodiesLayout", "FormsLayout", "FORM_SPLITS", "write_bodies", "write_forms"]
+
+#: Which bodies get forms: the test split only (the default) or every body.
+FORM_SPLITS = ("test", "all")
+# Fourth element of a body's SeedSequence for its forms: a stream the body's own draws never use.
+_FORMS_STREAM = 1
+
+
+@dataclass(frozen=True)
+class FormsLayout:
+    """Where :func:`write_forms` put the forms of the bodies (module docstring), and what they hold.
+
+    ``summary[form][body_name]``: ``n_vertices`` (vertices or points), ``n_faces`` (None for a cloud) and the
+    form's details (:class:`~zernet.data.bodies_forms.BodyForm`), also written to ``details``."""
+
+    root: Path
+    forms: tuple[str, ...]
+    split: str
+    details: Path
+    summary: dict = field(default_factory=dict)
+
+    def meshes(self, form: str) -> Path:
+        return self.root / form / "meshes"
+
+    def labels(self, form: str) -> Path:
+        return self.root / form / "labels"
+
+    def correspondence(self, form: str) -> Path:
+        return self.root / form / "correspondence"
 
 
 @dataclass(frozen=True)
@@ -37,23 +80,42 @@ class BodiesLayout:
     n_vertices: int
     n_train: int
     n_test: int
+    forms: FormsLayout | None = None
 
 
 def _ply_bytes(body: Body) -> bytes:
     return trimesh.Trimesh(body.vertices, body.faces, process=False).export(file_type="ply")
 
 
+def _form_ply_bytes(form: BodyForm) -> bytes:
+    """A form as PLY: a mesh exactly as made (nothing merged or dropped), or vertices only for a cloud."""
+    if form.faces is None:
+        return trimesh.PointCloud(form.vertices).export(file_type="ply")
+    return trimesh.Trimesh(form.vertices, form.faces, process=False, validate=False).export(file_type="ply")
+
+
+def _lines(values: np.ndarray) -> bytes:
+    return ("\n".join(str(int(value)) for value in values) + "\n").encode()
+
+
 def write_bodies(out_dir: str | os.PathLike, count: int = 100, seed: int = 0, topology: str = "faust",
                  poses: str = "varied", n_test: int = 20, cache_dir: str | os.PathLike | None = ".zernet-cache",
-                 progress: bool = True) -> BodiesLayout:
+                 progress: bool = True, forms: str | Sequence[str] | None = None,
+                 forms_split: str = "test") -> BodiesLayout:
     """Generate bodies (:func:`~zernet.data.bodies_generator.generate_bodies`) and write them in the layout
-    of the module docstring; returns where everything went."""
+    of the module docstring; with ``forms`` (names, a comma-separated string or ``"all"``), also those forms
+    of the test bodies (``forms_split="test"``) or of every body (``"all"``), by :func:`write_forms`. Returns
+    where everything went."""
+    forms = resolve_forms(forms)  # a bad name or a missing package fails before any body is made
+    check_form_dependencies(forms)
+    _check_forms_split(forms_split)
     root = Path(os.path.expanduser(os.fspath(out_dir)))
     bodies = generate_bodies(count, seed, topology, poses, n_test, cache_dir, progress)
+    forms_layout = write_forms(root, bodies, forms, seed, forms_split, progress) if forms else None
     layout = BodiesLayout(root, root / "segmentation" / "meshes", root / "segmentation" / "labels",
                           root / "segmentation" / "labels" / "class_names.txt",
                           root / "correspondence" / "training" / "registrations", root / "README.txt",
-                          topology, len(bodies[0].vertices), count - n_test, n_test)
+                          topology, len(bodies[0].vertices), count - n_test, n_test, forms_layout)
     for number, body in enumerate(bodies):
         mesh = _ply_bytes(body)
         atomic_write_bytes(layout.meshes / body.split / f"{body.name}.ply", mesh)
@@ -62,6 +124,49 @@ def write_bodies(out_dir: str | os.PathLike, count: int = 100, seed: int = 0, to
         atomic_write_bytes(layout.registrations / f"tr_reg_{number:03d}.ply", mesh)
     atomic_write_bytes(layout.class_names, ("\n".join(HUMAN_PART_NAMES) + "\n").encode())
     atomic_write_bytes(layout.readme, _readme(layout, seed, poses).encode())
+    return layout
+
+
+def _check_forms_split(split: str) -> None:
+    if split not in FORM_SPLITS:
+        raise DatasetError(f"forms split must be one of {', '.join(FORM_SPLITS)}, got {split!r}")
+
+
+def write_forms(out_dir: str | os.PathLike, bodies: Sequence[Body], forms: str | Sequence[str] | None = "all",
+                seed: int = 0, split: str = "test", progress: bool = False) -> FormsLayout:
+    """Write the forms (:func:`~zernet.data.bodies_forms.make_forms`) of ``bodies`` under ``out_dir/forms``.
+
+    ``bodies`` are in :func:`~zernet.data.bodies_generator.generate_bodies` order (the train bodies, then the
+    test ones); ``split="test"`` makes forms of the test bodies only, ``"all"`` of every body. The forms of
+    body ``i`` of split ``s`` come from the stream ``numpy.random.SeedSequence([seed, s, i, 1])`` (s = 0
+    train, 1 test): the same for a given seed and body whatever ``count`` and the other forms asked for.
+    Every file is written atomically. Returns a :class:`FormsLayout` with each form's counts and details.
+    """
+    names = resolve_forms(forms)
+    _check_forms_split(split)
+    root = Path(os.path.expanduser(os.fspath(out_dir))) / "forms"
+    layout = FormsLayout(root, names, split, root / "details.json", {name: {} for name in names})
+    index_in_split: dict[str, int] = {}
+    chosen = []
+    for body in bodies:
+        index = index_in_split.get(body.split, 0)
+        index_in_split[body.split] = index + 1
+        if split == "all" or body.split == "test":
+            chosen.append((body, index))
+    for body, index in tqdm(chosen, desc=f"forms ({', '.join(names)})", unit="body", disable=not progress):
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), SPLIT_CODES[body.split], index,
+                                                             _FORMS_STREAM]))
+        for name, form in make_forms(body, names, rng).items():
+            atomic_write_bytes(layout.meshes(name) / body.split / f"{body.name}.ply", _form_ply_bytes(form))
+            atomic_write_bytes(layout.labels(name) / body.split / f"{body.name}.txt", _lines(form.labels))
+            atomic_write_bytes(layout.correspondence(name) / body.split / f"{body.name}.txt",
+                               _lines(form.template_vertex))
+            layout.summary[name][body.name] = {
+                "n_vertices": len(form.vertices), "n_faces": None if form.faces is None else len(form.faces),
+                **form.details}
+    for name in names:
+        atomic_write_bytes(layout.labels(name) / "class_names.txt", ("\n".join(HUMAN_PART_NAMES) + "\n").encode())
+    write_json(layout.details, {"seed": int(seed), "split": split, "forms": layout.summary})
     return layout
 
 
@@ -83,4 +188,57 @@ correspondence/training/registrations/tr_reg_XXX.ply
     its index. Split: 000-{layout.n_train - 1:03d} train, {layout.n_train:03d}-{last:03d} test.
 Read them with zernet's configs bodies_segmentation.yaml and bodies_correspondence.yaml (this folder's
 split: --set data.train_indices=0:{layout.n_train} data.test_indices={layout.n_train}:{last + 1}).
-"""
+""" + ("" if layout.forms is None else _forms_readme(layout.forms))
+
+
+# What each form is, for the README.txt (docs/BODIES.md and zernet.data.bodies_forms say more).
+_FORM_TEXT = {
+    "remeshed": "remeshed isotropically (MeshLab), its own triangulation and vertex count per body, vertices on "
+                "the surface",
+    "decimated": "quadric decimation to half the faces (fast-simplification), left as the simplifier returns it: "
+                 "non-manifold edges and near-duplicate faces are kept on purpose",
+    "cloud": "points uniform on the surface (area-weighted), as many as the body has vertices; PLY without faces",
+    "cloud-noisy": "half as many points, density varying smoothly over the body (a factor 3), Gaussian noise "
+                   "of 2 mm per coordinate; PLY without faces",
+    "partial": "the faces one camera sees (front-facing, not occluded; orthographic, a random direction around "
+               "the vertical axis per body), vertices renumbered",
+}
+
+
+def _count_range(values: list) -> str:
+    if not values:
+        return "0"
+    return f"{min(values)}" if min(values) == max(values) else f"{min(values)}-{max(values)}"
+
+
+def _forms_readme(forms: FormsLayout) -> str:
+    which = "the test bodies" if forms.split == "test" else "every body"
+    text = [f"""
+forms/<form>/meshes/<split>/body_XXX.ply        {which} in the forms a scan comes in (below)
+forms/<form>/labels/<split>/body_XXX.txt        one part label per vertex or point (0-based, as above)
+forms/<form>/correspondence/<split>/body_XXX.txt  the template vertex (= vertex of the body's own mesh above)
+                                                of each vertex or point
+forms/details.json                              per form and body: counts and what was drawn
+    Ground truth: the position of each vertex or point on the original body (the sampled point, without
+    noise, for clouds; the closest point of the body's surface for remeshed and decimated meshes) in
+    barycentric coordinates of one of its triangles; the corner with the largest weight is the template
+    vertex, and its part the label. Same seed and body: the same forms.
+    Read a form with the segmentation loader: data.meshes=forms/<form>/meshes data.labels=forms/<form>/labels.
+"""]
+    for name in forms.forms:
+        bodies = forms.summary[name]
+        vertices = [entry["n_vertices"] for entry in bodies.values()]
+        line = f"{len(bodies)} bodies, {_count_range(vertices)} " + (
+            "points" if name.startswith("cloud") else "vertices")
+        faces = [entry["n_faces"] for entry in bodies.values() if entry["n_faces"] is not None]
+        if faces:
+            line += f", {_count_range(faces)} faces"
+        if name == "decimated":
+            counts = [entry["nonmanifold_edges"] for entry in bodies.values()]
+            duplicates = [entry["duplicate_faces"] for entry in bodies.values()]
+            line += (f"; non-manifold edges (shared by more than 2 faces) per body: {_count_range(counts)} "
+                     f"({sum(counts)} in all), duplicate faces: {_count_range(duplicates)}")
+        text.append(textwrap.fill(f"{name}: {_FORM_TEXT[name]}.", 110, initial_indent="  ",
+                                  subsequent_indent="    ") + "\n")
+        text.append(textwrap.fill(line + ".", 110, initial_indent="    ", subsequent_indent="    ") + "\n")
+    return "".join(text)
