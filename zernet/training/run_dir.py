@@ -13,7 +13,6 @@ import numpy as np
 import yaml
 from tqdm.auto import tqdm
 
-from zernet import viz
 from zernet.io_utils import atomic_write_bytes, plain, write_json
 from zernet.metrics import regression_scores
 
@@ -89,6 +88,8 @@ def write_plots(run_dir: Path, history: list[dict], metrics: dict, kept: list[di
                 renders: int, logger: logging.Logger | None = None) -> list[str]:
     """Training curves (the selected epoch marked), the error curve (correspondence) and renders of a few
     shapes of the split the metrics are of, named ``<split>_<shape>.png``; returns the paths."""
+    from zernet import viz  # matplotlib is imported when a run draws, not when zernet starts
+
     plot_dir = run_dir / "plots"
     plot_dir.mkdir(exist_ok=True)
     split = metrics.get("split", "test")
@@ -116,6 +117,8 @@ def picture_name(shape: str, split: str) -> str:
 
 
 def _render_shape(item: dict, kind: str, path: Path, class_names, logger) -> Path:
+    from zernet import viz
+
     surface, pred, target, error = item["surface"], item["prediction"], item["target"], item["error"]
     if kind == "correspondence":
         # Vertex indices carry no visual meaning: colour each vertex by the height of the vertex it is

@@ -27,7 +27,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from torch import Tensor, nn
-from torch_geometric.nn import FeaStConv
 
 from .base import SurfaceModel, activation_module, resolve_widths
 
@@ -81,6 +80,10 @@ class FeaStNet(SurfaceModel):
         dropout: float = 0.25,
         add_self_loops: bool = True,
     ) -> None:
+        # Imported here, not with the module: torch_geometric's import compiles TorchScript classes
+        # (seconds; on a CUDA machine tens of seconds), which every zernet command would otherwise pay.
+        from torch_geometric.nn import FeaStConv
+
         super().__init__()
         if int(heads) < 1:
             raise ValueError(f"heads must be >= 1, got {heads}")
