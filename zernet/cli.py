@@ -261,7 +261,8 @@ def _cmd_bodies(args) -> int:
     print(f"{args.count} bodies ({args.topology}, {args.poses} poses) written to {layout.root}; "
           f"see {layout.readme}")
     if layout.forms is not None:
-        print(f"forms {', '.join(layout.forms.forms)} of the {args.forms_split} bodies: {layout.forms.root}")
+        which = "the test bodies" if args.forms_split == "test" else "all bodies"
+        print(f"forms {', '.join(layout.forms.forms)} of {which}: {layout.forms.root}")
     return 0
 
 
