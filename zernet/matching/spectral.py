@@ -1,0 +1,134 @@
+"""The Laplace-Beltrami eigenbasis of a surface (mesh or point cloud), cached on disk.
+
+The cotangent-like Laplacian ``L`` (N, N) and the lumped mass matrix ``M`` (diagonal) come from
+``robust-laplacian`` (Sharp & Crane 2020, "A Laplacian for nonmanifold triangle meshes": the tufted cover
+keeps ``L`` positive semi-definite with non-negative weights on any triangle soup, and its point-cloud
+version builds local Delaunay triangulations of the k nearest neighbours). The generalised eigenproblem
+``L φ = λ M φ`` is solved for its ``k`` smallest eigenvalues by ``scipy.sparse.linalg.eigsh`` in
+shift-invert mode around a slightly negative shift, so ``L - σ M`` is positive definite even with the zero
+eigenvalue of every connected component. Eigenvectors are ``M``-orthonormal: ``Φᵀ M Φ = I``, so the
+spectral coefficients of a function ``f`` are ``Φᵀ M f`` (the projection the functional maps use).
+
+Cache: ``<cache_dir>/spectral/<key>.npz`` with ``key = sha256(geometry hash, k, Laplacian kind, version)``,
+in the checked, atomically written format of the patch operators (:mod:`zernet.operators.cache`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+from zernet.geometry import Surface
+from zernet.operators.cache import CacheWarning, read_payload, write_payload
+
+__all__ = ["SPECTRAL_VERSION", "CLOUD_NEIGHBOURS", "SpectralBasis", "laplacian", "laplacian_eigenbasis",
+           "spectral_cache_key", "heat_kernel_signature"]
+
+#: Bumped when a change alters the stored bases, so older cache files get another key.
+SPECTRAL_VERSION = 1
+#: Neighbours of robust-laplacian's point-cloud Laplacian (its default).
+CLOUD_NEIGHBOURS = 30
+
+
+@dataclass(frozen=True)
+class SpectralBasis:
+    """The first ``k`` Laplace-Beltrami eigenpairs of a surface.
+
+    Attributes:
+        eigenvalues: (k,) float64, non-decreasing, >= 0 (the first is 0 up to rounding).
+        eigenvectors: (N, k) float64, ``M``-orthonormal columns (``Φᵀ diag(mass) Φ = I``).
+        mass: (N,) float64 the lumped (diagonal) mass matrix: the area each vertex stands for.
+    """
+
+    eigenvalues: np.ndarray
+    eigenvectors: np.ndarray
+    mass: np.ndarray
+
+    @property
+    def k(self) -> int:
+        return int(self.eigenvalues.shape[0])
+
+    def truncated(self, k: int) -> SpectralBasis:
+        """The first ``k`` eigenpairs (k <= self.k)."""
+        if k > self.k:
+            raise ValueError(f"asked for {k} eigenpairs but the basis holds {self.k}")
+        return SpectralBasis(self.eigenvalues[:k], self.eigenvectors[:, :k], self.mass)
+
+    def project(self, values: np.ndarray) -> np.ndarray:
+        """Spectral coefficients ``Φᵀ M f`` (k, ...) of per-vertex ``values`` (N, ...)."""
+        weighted = self.mass.reshape((-1,) + (1,) * (np.ndim(values) - 1)) * values
+        return self.eigenvectors.T @ weighted
+
+
+def laplacian(surface: Surface) -> tuple[scipy.sparse.csr_matrix, np.ndarray]:
+    """(L (N, N) CSR, mass (N,)): robust-laplacian's mesh Laplacian, or its point-cloud one for a surface
+    without faces (:data:`CLOUD_NEIGHBOURS` neighbours)."""
+    import robust_laplacian
+
+    vertices = np.ascontiguousarray(surface.vertices, dtype=np.float64)
+    if surface.is_point_cloud:
+        stiffness, mass = robust_laplacian.point_cloud_laplacian(vertices, n_neighbors=CLOUD_NEIGHBOURS)
+    else:
+        stiffness, mass = robust_laplacian.mesh_laplacian(vertices, np.ascontiguousarray(surface.faces, dtype=np.int64))
+    return scipy.sparse.csr_matrix(stiffness), np.asarray(mass.diagonal(), dtype=np.float64)
+
+
+def spectral_cache_key(surface: Surface, k: int) -> str:
+    """sha256 of the geometry hash, ``k``, the Laplacian kind and :data:`SPECTRAL_VERSION`."""
+    kind = f"cloud-{CLOUD_NEIGHBOURS}" if surface.is_point_cloud else "mesh"
+    text = json.dumps({"geometry": surface.geometry_hash(), "k": int(k), "laplacian": kind,
+                       "version": SPECTRAL_VERSION}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def laplacian_eigenbasis(surface: Surface, k: int, cache_dir: str | os.PathLike | None = None) -> SpectralBasis:
+    """The first ``k`` eigenpairs of ``L φ = λ M φ`` (module docstring); read from / written to the cache
+    when ``cache_dir`` is given. ``k`` is capped at N - 1 (eigsh's limit)."""
+    k = int(min(k, surface.n_vertices - 1))
+    if k < 1:
+        raise ValueError(f"{surface.name}: an eigenbasis needs at least 2 vertices, got {surface.n_vertices}")
+    path = None
+    if cache_dir is not None:
+        key = spectral_cache_key(surface, k)
+        path = Path(cache_dir) / "spectral" / f"{key}.npz"
+        if path.exists():
+            try:
+                arrays = read_payload(path, key=key)
+                return SpectralBasis(arrays["eigenvalues"], arrays["eigenvectors"], arrays["mass"])
+            except (ValueError, OSError, KeyError) as error:
+                warnings.warn(f"rebuilding cached eigenbasis {path}: {error}", CacheWarning, stacklevel=2)
+    stiffness, mass = laplacian(surface)
+    mass_matrix = scipy.sparse.diags(mass)
+    # A shift below 0 keeps L - σM positive definite (L is only semi-definite); scaled by the Laplacian's
+    # own size so it means the same at any area.
+    shift = -1e-8 * float(stiffness.diagonal().sum() / mass.sum())
+    eigenvalues, eigenvectors = scipy.sparse.linalg.eigsh(stiffness, k=k, M=mass_matrix, sigma=shift, which="LM")
+    order = np.argsort(eigenvalues)
+    basis = SpectralBasis(np.maximum(eigenvalues[order], 0.0), np.ascontiguousarray(eigenvectors[:, order]), mass)
+    if path is not None:
+        write_payload(path, {"eigenvalues": basis.eigenvalues, "eigenvectors": basis.eigenvectors,
+                             "mass": basis.mass}, key=key)
+    return basis
+
+
+def heat_kernel_signature(basis: SpectralBasis, n_times: int = 16) -> np.ndarray:
+    """(N, n_times) float32 heat kernel signature ``Σ_i exp(-λ_i t) φ_i(x)²`` (Sun et al. 2009) at
+    ``n_times`` times log-spaced over the basis's range (``4 ln 10 / λ_max`` to ``4 ln 10 / λ_1``), each
+    column divided by its area-weighted mean so it does not depend on the surface's scale or sampling."""
+    eigenvalues = basis.eigenvalues[1:]
+    eigenvalues = eigenvalues[eigenvalues > 0]
+    if len(eigenvalues) == 0:
+        raise ValueError("the heat kernel signature needs at least one positive eigenvalue")
+    times = np.geomspace(4 * np.log(10) / eigenvalues[-1], 4 * np.log(10) / eigenvalues[0], n_times)
+    squares = basis.eigenvectors ** 2                                   # (N, k)
+    signature = squares @ np.exp(-np.outer(basis.eigenvalues, times))   # (N, n_times)
+    signature /= (basis.mass @ signature / basis.mass.sum())[None, :]
+    return signature.astype(np.float32)
