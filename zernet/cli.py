@@ -23,6 +23,7 @@ from zernet.data.bodies import TOPOLOGIES as BODY_TOPOLOGIES
 from zernet.data.bodies import write_bodies
 from zernet.distributed import is_main
 from zernet.io_utils import atomic_write_bytes, write_json
+from zernet.matching.cli import add_match_command
 from zernet.geometry import SurfaceError, read_surface, repair_surface
 from zernet.training import (
     RESUME_CHANGEABLE,
@@ -112,6 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_predict_command(sub, [common])
     _add_demo_command(sub, [common, overrides])
     _add_bodies_command(sub, [common])
+    add_match_command(sub, [common])
     return parser
 
 

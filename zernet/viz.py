@@ -1,6 +1,7 @@
 """Pictures as PNG files (matplotlib, Agg backend: no screen needed).
 
 - :func:`render_surface`: a surface coloured by a per-vertex field, seen from several views side by side.
+- :func:`render_side_by_side`: several surfaces next to each other on one colour scale (matching pictures).
 - :func:`render_comparison`: rows of prediction, ground truth and error, same views.
 - :func:`plot_error_curve`: the Princeton geodesic error curve(s) of correspondence.
 - :func:`plot_training_curves`: loss and metrics per epoch from a training history.
@@ -30,7 +31,8 @@ from matplotlib import colors as mcolors  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
-__all__ = ["VIEWS", "render_surface", "render_comparison", "plot_error_curve", "plot_training_curves"]
+__all__ = ["VIEWS", "render_surface", "render_side_by_side", "render_comparison", "plot_error_curve",
+           "plot_training_curves"]
 
 #: Named views: (elevation, azimuth) in degrees of matplotlib's camera, in plot coordinates (see _to_plot).
 VIEWS = {
@@ -216,6 +218,37 @@ def render_surface(
     if title:
         fig.suptitle(title, fontsize=11)
     fig.subplots_adjust(left=0.0, right=0.9, bottom=0.02, top=0.86 if title else 0.92, wspace=0.0)
+    return _save(fig, path)
+
+
+def render_side_by_side(
+    surfaces: Sequence,
+    values: Sequence,
+    path: str | os.PathLike,
+    titles: Sequence[str],
+    views: Sequence[str] = ("front", "back"),
+    cmap: str = "turbo",
+    title: str | None = None,
+    up: str = "y",
+) -> Path:
+    """PNG of several surfaces side by side, each coloured by its own per-vertex float values on one shared
+    colour scale (the range of all values), ``views`` of each: e.g. a colour field on a source surface and
+    the same field carried to a target by a correspondence. Returns the path written."""
+    if not (len(surfaces) == len(values) == len(titles)) or not surfaces:
+        raise ValueError("render_side_by_side needs as many surfaces, value arrays and titles, at least one")
+    values = [_check_values(s, v, "values").astype(np.float64) for s, v in zip(surfaces, values)]
+    both = np.concatenate(values)
+    norm, colormap = _norm_and_cmap(both, cmap, np.nanmin(both), np.nanmax(both), False)
+    columns = len(surfaces) * len(views)
+    fig = plt.figure(figsize=(_PANEL_INCHES * columns * 0.75, _PANEL_INCHES + 0.4))
+    for i, (surface, field, name) in enumerate(zip(surfaces, values, titles)):
+        for j, view in enumerate(views):
+            ax = fig.add_subplot(1, columns, i * len(views) + j + 1, projection="3d")
+            _draw(ax, surface, field, norm, colormap, view, up, None)
+            ax.set_title(f"{name} ({view})", fontsize=9, pad=0)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.02, top=0.86 if title else 0.92, wspace=0.0)
     return _save(fig, path)
 
 

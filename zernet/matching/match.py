@@ -1,0 +1,175 @@
+"""Matching two surfaces: descriptors -> functional map -> point map -> ZoomOut -> confidence.
+
+:func:`match_shapes` works on two prepared shapes (:func:`zernet.matching.shapes.prepare_shape`);
+:func:`match_surfaces` takes two surfaces or files as a user has them, repairs them (merged duplicate
+vertices are mapped back) and answers per *input* vertex. Both directions are solved (source -> target and
+target -> source, each from its own functional map), because the confidence is the round trip's
+agreement (:func:`zernet.matching.fmap.cycle_confidence`) and the picture transfers a colour from the
+source onto the target, which needs the target -> source map.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from zernet.geometry import Surface, read_surface, repair_surface
+from zernet.matching.fmap import cycle_confidence, functional_map, pointmap_from_fmap, zoomout
+from zernet.matching.model import DescriptorModel, load_matching_model
+from zernet.matching.shapes import MatchShape, prepare_shape
+from zernet.matching.spectral import SpectralBasis
+
+__all__ = ["MatchResult", "shape_descriptors", "descriptor_fmap", "match_shapes", "match_surfaces",
+           "nearest_vertex_map", "CONFIDENCE_SCALE"]
+
+#: The round-trip distance, as a fraction of the square root of the source's area, at which the
+#: confidence falls to 1/e.
+CONFIDENCE_SCALE = 0.05
+
+
+@dataclass
+class MatchResult:
+    """A correspondence between a source and a target surface.
+
+    Attributes:
+        vertex_map: (N_source,) int64 target vertex of each source vertex.
+        reverse_map: (N_target,) int64 source vertex of each target vertex.
+        fmap: (k, k) the functional map of ``vertex_map`` after ZoomOut: ``C`` with
+            ``Φ_source C ≈ Φ_target[vertex_map]``, i.e. it carries a function on the target (its spectral
+            coefficients) to the source.
+        confidence: (N_source,) in [0, 1] (:func:`zernet.matching.fmap.cycle_confidence`).
+        seconds: time per stage.
+    """
+
+    vertex_map: np.ndarray
+    reverse_map: np.ndarray
+    fmap: np.ndarray
+    confidence: np.ndarray
+    seconds: dict = field(default_factory=dict)
+
+
+@torch.no_grad()
+def shape_descriptors(model: DescriptorModel, shape: MatchShape) -> torch.Tensor:
+    """(N, d) float32 descriptors of a prepared shape."""
+    model.eval()
+    features = torch.as_tensor(shape.features, dtype=torch.float32)
+    return model(features, shape.geometry)
+
+
+def descriptor_fmap(model: DescriptorModel, descriptors_x: torch.Tensor, descriptors_y: torch.Tensor,
+                    shape_x: MatchShape, shape_y: MatchShape) -> torch.Tensor:
+    """``C_xy`` (k, k), k = the spec's ``n_fmap``: the functional-map layer on two shapes' descriptors."""
+    k = model.spec.n_fmap
+    vectors_x, mass_x, values_x = shape_x.basis_tensors(k, descriptors_x.dtype)
+    vectors_y, mass_y, values_y = shape_y.basis_tensors(k, descriptors_y.dtype)
+    return functional_map(descriptors_x, descriptors_y, vectors_x, vectors_y, mass_x, mass_y, values_x, values_y,
+                          model.spec.regularisation, model.spec.gamma)
+
+
+def _refined(pointmap_yx: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis, k_start: int, k_end: int,
+             step: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """ZoomOut from ``k_start`` to ``k_end`` (none when ``k_end <= k_start``)."""
+    if k_end <= k_start:
+        return pointmap_yx, None
+    return zoomout(pointmap_yx, basis_x, basis_y, k_start, k_end, step)
+
+
+def match_shapes(model: DescriptorModel, source: MatchShape, target: MatchShape,
+                 zoomout_end: int | None = None) -> MatchResult:
+    """Match two prepared shapes (module docstring). ``zoomout_end``: ZoomOut's last size (None: the spec's;
+    0: no ZoomOut)."""
+    spec = model.spec
+    zoomout_end = spec.zoomout_end if zoomout_end is None else int(zoomout_end)
+    seconds = {}
+    start = time.perf_counter()
+    descriptors_s, descriptors_t = shape_descriptors(model, source), shape_descriptors(model, target)
+    seconds["descriptors"] = time.perf_counter() - start
+    start = time.perf_counter()
+    with torch.no_grad():
+        fmap_ts = descriptor_fmap(model, descriptors_t, descriptors_s, target, source).double().numpy()
+        fmap_st = descriptor_fmap(model, descriptors_s, descriptors_t, source, target).double().numpy()
+    # C_ts carries target functions to the source, so it gives the point map source -> target.
+    vertex_map = pointmap_from_fmap(fmap_ts, target.basis, source.basis)
+    reverse_map = pointmap_from_fmap(fmap_st, source.basis, target.basis)
+    seconds["fmap"] = time.perf_counter() - start
+    start = time.perf_counter()
+    vertex_map, refined_ts = _refined(vertex_map, target.basis, source.basis, spec.n_fmap, zoomout_end,
+                                      spec.zoomout_step)
+    reverse_map, _ = _refined(reverse_map, source.basis, target.basis, spec.n_fmap, zoomout_end, spec.zoomout_step)
+    seconds["zoomout"] = time.perf_counter() - start
+    scale = CONFIDENCE_SCALE * np.sqrt(source.surface.area)
+    confidence = cycle_confidence(vertex_map, reverse_map, source.surface.vertices, scale)
+    return MatchResult(vertex_map, reverse_map, fmap_ts if refined_ts is None else refined_ts, confidence, seconds)
+
+
+def nearest_vertex_map(source: MatchShape, target: MatchShape) -> np.ndarray:
+    """(N_source,) the target vertex nearest in space to each source vertex, both centred on their
+    area-weighted centroids at the same area: the rigid initial map of the "ZoomOut alone" baseline (it
+    assumes the two shapes are already aligned)."""
+    def centred(shape: MatchShape) -> np.ndarray:
+        weights = shape.basis.mass
+        return shape.surface.vertices - weights @ shape.surface.vertices / weights.sum()
+
+    _, nearest = cKDTree(centred(target)).query(centred(source))
+    return np.asarray(nearest, dtype=np.int64)
+
+
+def _load_input(surface: Surface | str | os.PathLike):
+    """A repaired surface and the map from the input's vertices to it."""
+    if not hasattr(surface, "vertices"):
+        surface = read_surface(surface)
+    return repair_surface(surface)
+
+
+def match_surfaces(source: Surface | str | os.PathLike, target: Surface | str | os.PathLike,
+                   model: DescriptorModel | str | os.PathLike | None = None,
+                   cache_dir: str | os.PathLike | None = None, zoomout_end: int | None = None,
+                   ) -> tuple[MatchResult, MatchShape, MatchShape]:
+    """Match two surfaces or files, answering per input vertex.
+
+    Args:
+        source, target: :class:`~zernet.geometry.Surface` objects or mesh / point-cloud files (PLY, OBJ,
+            OFF, STL, ...), in any pose, placement and scale; repaired where they can be (duplicate vertices
+            merged, degenerate faces dropped).
+        model: a :class:`DescriptorModel`, a model file or run folder, or None: the shipped model.
+        cache_dir: cache of patch operators and eigenbases (None: nothing cached).
+        zoomout_end: see :func:`match_shapes`.
+
+    Returns:
+        (result, prepared source, prepared target): ``result.vertex_map`` has one entry per *input* source
+        vertex, an index into the *input* target's vertices (likewise ``reverse_map`` and ``confidence``);
+        the prepared shapes are the repaired surfaces, for pictures.
+    """
+    if not isinstance(model, DescriptorModel):
+        model, _ = load_matching_model(model)
+    spec = model.spec
+    start = time.perf_counter()
+    repaired_source, repaired_target = _load_input(source), _load_input(target)
+    prepared = [prepare_shape(item.surface, spec.patch_config_objects(), spec.area, spec.feature_kind, spec.n_eigen,
+                              cache_dir=cache_dir, name=Path(item.surface.name).stem)
+                for item in (repaired_source, repaired_target)]
+    prepare_seconds = time.perf_counter() - start
+    result = match_shapes(model, prepared[0], prepared[1], zoomout_end)
+    # Back to input vertices: a merged duplicate answers with its kept copy; a repaired vertex is answered
+    # with one of the input vertices merged into it.
+    first_target = _first_input_vertex(repaired_target.vertex_map, prepared[1].n_vertices)
+    first_source = _first_input_vertex(repaired_source.vertex_map, prepared[0].n_vertices)
+    result.vertex_map = first_target[result.vertex_map[repaired_source.vertex_map]]
+    result.reverse_map = first_source[result.reverse_map[repaired_target.vertex_map]]
+    result.confidence = result.confidence[repaired_source.vertex_map]
+    result.seconds = {"prepare": prepare_seconds, **result.seconds}
+    return result, prepared[0], prepared[1]
+
+
+def _first_input_vertex(vertex_map: np.ndarray, n_repaired: int) -> np.ndarray:
+    """(n_repaired,) the first input vertex that went to each repaired vertex."""
+    first = np.full(n_repaired, -1, dtype=np.int64)
+    inputs = np.arange(len(vertex_map), dtype=np.int64)
+    first[vertex_map[::-1]] = inputs[::-1]  # later writes win: reversed, the first input is kept
+    return first

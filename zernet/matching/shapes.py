@@ -1,0 +1,107 @@
+"""One surface made ready for matching: validated, area-normalised, with its patch operators, input
+features, descriptor-model geometry and Laplace-Beltrami eigenbasis (:func:`prepare_shape`).
+
+The same function prepares the training bodies and a user's files, so the model always sees inputs made
+the same way. The steps are those of :func:`zernet.data.prepare_record` (validation, a point cloud
+triangulated through its own points for the geodesic patches, scaling to the model's area, operators and
+features, all cached), plus the eigenbasis: of the mesh, or for a point cloud of the points themselves
+(robust-laplacian's point-cloud Laplacian: the triangulation serves the patches, not the spectrum).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from zernet.data import prepare_record
+from zernet.geometry import Surface
+from zernet.matching.spectral import SpectralBasis, heat_kernel_signature, laplacian_eigenbasis
+from zernet.operators import Geometry, PatchConfig
+
+__all__ = ["MatchShape", "prepare_shape", "input_features", "matching_feature_channels"]
+
+
+@dataclass
+class MatchShape:
+    """A surface ready for matching.
+
+    Attributes:
+        name: the surface's name.
+        surface: the validated surface scaled to the model's area (a point cloud: triangulated through its
+            points; same vertices, same order as the surface handed to :func:`prepare_shape`).
+        scale: the linear factor applied to the input's coordinates.
+        is_point_cloud: whether the input had no faces.
+        features: (N, C) float32 model inputs (:func:`input_features`).
+        geometry: the patch operators the descriptor model reads.
+        basis: the eigenbasis (k = the model's ``n_eigen``), of the scaled surface.
+    """
+
+    name: str
+    surface: Surface
+    scale: float
+    is_point_cloud: bool
+    features: np.ndarray
+    geometry: Geometry
+    basis: SpectralBasis
+
+    @property
+    def n_vertices(self) -> int:
+        return self.surface.n_vertices
+
+    def basis_tensors(self, k: int, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(eigenvectors (N, k), mass (N,), eigenvalues (k,)) as tensors, for :func:`functional_map`."""
+        basis = self.basis.truncated(k)
+        return (torch.as_tensor(basis.eigenvectors, dtype=dtype), torch.as_tensor(basis.mass, dtype=dtype),
+                torch.as_tensor(basis.eigenvalues, dtype=dtype))
+
+
+#: Extra feature parts the matcher adds to :mod:`zernet.data.features`' parts: the heat kernel signature of
+#: the eigenbasis (16 channels), written ``hks`` in a feature kind (e.g. ``"shape+hks"``).
+HKS_CHANNELS = 16
+
+
+def matching_feature_channels(feature_kind: str, n_max: int) -> int:
+    """Input channels of a matching feature kind: :func:`zernet.data.features.feature_channels` of its
+    zernet parts plus :data:`HKS_CHANNELS` for ``hks``."""
+    from zernet.data.features import feature_channels
+
+    parts = feature_kind.split("+")
+    zernet_parts = "+".join(part for part in parts if part != "hks")
+    channels = feature_channels(zernet_parts, n_max) if zernet_parts else 0
+    return channels + (HKS_CHANNELS if "hks" in parts else 0)
+
+
+def input_features(zernet_features: np.ndarray | None, basis: SpectralBasis, feature_kind: str) -> np.ndarray:
+    """The model input of ``feature_kind``: the zernet parts computed by :func:`prepare_record`, then the heat
+    kernel signature when ``hks`` is one of the parts."""
+    columns = [] if zernet_features is None else [zernet_features]
+    if "hks" in feature_kind.split("+"):
+        columns.append(heat_kernel_signature(basis, HKS_CHANNELS))
+    return np.concatenate(columns, axis=1).astype(np.float32)
+
+
+def prepare_shape(surface: Surface, patch_configs: list[PatchConfig], area: float, feature_kind: str,
+                  n_eigen: int, cache_dir: str | os.PathLike | None = None, name: str | None = None) -> MatchShape:
+    """Prepare ``surface`` for matching (module docstring).
+
+    Args:
+        surface: a mesh or a point cloud (validated here; repair a user's file first with
+            :func:`zernet.geometry.repair_surface`, which keeps the map back to its vertices).
+        patch_configs: the descriptor model's patch settings, one per scale.
+        area: the area the model was trained at.
+        feature_kind: zernet feature parts joined by "+", optionally with ``hks``.
+        n_eigen: eigenpairs to compute (the most any later step uses, ZoomOut included).
+        cache_dir: cache of operators and eigenbases (None: nothing cached).
+    """
+    is_cloud = surface.is_point_cloud
+    zernet_kind = "+".join(part for part in feature_kind.split("+") if part != "hks")
+    record = prepare_record(surface, patch_configs, cache_dir=cache_dir, target_area=area,
+                            feature_kind=zernet_kind or "ones", name=name)
+    scaled = record.surface
+    spectral_surface = Surface(scaled.vertices, None, name=scaled.name) if is_cloud else scaled
+    basis = laplacian_eigenbasis(spectral_surface, n_eigen, cache_dir=cache_dir)
+    features = input_features(record.features if zernet_kind else None, basis, feature_kind)
+    return MatchShape(record.name, scaled, record.scale, is_cloud, features, record.geometry, basis)
