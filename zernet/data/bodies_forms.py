@@ -436,11 +436,11 @@ def _visible_faces(vertices: np.ndarray, faces: np.ndarray, direction: np.ndarra
     p = centre_plane[owners]
     v0, v1, v2 = b - a, c - a, p - a
     det = v0[:, 0] * v1[:, 1] - v0[:, 1] * v1[:, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):  # a triangle seen edge-on (det 0) hides nothing
         s = (v2[:, 0] * v1[:, 1] - v2[:, 1] * v1[:, 0]) / det
         t = (v0[:, 0] * v2[:, 1] - v0[:, 1] * v2[:, 0]) / det
-    inside = (det != 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
-    weights = np.stack([1.0 - s, s, t], axis=1)
+        inside = (det != 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
+        weights = np.stack([1.0 - s - t, s, t], axis=1)
     hit_depth = np.einsum("mc,mc->m", np.nan_to_num(weights), depth[blockers])
     # In front by more than rounding: a neighbour sharing the centroid's plane does not hide it.
     tolerance = 1e-9 * (1.0 + np.abs(depth).max(initial=0.0))
