@@ -89,7 +89,7 @@ def test_default_backend_is_front_for_meshes_and_point_clouds(tmp_path):
     cloud = Surface(surface.vertices, None, name="cloud")
     op = build_patch_operator(cloud, config, cache_dir=tmp_path)
     assert op.n_vertices == cloud.n_vertices and op.nnz > 0
-    assert [path.stem for path in tmp_path.glob("*.npz")] == [cache_key(mesh_from_cloud(cloud), config, "front")]
+    assert [path.stem for path in tmp_path.glob("*.zop")] == [cache_key(mesh_from_cloud(cloud), config, "front")]
 
 
 def test_operator_of_another_backend_version_is_rebuilt(tmp_path, monkeypatch):
@@ -101,4 +101,4 @@ def test_operator_of_another_backend_version_is_rebuilt(tmp_path, monkeypatch):
     new_key = cache_key(surface, config)
     assert new_key != old_key
     build_patch_operator(surface, config, cache_dir=tmp_path)
-    assert sorted(path.stem for path in tmp_path.glob("*.npz")) == sorted([old_key, new_key])
+    assert sorted(path.stem for path in tmp_path.glob("*.zop")) == sorted([old_key, new_key])

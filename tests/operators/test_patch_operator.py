@@ -251,9 +251,14 @@ def test_two_components_and_concatenate():
 # ---------------------------------------------------------------------- files and cache
 def test_save_load_round_trip(tmp_path):
     op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=800, inner_radius=0.3))
-    op.save(tmp_path / "op.npz")
-    back = PatchOperator.load(tmp_path / "op.npz")
-    assert (back.matrix != op.matrix).nnz == 0
+    assert op.matrix.dtype == np.float64  # built without a cache: the fit's float64
+    op.save(tmp_path / "op.zop")
+    back = PatchOperator.load(tmp_path / "op.zop")
+    # The file holds the layout the layers read: float32 values, int32 indices, the transpose beside.
+    assert back.matrix.dtype == np.float32 and back.matrix.indices.dtype == np.int32
+    assert (back.matrix != op.matrix.astype(np.float32)).nnz == 0
+    assert (back.transpose != op.matrix.T.astype(np.float32)).nnz == 0 and back.transpose.has_sorted_indices
+    assert not back.matrix.data.flags.writeable  # a view of the mapped file, not a copy
     assert back.config == op.config and back.lam == op.lam
     assert np.array_equal(back.patch_sample_index, op.patch_sample_index)
     assert np.array_equal(back.frames, op.frames)
@@ -266,8 +271,8 @@ def test_cache_hit_and_bad_files_are_rebuilt(tmp_path):
     surface = bumpy_sphere(1)
     config = PatchConfig(r0=2.0, n_samples=800)
     op = build_patch_operator(surface, config, cache_dir=tmp_path)
-    path = tmp_path / f"{cache_key(surface, config)}.npz"
-    assert path.exists()
+    path = tmp_path / f"{cache_key(surface, config)}.zop"
+    assert path.exists() and op.matrix.dtype == np.float32  # returned as the file holds it
     again = build_patch_operator(surface, config, cache_dir=tmp_path)
     assert (again.matrix != op.matrix).nnz == 0
 
@@ -279,7 +284,8 @@ def test_cache_hit_and_bad_files_are_rebuilt(tmp_path):
         "corrupt": bytes(damaged),
         "truncated": good[: len(good) // 3],
         "stale key": other.to_bytes(key="0" * 64),
-        "garbage": b"not an npz file",
+        "garbage": b"not an operator file",
+        "empty": b"",
     }
     for label, data in bad_files.items():
         path.write_bytes(data)
@@ -314,15 +320,89 @@ def test_the_checksum_is_verified_once_per_file_version(tmp_path, monkeypatch):
 
     import zernet.operators.cache as cache
 
-    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=500))
-    path = op.save(tmp_path / "op.npz", key="k")
-    rewritten = op.to_bytes(key="k")
+    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=500)).as_cached()
+    path, data = tmp_path / "op.zop", op.to_bytes(key="k")
+    path.write_bytes(data)  # written by another process
     hashed, sha256 = [], hashlib.sha256
     monkeypatch.setattr(cache.hashlib, "sha256", lambda data=b"": hashed.append(len(data)) or sha256(data))
     for _ in range(3):
         assert (PatchOperator.load(path, key="k").matrix != op.matrix).nnz == 0
     assert len(hashed) == 1  # a streamed data set rereads its files every epoch
-    path.write_bytes(rewritten)
+    path.write_bytes(data)
     os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))  # a rewritten file
     PatchOperator.load(path, key="k")
     assert len(hashed) == 2
+    written = op.save(tmp_path / "mine.zop", key="k")  # written by this process: hashed as it was written
+    assert len(hashed) == 3
+    PatchOperator.load(written, key="k")
+    assert len(hashed) == 3
+
+
+def test_an_operator_file_of_the_previous_format_is_named_and_rebuilt(tmp_path):
+    from zernet.operators.cache import legacy_cache_path
+
+    surface, config = bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=500)
+    legacy = legacy_cache_path(tmp_path, surface, config, "front")
+    legacy.write_bytes(b"an operator of format 3")
+    with pytest.warns(CacheWarning, match="older format"):
+        op = build_patch_operator(surface, config, cache_dir=tmp_path)
+    assert op.cache_file.suffix == ".zop" and op.cache_file.exists()
+
+
+# ---------------------------------------------------------------------- the stored transpose
+def test_reordered_rows_and_columns_are_the_gathered_matrix_and_its_transpose():
+    from zernet.operators.sparse import reorder_basis_columns, reorder_basis_rows, transpose_csr
+
+    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3))
+    order = np.random.default_rng(3).permutation(op.k)
+    rows = (np.arange(op.n_vertices)[:, None] * op.k + order[None, :]).ravel()
+    expected = op.matrix[rows].tocsr()
+    reordered = reorder_basis_rows(op.matrix, op.k, order)
+    assert (reordered != expected).nnz == 0 and np.array_equal(reordered.indptr, expected.indptr)
+    transposed = reorder_basis_columns(transpose_csr(op.matrix), op.k, order)
+    reference = expected.T.tocsr()
+    reference.sort_indices()
+    for name in ("indptr", "indices", "data"):  # the same arrays scipy's transpose gives, entry by entry
+        assert np.array_equal(getattr(transposed, name), getattr(reference, name)), name
+
+
+def test_a_loaded_operator_applies_and_backpropagates_without_transposing(tmp_path, monkeypatch):
+    import scipy.sparse
+
+    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3), cache_dir=tmp_path)
+    loaded = PatchOperator.load(op.cache_file)
+
+    def must_not_run(*args, **kwargs):
+        raise AssertionError("a transpose was built although the operator stores one")
+
+    monkeypatch.setattr("zernet.operators.patch.transpose_csr", must_not_run)
+    monkeypatch.setattr(scipy.sparse.csr_matrix, "tocsc", must_not_run)
+    order = tuple(np.random.default_rng(4).permutation(loaded.k).tolist())
+    x = torch.randn(loaded.n_vertices, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda v: loaded.apply(v, basis_order=order), (x,), eps=1e-6, atol=1e-8,
+                                    fast_mode=True)
+    g = torch.randn(loaded.n_vertices, loaded.k, 3, dtype=torch.float64)
+    (grad,) = torch.autograd.grad(loaded.apply(x, basis_order=order), x, g)
+    inverse = np.argsort(order)
+    expected = loaded.matrix.T.astype(np.float64) @ g[:, inverse].reshape(-1, 3).numpy()
+    np.testing.assert_allclose(grad.numpy(), expected, rtol=1e-12, atol=1e-12)
+    x32 = x.detach().float().requires_grad_()
+    (grad32,) = torch.autograd.grad(loaded.apply(x32, basis_order=order), x32, g.float())
+    np.testing.assert_allclose(grad32.numpy(), expected, rtol=1e-4, atol=1e-5)
+
+
+def test_reordered_columns_of_any_sparse_pattern():
+    import scipy.sparse
+
+    from zernet.operators.sparse import reorder_basis_columns
+
+    k, n = 6, 9
+    order = np.random.default_rng(5).permutation(k)
+    for density in (0.2, 0.7, 1.0):  # incomplete vertex blocks (sorted by insertion) and complete ones
+        matrix = scipy.sparse.random(13, n * k, density=density, format="csr", random_state=6)
+        columns = (np.arange(n)[:, None] * k + order[None, :]).ravel()
+        expected = matrix[:, columns].tocsr()
+        expected.sort_indices()
+        got = reorder_basis_columns(matrix, k, order)
+        for name in ("indptr", "indices", "data"):
+            assert np.array_equal(getattr(got, name), getattr(expected, name)), (density, name)

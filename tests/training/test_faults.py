@@ -276,7 +276,7 @@ def _calls(log: Path) -> list[str]:
 
 
 def _cache_state(cache: Path) -> dict[str, int]:
-    return {str(p.relative_to(cache)): p.stat().st_mtime_ns for p in cache.rglob("*.npz")}
+    return {str(p.relative_to(cache)): p.stat().st_mtime_ns for p in cache.rglob("*") if p.suffix in (".npz", ".zop")}
 
 
 def test_parallel_preprocessing_reports_a_broken_mesh_and_resumes_from_the_cache(tmp_path):

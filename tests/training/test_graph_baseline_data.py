@@ -19,7 +19,7 @@ SYNTHETIC = dict(task="segmentation", n_shapes=4, n_vertices=200, test_fraction=
 
 def _operator_files(cache) -> list:
     """Patch operators are cached at the top of the cache folder; the shapes themselves under shapes/."""
-    return sorted(cache.glob("*.npz"))
+    return sorted(cache.glob("*.zop"))
 
 
 def test_data_without_operators_has_the_same_features_edges_and_targets(tmp_path):

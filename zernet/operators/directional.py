@@ -39,7 +39,7 @@ A data set too large for memory (``zernet.data.preprocess.IN_MEMORY_VERTEX_LIMIT
 back from its cache on each access, and holding the operators instead would take the memory that limit
 exists to save. So the pairs and angles, which depend on the patch operator only, are kept in a file
 beside the patch operator's cache file (:func:`patch_transport`, written on the first access, about 0.02 s
-to read back), and only the matrices are rebuilt on every step, as the scalar operator's transpose is.
+to read back), and only the matrices are rebuilt on every step of a streamed data set.
 """
 
 from __future__ import annotations
@@ -58,9 +58,9 @@ from zernet.fourier import fourier_dim
 from zernet.geometry import transport_angles
 from zernet.zernike import n_max_for
 
-from .cache import CacheWarning, read_payload, write_payload
-from .harmonic_csr import csr_transpose, entry_pairs, harmonic_csr
-from .sparse import SparseApply
+from .cache import CacheWarning, read_arrays, write_arrays
+from .harmonic_csr import entry_pairs, harmonic_csr
+from .sparse import SparseApply, csr_transpose
 
 __all__ = ["DirectionalOperator", "build_directional_operator", "patch_pairs", "patch_transport", "transport_cache_path",
            "block_diagonal_csr"]
@@ -331,7 +331,7 @@ def patch_transport(operator) -> tuple[np.ndarray, np.ndarray]:
     key = None if path is None else f"{Path(cache_file).stem}:transport"
     if path is not None and path.exists():
         try:
-            arrays = read_payload(path, key=key)
+            arrays, _ = read_arrays(path, key=key)
             pairs, angles = arrays["pairs"].astype(np.int64), arrays["angles"]
             n = operator.matrix.shape[1]
             if pairs.ndim != 2 or pairs.shape[1] != 2 or angles.shape != (len(pairs),) or (pairs.size and pairs.max() >= n):
@@ -347,7 +347,7 @@ def patch_transport(operator) -> tuple[np.ndarray, np.ndarray]:
     if path is not None:
         index_dtype = np.int32 if operator.matrix.shape[1] < 2**31 else np.int64  # half the file
         try:
-            write_payload(path, {"pairs": pairs.astype(index_dtype), "angles": angles}, key=key)
+            write_arrays(path, {"pairs": pairs.astype(index_dtype), "angles": angles}, key=key)
         except OSError as error:  # a read-only cache still works, it just recomputes them
             warnings.warn(f"could not cache transport angles at {path}: {error}", CacheWarning, stacklevel=2)
     return pairs, angles
@@ -356,7 +356,7 @@ def patch_transport(operator) -> tuple[np.ndarray, np.ndarray]:
 def transport_cache_path(cache_file: str | os.PathLike) -> Path:
     """The file of the pairs and transport angles of the operator cached in ``cache_file``."""
     cache_file = Path(cache_file)
-    return cache_file.with_name(f"{cache_file.stem}.transport.npz")
+    return cache_file.with_name(f"{cache_file.stem}.transport.zop")
 
 
 def build_directional_operator(operator, order: int) -> DirectionalOperator:

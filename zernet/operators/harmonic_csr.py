@@ -18,6 +18,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from .sparse import csr_transpose
+
 __all__ = ["entry_pairs", "harmonic_csr", "csr_transpose"]
 
 
@@ -117,28 +119,3 @@ def harmonic_csr(a_indptr, a_indices, a_data, entry_pair, angles, k: int, order:
     _fill_harmonic_kernel(a_indptr, a_indices, a_data, entry_pair, int(k), d, source_row, harmonic_r, cos, sin,
                           indptr, indices, data)
     return indptr, indices, data
-
-
-@numba.njit(cache=True, nogil=True)
-def _transpose_kernel(indptr, indices, data, t_indptr, t_indices, t_data):
-    for e in range(indices.shape[0]):  # count the entries of every column
-        t_indptr[indices[e] + 1] += 1
-    for column in range(t_indptr.shape[0] - 1):
-        t_indptr[column + 1] += t_indptr[column]
-    fill = t_indptr[:-1].copy()
-    for row in range(indptr.shape[0] - 1):  # rows in order: each column's rows come out sorted
-        for e in range(indptr[row], indptr[row + 1]):
-            dest = fill[indices[e]]
-            t_indices[dest] = row
-            t_data[dest] = data[e]
-            fill[indices[e]] += 1
-
-
-def csr_transpose(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, n_columns: int):
-    """``(indptr, indices, data)`` of the transpose of a CSR matrix with ``n_columns`` columns, sorted
-    indices, in the input's index and value dtypes."""
-    t_indptr = np.zeros(n_columns + 1, dtype=indptr.dtype)
-    t_indices = np.empty(len(indices), dtype=indices.dtype)
-    t_data = np.empty(len(data), dtype=data.dtype)
-    _transpose_kernel(indptr, indices, data, t_indptr, t_indices, t_data)
-    return t_indptr, t_indices, t_data

@@ -24,15 +24,21 @@ same vertices, so the operator is still ``(N·k) × N`` over the points) and sam
 
 ``subtract_center``: the fit is of ``f(sample) − f(p)``, i.e. ``A_p ← A_p − (P_p 1) e_pᵀ`` (still linear).
 
+Precision: the fit is computed in float64. An operator kept in the cache holds float32 values (the
+precision the layers compute in; the file format is :mod:`zernet.operators.cache`), and
+:func:`build_patch_operator` with a ``cache_dir`` returns the operator as the file holds it, whether it was
+built now or read back; without a cache the float64 matrix is kept.
+
 Cache: :func:`build_patch_operator` with ``cache_dir`` keeps one file per (geometry, config); the key and
 the checked file format are in :mod:`zernet.operators.cache`; the key holds the backend actually used and
-its version, so an operator built by an older backend or fit is rebuilt, never reused.
+its version, so an operator built by an older backend or fit is rebuilt, never reused. A loaded operator's
+arrays are views of the memory-mapped file: holding it costs page cache, and preparing its matrices for a
+step is a copy of the arrays the layers read (the matrix and its stored transpose), never a transpose.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import time
 import warnings
@@ -49,18 +55,28 @@ from zernet.geometry.cloud_mesh import mesh_from_cloud
 from zernet.zernike import num_bases, zernike_basis
 
 from .cache import (
+    FORMAT_VERSION,
     CacheWarning,
     cache_key,
     cache_path,
-    pack_payload,
-    read_payload,
+    legacy_cache_path,
+    pack_arrays,
+    read_arrays,
     sparse_from_arrays,
     sparse_to_arrays,
-    unpack_payload,
-    write_payload,
+    unpack_arrays,
+    write_arrays,
 )
 from .fit import carry_to_vertices, fit_groups, fit_patches, ridge_weights
-from .sparse import SparseApply, basis_orders_of_size, checked_basis_order, reorder_basis_rows, to_torch_csr
+from .sparse import (
+    SparseApply,
+    basis_orders_of_size,
+    checked_basis_order,
+    reorder_basis_columns,
+    reorder_basis_rows,
+    to_torch_csr,
+    transpose_csr,
+)
 
 __all__ = [
     "PatchConfig",
@@ -138,7 +154,11 @@ class PatchOperator:
         k: Zernike coefficients per vertex.
         n_max: highest Zernike degree.
         config: the :class:`PatchConfig` it was built with.
-        matrix: scipy CSR (N·k, N) float64; row ``p·k + j`` gives coefficient j at vertex p.
+        matrix: scipy CSR (N·k, N), sorted indices; row ``p·k + j`` gives coefficient j at vertex p. float64
+            as built, float32 as cached (module docstring).
+        transpose: scipy CSR (N, N·k), ``matrix.T`` with sorted indices, in the matrix's dtype: what the
+            backward of :meth:`apply` multiplies by. Built on first use (or given, e.g. read from the
+            cache file) and kept.
         frames: (N, 3, 3) rows (e1, e2, normal); θ is measured from e1 towards e2.
         patch_sample_index: (N, n) int64 sample ids per patch, nearest first, -1 where a patch is shorter.
         patch_radius: (N, n) float64 normalised radius r / r0 (0 where -1).
@@ -161,8 +181,14 @@ class PatchOperator:
         interpolation: scipy.sparse.csr_matrix,
         config: PatchConfig,
         lam: float = 0.0,
+        transpose: scipy.sparse.csr_matrix | None = None,
     ) -> None:
-        self.matrix = matrix.tocsr()
+        matrix = matrix.tocsr()
+        if not matrix.has_sorted_indices:
+            matrix = matrix.copy()
+            matrix.sort_indices()
+        self.matrix = matrix
+        self._transpose = None if transpose is None else transpose.tocsr()
         self.frames = frames
         self.patch_sample_index = patch_sample_index
         self.patch_radius = patch_radius
@@ -176,6 +202,10 @@ class PatchOperator:
         self.ridge_weights = ridge_weights(config.n_max)
         if self.matrix.shape != (self.n_vertices * self.k, self.n_vertices):
             raise ValueError(f"operator matrix has shape {self.matrix.shape}, expected {(self.n_vertices * self.k, self.n_vertices)}")
+        if self._transpose is not None and (self._transpose.shape != self.matrix.shape[::-1]
+                                            or self._transpose.nnz != self.matrix.nnz):
+            raise ValueError(f"transpose has shape {self._transpose.shape} and {self._transpose.nnz} entries, "
+                             f"expected {self.matrix.shape[::-1]} and {self.matrix.nnz}")
         self._tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # (dtype, device, basis order)
         self._basis: np.ndarray | None = None
         self.cache_file: Path | None = None
@@ -190,6 +220,13 @@ class PatchOperator:
             basis[self.patch_sample_index < 0] = 0.0
             self._basis = basis
         return self._basis
+
+    @property
+    def transpose(self) -> scipy.sparse.csr_matrix:
+        """``matrix.T`` as sorted CSR (see the class docstring), built once and kept."""
+        if self._transpose is None:
+            self._transpose = transpose_csr(self.matrix)
+        return self._transpose
 
     @property
     def nnz(self) -> int:
@@ -207,15 +244,19 @@ class PatchOperator:
     def _torch_matrices(
         self, dtype: torch.dtype, device: torch.device, basis_order: tuple | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """CSR tensors of A and Aᵀ (rows in ``basis_order`` within each vertex) for this dtype and device,
-        built on first use and kept. Below float64 the rows are reordered and transposed in float32 (the
-        same values, half the bytes to move: a FAUST-sized operator is built on every training step)."""
+        """CSR tensors of A and Aᵀ (rows of A in ``basis_order`` within each vertex, the columns of Aᵀ
+        likewise) for this dtype and device, built on first use and kept. Aᵀ is the stored
+        :attr:`transpose`, never re-sorted; below float64 the arrays are cast first (half the bytes to
+        reorder and move)."""
         key = (dtype, device, basis_order)
         if key not in self._tensors:
-            matrix = self.matrix if dtype == torch.float64 else self.matrix.astype(np.float32)
+            matrix, transpose = self.matrix, self.transpose
+            if dtype != torch.float64 and matrix.dtype == np.float64:
+                matrix, transpose = matrix.astype(np.float32), transpose.astype(np.float32)
             if basis_order is not None:
                 matrix = reorder_basis_rows(matrix, self.k, basis_order)
-            self._tensors[key] = tuple(to_torch_csr(m, dtype, device) for m in (matrix, matrix.T.tocsr()))
+                transpose = reorder_basis_columns(transpose, self.k, basis_order)
+            self._tensors[key] = (to_torch_csr(matrix, dtype, device), to_torch_csr(transpose, dtype, device))
         return self._tensors[key]
 
     def apply(self, x: torch.Tensor, basis_order: tuple | None = None) -> torch.Tensor:
@@ -294,6 +335,7 @@ class PatchOperator:
         )
         return PatchOperator(
             matrix=scipy.sparse.block_diag([op.matrix for op in ops], format="csr"),
+            transpose=scipy.sparse.block_diag([op.transpose for op in ops], format="csr"),
             frames=np.concatenate([op.frames for op in ops]),
             patch_sample_index=index,
             patch_radius=np.concatenate([pad(op.patch_radius, 0.0) for op in ops]),
@@ -304,54 +346,64 @@ class PatchOperator:
         )
 
     # ------------------------------------------------------------------ files
-    def to_arrays(self) -> dict[str, np.ndarray]:
-        """Everything that defines the operator, as named numpy arrays (the cache file's payload)."""
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
+        """Everything that defines the operator as ``(arrays, meta)``: named numpy arrays and JSON values
+        (the cache file's content). The matrix and its transpose in the layout the layers read: float32
+        values, int32 indices where they fit, sorted."""
         arrays = {
             "frames": self.frames,
             "patch_sample_index": self.patch_sample_index,
             "patch_radius": self.patch_radius,
             "patch_angle": self.patch_angle,
-            "lam": np.asarray(self.lam),
-            "config": np.asarray(json.dumps(self.config.to_dict(), sort_keys=True)),
         }
-        arrays.update(sparse_to_arrays("matrix", self.matrix))
+        for name, matrix in (("matrix", self.matrix), ("transpose", self.transpose)):
+            arrays.update(sparse_to_arrays(name, matrix.astype(np.float32)))
         arrays.update(sparse_to_arrays("interpolation", self.interpolation))
-        return arrays
+        return arrays, {"config": self.config.to_dict(), "lam": self.lam}
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray], name: str = "<arrays>") -> PatchOperator:
-        """Inverse of :meth:`to_arrays`; ``ValueError`` naming ``name`` if the arrays do not fit together."""
+    def from_arrays(cls, arrays: dict[str, np.ndarray], meta: dict, name: str = "<arrays>") -> PatchOperator:
+        """Inverse of :meth:`to_arrays` over the same arrays (no copy); ``ValueError`` naming ``name`` if they
+        do not fit together."""
         try:
             return cls(
-                matrix=sparse_from_arrays(arrays, "matrix"),
+                matrix=sparse_from_arrays(arrays, "matrix", sorted_indices=True),
+                transpose=sparse_from_arrays(arrays, "transpose", sorted_indices=True),
                 frames=arrays["frames"],
                 patch_sample_index=arrays["patch_sample_index"],
                 patch_radius=arrays["patch_radius"],
                 patch_angle=arrays["patch_angle"],
                 interpolation=sparse_from_arrays(arrays, "interpolation"),
-                config=PatchConfig.from_dict(json.loads(str(arrays["config"]))),
-                lam=float(arrays["lam"]),
+                config=PatchConfig.from_dict(dict(meta["config"])),
+                lam=float(meta["lam"]),
             )
         except Exception as error:  # noqa: BLE001
             raise ValueError(f"{name}: inconsistent operator payload ({type(error).__name__}: {error})") from error
 
+    def as_cached(self) -> PatchOperator:
+        """The operator as its cache file holds it (float32 matrix and transpose), without writing one."""
+        arrays, meta = self.to_arrays()
+        return PatchOperator.from_arrays(arrays, meta)
+
     def to_bytes(self, key: str = "") -> bytes:
-        """Serialise to checked ``.npz`` bytes (:func:`zernet.operators.cache.pack_payload`)."""
-        return pack_payload(self.to_arrays(), key)
+        """The bytes of its cache file (:func:`zernet.operators.cache.pack_arrays`)."""
+        arrays, meta = self.to_arrays()
+        return bytes(pack_arrays(arrays, key, meta))
 
     @classmethod
     def from_bytes(cls, data: bytes, key: str | None = None, name: str = "<bytes>") -> PatchOperator:
         """Inverse of :meth:`to_bytes`; raises ``ValueError`` (naming ``name``) on any inconsistency."""
-        return cls.from_arrays(unpack_payload(data, key=key, name=name), name=name)
+        return cls.from_arrays(*unpack_arrays(data, key=key, name=name), name=name)
 
     def save(self, path: str | os.PathLike, key: str = "") -> Path:
-        """Write atomically to ``path`` (``.npz``)."""
-        return write_payload(path, self.to_arrays(), key)
+        """Write its cache file atomically to ``path`` (:func:`zernet.operators.cache.write_arrays`)."""
+        arrays, meta = self.to_arrays()
+        return write_arrays(path, arrays, key, meta)
 
     @classmethod
     def load(cls, path: str | os.PathLike, key: str | None = None) -> PatchOperator:
-        """Read a file written by :meth:`save`; ``ValueError`` naming the file if it cannot be trusted."""
-        return cls.from_arrays(read_payload(path, key=key), name=str(path))
+        """Map a file written by :meth:`save`; ``ValueError`` naming the file if it cannot be trusted."""
+        return cls.from_arrays(*read_arrays(path, key=key), name=str(path))
 
 
 # ====================================================================== building
@@ -367,12 +419,12 @@ def build_patch_operator(
     Args:
         surface: mesh or point cloud.
         config: :class:`PatchConfig`.
-        cache_dir: folder of cached operators (``<key>.npz``); ``None`` disables caching.
+        cache_dir: folder of cached operators (``<key>.zop``); ``None`` disables caching.
         progress: print the stage timings.
         n_jobs: worker processes of the accurate backend (``None``: all cores).
 
     Returns:
-        :class:`PatchOperator`.
+        :class:`PatchOperator`: with a ``cache_dir``, as its file holds it (float32; module docstring).
     """
     backend = resolve_backend(surface, config.backend)
     if backend == "front":
@@ -388,6 +440,11 @@ def build_patch_operator(
                 return operator
             except (ValueError, OSError) as error:
                 warnings.warn(f"rebuilding cached patch operator {path}: {error}", CacheWarning, stacklevel=2)
+        legacy = legacy_cache_path(cache_dir, surface, config, backend)
+        if legacy.exists():
+            warnings.warn(f"{legacy} is a patch operator cached in an older format; rebuilding it in format "
+                          f"{FORMAT_VERSION} as {path.name} (the old file is no longer read and can be deleted)",
+                          CacheWarning, stacklevel=2)
     start = time.perf_counter()
     samples = sample_surface(surface, config.n_samples, seed=config.seed)
     polar = compute_polar(surface, samples, config.r0, backend=backend, n_jobs=n_jobs)
@@ -400,6 +457,7 @@ def build_patch_operator(
         print(f"{surface.name}: operator {operator} in {time.perf_counter() - start:.2f} s")
     if path is not None:
         operator.save(path, key=key)
+        operator = operator.as_cached()
         operator.cache_file = path
     return operator
 

@@ -1,19 +1,36 @@
-"""Sparse products in torch with a stored transpose, and the conversions they need.
+"""Sparse products in torch with a stored transpose, and the CSR arrays they need.
 
 Every sparse product in zernet (patch operators, directional operators, the paper baseline's sample
 gather) goes through :class:`SparseApply`: ``torch.sparse.mm`` would re-sort the transposed matrix on
-every backward pass, while a stored CSR transpose makes the backward one more plain product.
+every backward pass, while a stored CSR transpose makes the backward one more plain product. The
+transposes are built once per matrix (:func:`csr_transpose`) and kept: a patch operator keeps its own in
+its cache file (:mod:`zernet.operators.cache`), so no training step builds one.
+
+A layer may ask for its operator's rows in another order within each vertex (:func:`reorder_basis_rows`);
+the transpose of that matrix is the stored transpose with its columns relabelled the same way
+(:func:`reorder_basis_columns`): both are one pass over the arrays (compiled with numba), never a sort of
+the whole matrix.
 """
 
 from __future__ import annotations
 
 import warnings
 
+import numba
 import numpy as np
 import scipy.sparse
 import torch
 
-__all__ = ["SparseApply", "to_torch_csr", "checked_basis_order", "basis_orders_of_size", "reorder_basis_rows"]
+__all__ = [
+    "SparseApply",
+    "to_torch_csr",
+    "csr_transpose",
+    "transpose_csr",
+    "checked_basis_order",
+    "basis_orders_of_size",
+    "reorder_basis_rows",
+    "reorder_basis_columns",
+]
 
 
 class SparseApply(torch.autograd.Function):
@@ -51,27 +68,140 @@ def basis_orders_of_size(basis_orders, k: int) -> set:
     return {checked_basis_order(order, k) for order in basis_orders if len(order) == k}
 
 
-def reorder_basis_rows(matrix: scipy.sparse.csr_matrix, k: int, basis_order: tuple) -> scipy.sparse.csr_matrix:
+# ------------------------------------------------------------------------------------------ CSR arrays
+@numba.njit(cache=True, nogil=True)
+def _transpose_kernel(indptr, indices, data, t_indptr, t_indices, t_data):
+    for e in range(indices.shape[0]):  # count the entries of every column
+        t_indptr[indices[e] + 1] += 1
+    for column in range(t_indptr.shape[0] - 1):
+        t_indptr[column + 1] += t_indptr[column]
+    fill = t_indptr[:-1].copy()
+    for row in range(indptr.shape[0] - 1):  # rows in order: each column's rows come out sorted
+        for e in range(indptr[row], indptr[row + 1]):
+            dest = fill[indices[e]]
+            t_indices[dest] = row
+            t_data[dest] = data[e]
+            fill[indices[e]] += 1
+
+
+def csr_transpose(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, n_columns: int):
+    """``(indptr, indices, data)`` of the transpose of a CSR matrix with ``n_columns`` columns, sorted
+    indices, in the input's index and value dtypes (a counting pass, as scipy's ``tocsc``)."""
+    t_indptr = np.zeros(n_columns + 1, dtype=indptr.dtype)
+    t_indices = np.empty(len(indices), dtype=indices.dtype)
+    t_data = np.empty(len(data), dtype=data.dtype)
+    _transpose_kernel(indptr, indices, data, t_indptr, t_indices, t_data)
+    return t_indptr, t_indices, t_data
+
+
+def _csr(indptr, indices, data, shape) -> scipy.sparse.csr_matrix:
+    """A scipy CSR matrix over these arrays (sorted indices, no copy, no scan)."""
+    matrix = scipy.sparse.csr_matrix((data, indices, indptr), shape=shape, copy=False)
+    matrix.has_sorted_indices = True
+    return matrix
+
+
+def transpose_csr(matrix: scipy.sparse.csr_matrix) -> scipy.sparse.csr_matrix:
+    """``matrix.T`` as a CSR matrix with sorted indices (the same values as ``matrix.T.tocsr()``)."""
+    matrix = scipy.sparse.csr_matrix(matrix)
+    return _csr(*csr_transpose(matrix.indptr, matrix.indices, matrix.data, matrix.shape[1]), matrix.shape[::-1])
+
+
+@numba.njit(cache=True, nogil=True)
+def _reorder_rows_kernel(indptr, indices, data, k, order, out_indptr, out_indices, out_data):
+    dest = 0
+    for p in range((indptr.shape[0] - 1) // k):
+        for i in range(k):
+            source = p * k + order[i]
+            for e in range(indptr[source], indptr[source + 1]):
+                out_indices[dest] = indices[e]
+                out_data[dest] = data[e]
+                dest += 1
+            out_indptr[p * k + i + 1] = dest
+
+
+def reorder_basis_rows(matrix: scipy.sparse.csr_matrix, k: int, basis_order) -> scipy.sparse.csr_matrix:
     """Rows of an ``(N k, ·)`` operator matrix reordered within each vertex: new row ``p k + i`` is old row
-    ``p k + basis_order[i]``."""
-    n = matrix.shape[0] // k
-    rows = (np.arange(n)[:, None] * k + np.asarray(basis_order)[None, :]).ravel()
-    return matrix[rows].tocsr()
+    ``p k + basis_order[i]`` (one copy of the arrays; indices stay sorted)."""
+    matrix = scipy.sparse.csr_matrix(matrix)
+    if matrix.shape[0] % k:
+        raise ValueError(f"a matrix of {matrix.shape[0]} rows has no {k} rows per vertex")
+    indptr = np.zeros_like(matrix.indptr)
+    indices, data = np.empty_like(matrix.indices), np.empty_like(matrix.data)
+    _reorder_rows_kernel(matrix.indptr, matrix.indices, matrix.data, int(k), np.asarray(basis_order, np.int64),
+                         indptr, indices, data)
+    return _csr(indptr, indices, data, matrix.shape)
+
+
+@numba.njit(cache=True, nogil=True)
+def _reorder_columns_kernel(indptr, indices, data, k, inverse, out_indices, out_data):
+    # In each row the columns of one vertex p (p k .. p k + k - 1) are consecutive entries. A complete block
+    # (all k of them: a patch fit's rows of one vertex share their columns) is scattered to its new order;
+    # another is put in order by insertion (at most k entries).
+    for row in range(indptr.shape[0] - 1):
+        e, end = indptr[row], indptr[row + 1]
+        while e < end:
+            p = indices[e] // k
+            if e + k <= end and indices[e + k - 1] == p * k + k - 1:
+                for j in range(k):
+                    out_indices[e + inverse[j]] = p * k + inverse[j]
+                    out_data[e + inverse[j]] = data[e + j]
+                e += k
+                continue
+            start = e
+            while e < end and indices[e] // k == p:
+                column = p * k + inverse[indices[e] - p * k]
+                value = data[e]
+                t = e
+                while t > start and out_indices[t - 1] > column:
+                    out_indices[t] = out_indices[t - 1]
+                    out_data[t] = out_data[t - 1]
+                    t -= 1
+                out_indices[t] = column
+                out_data[t] = value
+                e += 1
+
+
+def reorder_basis_columns(matrix: scipy.sparse.csr_matrix, k: int, basis_order) -> scipy.sparse.csr_matrix:
+    """Columns of a ``(·, N k)`` matrix reordered within each vertex: new column ``p k + i`` is old column
+    ``p k + basis_order[i]``. The transpose of :func:`reorder_basis_rows` of ``A`` is this of ``Aᵀ``.
+    Needs sorted indices; the result has them too."""
+    matrix = scipy.sparse.csr_matrix(matrix)
+    if matrix.shape[1] % k:
+        raise ValueError(f"a matrix of {matrix.shape[1]} columns has no {k} columns per vertex")
+    if not matrix.has_sorted_indices:
+        matrix = matrix.copy()
+        matrix.sort_indices()
+    inverse = np.argsort(np.asarray(basis_order, np.int64)).astype(np.int64)
+    indices, data = np.empty_like(matrix.indices), np.empty_like(matrix.data)
+    _reorder_columns_kernel(matrix.indptr, matrix.indices, matrix.data, int(k), inverse, indices, data)
+    return _csr(matrix.indptr, indices, data, matrix.shape)
+
+
+def _owned(array: np.ndarray, dtype) -> torch.Tensor:
+    """A tensor over ``array`` in numpy ``dtype``; a read-only array (a mapped cache file) is copied, so the
+    tensor owns its memory."""
+    array = np.asarray(array).astype(dtype, copy=False)
+    return torch.from_numpy(array if array.flags.writeable else array.copy())
 
 
 def to_torch_csr(matrix: scipy.sparse.csr_matrix, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """scipy CSR -> torch CSR; int32 indices when they fit (about 10 % faster products on CPU)."""
+    """scipy CSR -> torch CSR on ``device``; int32 indices when they fit (about 10 % faster products on CPU).
+
+    The values are cast in numpy when ``dtype`` has a numpy counterpart; arrays that already have the
+    index and value dtypes are shared, not copied, unless read-only (a memory-mapped cache file)."""
     matrix = scipy.sparse.csr_matrix(matrix)
     if not matrix.has_sorted_indices:
         matrix = matrix.copy()  # sort a copy: the caller's arrays may be shared with other structures
         matrix.sort_indices()
     index_dtype = np.int32 if matrix.nnz < 2**31 - 1 and max(matrix.shape) < 2**31 - 1 else np.int64
+    try:
+        values = _owned(matrix.data, torch.empty(0, dtype=dtype).numpy().dtype)
+    except TypeError:  # no numpy counterpart (bfloat16): cast in torch
+        values = _owned(matrix.data, matrix.data.dtype).to(dtype)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
         return torch.sparse_csr_tensor(
-            torch.from_numpy(matrix.indptr.astype(index_dtype, copy=False)),  # shared, not copied: read only
-            torch.from_numpy(matrix.indices.astype(index_dtype, copy=False)),
-            torch.from_numpy(matrix.data).to(dtype),
-            size=matrix.shape,
-            check_invariants=False,
+            _owned(matrix.indptr, index_dtype), _owned(matrix.indices, index_dtype), values,
+            size=matrix.shape, check_invariants=False,
         ).to(device)
