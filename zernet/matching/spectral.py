@@ -10,12 +10,14 @@ eigenvalue of every connected component. Eigenvectors are ``M``-orthonormal: ``�
 spectral coefficients of a function ``f`` are ``Φᵀ M f`` (the projection the functional maps use).
 
 Cache: ``<cache_dir>/spectral/<key>.npz`` with ``key = sha256(geometry hash, k, Laplacian kind, version)``,
-in the checked, atomically written format of the patch operators (:mod:`zernet.operators.cache`).
+written atomically (:func:`zernet.io_utils.atomic_write_bytes`); the file stores its key and version, and
+a file that does not load, or holds another key or version, is rebuilt with a :class:`CacheWarning`.
 """
 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import warnings
@@ -27,7 +29,8 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from zernet.geometry import Surface
-from zernet.operators.cache import CacheWarning, read_payload, write_payload
+from zernet.io_utils import atomic_write_bytes
+from zernet.operators.cache import CacheWarning
 
 __all__ = ["SPECTRAL_VERSION", "CLOUD_NEIGHBOURS", "SpectralBasis", "laplacian", "laplacian_eigenbasis",
            "spectral_cache_key", "heat_kernel_signature"]
@@ -101,9 +104,8 @@ def laplacian_eigenbasis(surface: Surface, k: int, cache_dir: str | os.PathLike 
         path = Path(cache_dir) / "spectral" / f"{key}.npz"
         if path.exists():
             try:
-                arrays = read_payload(path, key=key)
-                return SpectralBasis(arrays["eigenvalues"], arrays["eigenvectors"], arrays["mass"])
-            except (ValueError, OSError, KeyError) as error:
+                return _read_basis(path, key)
+            except (ValueError, OSError, KeyError, EOFError) as error:
                 warnings.warn(f"rebuilding cached eigenbasis {path}: {error}", CacheWarning, stacklevel=2)
     stiffness, mass = laplacian(surface)
     mass_matrix = scipy.sparse.diags(mass)
@@ -114,9 +116,19 @@ def laplacian_eigenbasis(surface: Surface, k: int, cache_dir: str | os.PathLike 
     order = np.argsort(eigenvalues)
     basis = SpectralBasis(np.maximum(eigenvalues[order], 0.0), np.ascontiguousarray(eigenvectors[:, order]), mass)
     if path is not None:
-        write_payload(path, {"eigenvalues": basis.eigenvalues, "eigenvectors": basis.eigenvectors,
-                             "mass": basis.mass}, key=key)
+        buffer = io.BytesIO()
+        np.savez(buffer, eigenvalues=basis.eigenvalues, eigenvectors=basis.eigenvectors, mass=basis.mass,
+                 key=np.asarray(key), version=np.asarray(SPECTRAL_VERSION))
+        atomic_write_bytes(path, buffer.getvalue())
     return basis
+
+
+def _read_basis(path: Path, key: str) -> SpectralBasis:
+    """The basis stored at ``path``; ValueError unless it holds ``key`` and :data:`SPECTRAL_VERSION`."""
+    with np.load(path, allow_pickle=False) as stored:
+        if str(stored["key"]) != key or int(stored["version"]) != SPECTRAL_VERSION:
+            raise ValueError(f"{path}: stored for another surface, k or version")
+        return SpectralBasis(stored["eigenvalues"], stored["eigenvectors"], stored["mass"])
 
 
 def heat_kernel_signature(basis: SpectralBasis, n_times: int = 16) -> np.ndarray:

@@ -212,7 +212,7 @@ def train(config: dict, run_dir: str | Path, command: str = "") -> dict:
     val_pairs = make_pairs(val_forms, val_shapes, val_vertices, faces,
                            [(i, (i + 1) % n_val) for i in range(n_val)])
     provenance = {"command": command, "commit": _commit(), "config": plain(config),
-                  "torch": torch.__version__, "threads": torch.get_num_threads()}
+                  "torch": str(torch.__version__), "threads": torch.get_num_threads()}
     best, history, window = float("inf"), [], []
     deadline = started + 60 * float(settings.get("max_minutes", 1e9))
     train_started = time.perf_counter()
@@ -226,7 +226,7 @@ def train(config: dict, run_dir: str | Path, command: str = "") -> dict:
         loss.backward()
         optimiser.step()
         schedule.step()
-        window.append(float(loss))
+        window.append(loss.item())
         last = step == steps or time.perf_counter() > deadline
         if step % int(settings["val_every"]) == 0 or last:
             error = validation_error(model, val_pairs)
