@@ -441,7 +441,8 @@ def _visible_faces(vertices: np.ndarray, faces: np.ndarray, direction: np.ndarra
         t = (v0[:, 0] * v2[:, 1] - v0[:, 1] * v2[:, 0]) / det
         inside = (det != 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
         weights = np.stack([1.0 - s - t, s, t], axis=1)
-    hit_depth = np.einsum("mc,mc->m", np.nan_to_num(weights), depth[blockers])
+    weights[~inside] = 0.0  # no NaN or infinity from edge-on triangles into the sum
+    hit_depth = np.einsum("mc,mc->m", weights, depth[blockers])
     # In front by more than rounding: a neighbour sharing the centroid's plane does not hide it.
     tolerance = 1e-9 * (1.0 + np.abs(depth).max(initial=0.0))
     hidden_by = owners[inside & (hit_depth > centre_depth[owners] + tolerance)]
