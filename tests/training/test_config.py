@@ -18,7 +18,7 @@ from zernet.training.config import TrainSection
 # redesign (the demo's): keys in this order, pass-through keys after the data and model defaults.
 TODAYS_FORMAT = {
     "data": {"kind": "synthetic", "seed": 0, "val_fraction": None, "val_count": 3, "on_error": "raise",
-             "task": "segmentation",
+             "residency": "auto", "task": "segmentation",
              "n_shapes": 30, "n_vertices": 1000, "test_fraction": 0.2, "features": "xyz+normals"},
     "patch": {"area": None, "scales": [{"r0": 2.5, "n_samples": 4000, "patch_size": 50, "n_max": 5,
                                         "subtract_center": True}]},
@@ -49,6 +49,12 @@ def test_a_config_written_before_augmentation_loads_with_it_off():
     config = parse_config(older)
     assert config.train.augment_rotation == "none" and config.train.augment_scale == 0.0
     assert config == parse_config(TODAYS_FORMAT)
+
+
+def test_a_config_written_before_residency_loads_with_auto():
+    older = copy.deepcopy(TODAYS_FORMAT)
+    del older["data"]["residency"]
+    assert parse_config(older).data.residency == "auto" and parse_config(older) == parse_config(TODAYS_FORMAT)
 
 
 def test_defaults_fill_in_and_the_input_is_not_aliased(tmp_path):

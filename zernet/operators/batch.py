@@ -87,6 +87,22 @@ class Geometry:
         move = lambda t: None if t is None else t.to(device)  # noqa: E731
         return Geometry(ops, move(self.edge_index), move(self.batch), [op.to(device) for op in self.directional])
 
+    def copy_to(self, device, non_blocking: bool = False) -> Geometry:
+        """A copy on ``device`` whose operators' prepared tensors are copied there (``copy_to``), while this
+        geometry keeps its own: a record held in host memory, copied to the GPU for one step."""
+        move = lambda t: None if t is None else t.to(device, non_blocking=non_blocking)  # noqa: E731
+        return Geometry([op.copy_to(device, non_blocking) for op in self.operators], move(self.edge_index),
+                        move(self.batch), [op.copy_to(device, non_blocking) for op in self.directional])
+
+    def pin_memory(self) -> Geometry:
+        """The host tensors of this geometry in page-locked memory (CUDA only): operators in place, the
+        edge and batch tensors replaced by pinned copies; returns ``self``."""
+        for op in self.operators:
+            op.pin_memory()
+        pin = lambda t: None if t is None else t.pin_memory()  # noqa: E731
+        self.edge_index, self.batch = pin(self.edge_index), pin(self.batch)
+        return self
+
     @staticmethod
     def concatenate(items: Sequence[Geometry]) -> Geometry:
         """Block-diagonal batch of surfaces (which may themselves be batches).

@@ -60,7 +60,7 @@ from zernet.zernike import n_max_for
 
 from .cache import CacheWarning, read_arrays, write_arrays
 from .harmonic_csr import entry_pairs, harmonic_csr
-from .sparse import SparseApply, csr_transpose
+from .sparse import SparseApply, block_diagonal_csr, canonical_device, csr_copy_to, csr_transpose
 
 __all__ = ["DirectionalOperator", "build_directional_operator", "patch_pairs", "patch_transport", "transport_cache_path",
            "block_diagonal_csr"]
@@ -91,7 +91,7 @@ class DirectionalOperator:
         fourier_dim(order)
         self.operator = operator
         self.k = int(operator.k)
-        self.n_vertices = int(operator.matrix.shape[1])
+        self.n_vertices = int(operator.n_vertices)
         self.n_max = n_max_for(self.k)
         self.order = int(order)
         self.pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
@@ -153,7 +153,7 @@ class DirectionalOperator:
         value dtype and wrapped by torch without a copy (then moved to ``device``).
         """
         harmonics = tuple(int(h) for h in harmonics)
-        key = (harmonics, dtype, torch.device(device))
+        key = (harmonics, dtype, canonical_device(device))
         if key not in self._torch:
             if self.parts:  # a batch: the surfaces' own matrices (kept on them), stacked block-diagonally
                 built = [part.torch_matrices(harmonics, dtype, device) for part in self.parts]
@@ -221,7 +221,7 @@ class DirectionalOperator:
         Like :meth:`zernet.operators.PatchOperator.to`: the numpy data stay on the host, tensors for other
         devices are dropped.
         """
-        device = torch.device(device)
+        device = canonical_device(device)
         if hasattr(self.operator, "to"):
             self.operator = self.operator.to(device)
         if all(have == device for _, _, have in self._torch):
@@ -231,6 +231,18 @@ class DirectionalOperator:
         for harmonics, dtype in kinds:
             self.torch_matrices(harmonics, dtype, device)
         return self
+
+    def copy_to(self, device, non_blocking: bool = False) -> DirectionalOperator:
+        """A copy whose torch matrices (and its scalar operator's) are on ``device``; this one keeps its own
+        (a host-resident record copied for one step, :mod:`zernet.training.residency`)."""
+        device = canonical_device(device)
+        copy = DirectionalOperator.__new__(DirectionalOperator)
+        copy.__dict__.update(self.__dict__)
+        copy.operator = self.operator.copy_to(device, non_blocking) if hasattr(self.operator, "copy_to") else self.operator
+        copy.parts = [part.copy_to(device, non_blocking) for part in self.parts]
+        copy._torch = {(harmonics, dtype, device): tuple(csr_copy_to(m, device, non_blocking) for m in matrices)
+                       for (harmonics, dtype, _), matrices in self._torch.items()}
+        return copy
 
     def __getstate__(self):
         state = dict(self.__dict__)
@@ -268,27 +280,6 @@ def _wrap_csr(arrays: tuple[np.ndarray, np.ndarray, np.ndarray], shape: tuple[in
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
         return torch.sparse_csr_tensor(indptr, indices, data, size=shape, check_invariants=False).to(device)
-
-
-def block_diagonal_csr(matrices: Sequence[Tensor]) -> Tensor:
-    """Torch CSR matrices stacked block-diagonally (one copy of their arrays, no sorting)."""
-    if len(matrices) == 1:
-        return matrices[0]
-    nnz = sum(int(m.values().numel()) for m in matrices)
-    rows = sum(m.shape[0] for m in matrices)
-    cols = sum(m.shape[1] for m in matrices)
-    index_dtype = torch.int32 if max(nnz, rows, cols) < 2**31 - 1 else torch.int64
-    indptr, indices = [torch.zeros(1, dtype=index_dtype, device=matrices[0].device)], []
-    nnz_offset = col_offset = 0
-    for m in matrices:
-        indptr.append(m.crow_indices()[1:].to(index_dtype) + nnz_offset)
-        indices.append(m.col_indices().to(index_dtype) + col_offset)
-        nnz_offset += int(m.values().numel())
-        col_offset += m.shape[1]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-        return torch.sparse_csr_tensor(torch.cat(indptr), torch.cat(indices), torch.cat([m.values() for m in matrices]),
-                                       size=(rows, cols), check_invariants=False)
 
 
 def patch_pairs(matrix: sp.csr_matrix, k: int) -> np.ndarray:

@@ -71,7 +71,12 @@ from .fit import carry_to_vertices, fit_groups, fit_patches, ridge_weights
 from .sparse import (
     SparseApply,
     basis_orders_of_size,
+    block_diagonal_csr,
+    canonical_device,
     checked_basis_order,
+    csr_copy_to,
+    csr_nbytes,
+    pinned_csr,
     reorder_basis_columns,
     reorder_basis_rows,
     to_torch_csr,
@@ -207,6 +212,7 @@ class PatchOperator:
             raise ValueError(f"transpose has shape {self._transpose.shape} and {self._transpose.nnz} entries, "
                              f"expected {self.matrix.shape[::-1]} and {self.matrix.nnz}")
         self._tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # (dtype, device, basis order)
+        self._parts: list[PatchOperator] = []  # the surfaces of a batch (set by concatenate)
         self._basis: np.ndarray | None = None
         self.cache_file: Path | None = None
 
@@ -225,13 +231,13 @@ class PatchOperator:
     def transpose(self) -> scipy.sparse.csr_matrix:
         """``matrix.T`` as sorted CSR (see the class docstring), built once and kept."""
         if self._transpose is None:
-            self._transpose = transpose_csr(self.matrix)
+            self._transpose = transpose_csr(self.matrix)  # (a batch's is joined from its surfaces')
         return self._transpose
 
     @property
     def nnz(self) -> int:
         """Non-zeros of the matrix."""
-        return int(self.matrix.nnz)
+        return sum(part.nnz for part in self._parts) if self._parts else int(self.matrix.nnz)
 
     def __repr__(self) -> str:
         return f"PatchOperator(N={self.n_vertices}, k={self.k}, nnz={self.nnz}, r0={self.config.r0})"
@@ -248,7 +254,11 @@ class PatchOperator:
         likewise) for this dtype and device, built on first use and kept. Aᵀ is the stored
         :attr:`transpose`, never re-sorted; below float64 the arrays are cast first (half the bytes to
         reorder and move)."""
+        device = canonical_device(device)
         key = (dtype, device, basis_order)
+        if key not in self._tensors and self._parts:  # a batch: its surfaces' own tensors, stacked
+            built = [part._torch_matrices(dtype, device, basis_order) for part in self._parts]
+            self._tensors[key] = tuple(block_diagonal_csr([b[i] for b in built]) for i in (0, 1))
         if key not in self._tensors:
             matrix, transpose = self.matrix, self.transpose
             if dtype != torch.float64 and matrix.dtype == np.float64:
@@ -291,7 +301,9 @@ class PatchOperator:
 
         Returns ``self``; the numpy/scipy data stay on the host. Tensors for other devices are dropped.
         """
-        device = torch.device(device)
+        device = canonical_device(device)
+        for part in self._parts:
+            part.to(device, basis_orders)
         wanted = {(torch.float32, order) for order in basis_orders_of_size(basis_orders, self.k)}
         if self._tensors and all(have == device for _, have, _ in self._tensors):
             for dtype, order in wanted:  # already there (training calls this every step): add what is missing
@@ -303,47 +315,73 @@ class PatchOperator:
             self._torch_matrices(dtype, device, order)
         return self
 
+    def copy_to(self, device, non_blocking: bool = False) -> PatchOperator:
+        """A copy whose prepared tensors (:meth:`to`) are on ``device``, sharing the host arrays; this one
+        keeps its own. With ``non_blocking`` and pinned tensors (:meth:`pin_memory`) the copies to a GPU run
+        asynchronously (a host-resident record copied for one step, :mod:`zernet.training.residency`)."""
+        device = canonical_device(device)
+        copy = PatchOperator.__new__(PatchOperator)
+        copy.__dict__.update(self.__dict__)
+        copy._parts = [part.copy_to(device, non_blocking) for part in self._parts]
+        copy._tensors = {(dtype, device, order): tuple(csr_copy_to(m, device, non_blocking) for m in matrices)
+                         for (dtype, _, order), matrices in self._tensors.items()}
+        return copy
+
+    def pin_memory(self) -> PatchOperator:
+        """Put the prepared host tensors in page-locked memory (CUDA only); returns ``self``."""
+        for part in self._parts:
+            part.pin_memory()
+        self._tensors = {key: tuple(pinned_csr(m) if m.device.type == "cpu" else m for m in matrices)
+                         for key, matrices in self._tensors.items()}
+        return self
+
+    @property
+    def prepared_nbytes(self) -> int:
+        """Bytes of the prepared torch tensors (:meth:`to`) this operator holds."""
+        own = sum(csr_nbytes(m) for matrices in self._tensors.values() for m in matrices)
+        return own if not self._parts else sum(part.prepared_nbytes for part in self._parts)
+
     def __getstate__(self):
         state = dict(self.__dict__)
         state["_tensors"] = {}  # torch tensors are rebuilt on demand after unpickling
         state["_basis"] = None
         return state
 
+    def __setstate__(self, state):
+        state.setdefault("_parts", [])  # pickled by an older version
+        self.__dict__.update(state)
+
     # ------------------------------------------------------------------ batching
     @staticmethod
     def concatenate(ops: list[PatchOperator]) -> PatchOperator:
         """Block-diagonal operator of several surfaces (vertices and samples stacked in order).
 
-        All operators must have the same ``k``; the result carries the first operator's config. Patch
-        arrays are padded to the longest patch with -1 / 0.
+        All operators must have the same ``k``; the result carries the first operator's config. Its torch
+        tensors stack the surfaces' own prepared tensors (:meth:`to`; no host work when they are already
+        on the device), and its host arrays (``matrix``, the patch arrays padded to the longest patch with
+        -1 / 0, ``interpolation``) are joined on first access only.
         """
-        ops = list(ops)
+        ops = [part for op in ops for part in (op._parts or [op])]
         if not ops:
             raise ValueError("concatenate needs at least one operator")
         if len({op.k for op in ops}) != 1:
             raise ValueError(f"cannot concatenate operators with different k: {[op.k for op in ops]}")
-        width = max(op.patch_sample_index.shape[1] for op in ops)
-        sample_offset = np.cumsum([0] + [op.interpolation.shape[0] for op in ops])[:-1]
+        batch = PatchOperator.__new__(PatchOperator)
+        batch.__dict__.update(config=ops[0].config, lam=ops[0].lam, n_vertices=sum(op.n_vertices for op in ops),
+                              n_max=ops[0].n_max, k=ops[0].k, ridge_weights=ops[0].ridge_weights, _tensors={},
+                              _parts=ops, _basis=None, cache_file=None)
+        return batch
 
-        def pad(array, fill):
-            out = np.full((array.shape[0], width), fill, dtype=array.dtype)
-            out[:, : array.shape[1]] = array
-            return out
+    #: Host arrays of a batch (:meth:`concatenate`), joined from its surfaces on first access.
+    _JOINED = ("matrix", "_transpose", "frames", "patch_sample_index", "patch_radius", "patch_angle", "interpolation")
 
-        index = np.concatenate(
-            [pad(np.where(op.patch_sample_index >= 0, op.patch_sample_index + off, -1), -1) for op, off in zip(ops, sample_offset)]
-        )
-        return PatchOperator(
-            matrix=scipy.sparse.block_diag([op.matrix for op in ops], format="csr"),
-            transpose=scipy.sparse.block_diag([op.transpose for op in ops], format="csr"),
-            frames=np.concatenate([op.frames for op in ops]),
-            patch_sample_index=index,
-            patch_radius=np.concatenate([pad(op.patch_radius, 0.0) for op in ops]),
-            patch_angle=np.concatenate([pad(op.patch_angle, 0.0) for op in ops]),
-            interpolation=scipy.sparse.block_diag([op.interpolation for op in ops], format="csr"),
-            config=ops[0].config,
-            lam=ops[0].lam,
-        )
+    def __getattr__(self, name):
+        # Called only for attributes not set: the host arrays of a batch, joined once from its surfaces.
+        parts = self.__dict__.get("_parts")
+        if not parts or name not in PatchOperator._JOINED:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        self.__dict__.update(_joined_arrays(parts))
+        return self.__dict__[name]
 
     # ------------------------------------------------------------------ files
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
@@ -404,6 +442,32 @@ class PatchOperator:
     def load(cls, path: str | os.PathLike, key: str | None = None) -> PatchOperator:
         """Map a file written by :meth:`save`; ``ValueError`` naming the file if it cannot be trusted."""
         return cls.from_arrays(*read_arrays(path, key=key), name=str(path))
+
+
+def _joined_arrays(ops: list[PatchOperator]) -> dict:
+    """The host arrays of the block-diagonal operator of ``ops`` (see :meth:`PatchOperator.concatenate`)."""
+    width = max(op.patch_sample_index.shape[1] for op in ops)
+    sample_offset = np.cumsum([0] + [op.interpolation.shape[0] for op in ops])[:-1]
+
+    def pad(array, fill):
+        out = np.full((array.shape[0], width), fill, dtype=array.dtype)
+        out[:, : array.shape[1]] = array
+        return out
+
+    index = np.concatenate(
+        [pad(np.where(op.patch_sample_index >= 0, op.patch_sample_index + off, -1), -1) for op, off in zip(ops, sample_offset)]
+    )
+    matrix = scipy.sparse.block_diag([op.matrix for op in ops], format="csr")
+    matrix.has_sorted_indices = True  # blocks of sorted rows, column offsets increasing
+    return {
+        "matrix": matrix,
+        "_transpose": scipy.sparse.block_diag([op.transpose for op in ops], format="csr"),
+        "frames": np.concatenate([op.frames for op in ops]),
+        "patch_sample_index": index,
+        "patch_radius": np.concatenate([pad(op.patch_radius, 0.0) for op in ops]),
+        "patch_angle": np.concatenate([pad(op.patch_angle, 0.0) for op in ops]),
+        "interpolation": scipy.sparse.block_diag([op.interpolation for op in ops], format="csr"),
+    }
 
 
 # ====================================================================== building

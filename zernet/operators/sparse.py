@@ -30,6 +30,11 @@ __all__ = [
     "basis_orders_of_size",
     "reorder_basis_rows",
     "reorder_basis_columns",
+    "block_diagonal_csr",
+    "csr_copy_to",
+    "pinned_csr",
+    "csr_nbytes",
+    "canonical_device",
 ]
 
 
@@ -205,3 +210,58 @@ def to_torch_csr(matrix: scipy.sparse.csr_matrix, dtype: torch.dtype, device: to
             _owned(matrix.indptr, index_dtype), _owned(matrix.indices, index_dtype), values,
             size=matrix.shape, check_invariants=False,
         ).to(device)
+
+
+def canonical_device(device) -> torch.device:
+    """``device`` with its index: ``cuda`` is ``cuda:<current device>``, as tensors report it (``x.device``),
+    so tensors prepared for ``cuda`` are found again when a layer asks for ``x.device``."""
+    device = torch.device(device)
+    if device.type == "cuda" and device.index is None:
+        return torch.device("cuda", torch.cuda.current_device())
+    return device
+
+
+def _csr_from(crow: torch.Tensor, col: torch.Tensor, values: torch.Tensor, size) -> torch.Tensor:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
+        return torch.sparse_csr_tensor(crow, col, values, size=size, check_invariants=False)
+
+
+def csr_copy_to(matrix: torch.Tensor, device, non_blocking: bool = False) -> torch.Tensor:
+    """A torch CSR matrix on ``device`` (itself when it is there): its three arrays copied, asynchronously
+    with ``non_blocking`` from pinned host memory (:func:`pinned_csr`)."""
+    device = torch.device(device)
+    if matrix.device == canonical_device(device):
+        return matrix
+    return _csr_from(*(t.to(device, non_blocking=non_blocking) for t in
+                       (matrix.crow_indices(), matrix.col_indices(), matrix.values())), matrix.shape)
+
+
+def pinned_csr(matrix: torch.Tensor) -> torch.Tensor:
+    """A host CSR matrix in page-locked memory (copies to a GPU can then run asynchronously)."""
+    return _csr_from(*(t.pin_memory() for t in (matrix.crow_indices(), matrix.col_indices(), matrix.values())),
+                     matrix.shape)
+
+
+def csr_nbytes(matrix: torch.Tensor) -> int:
+    """Bytes of a torch CSR matrix's three arrays."""
+    return sum(t.numel() * t.element_size() for t in (matrix.crow_indices(), matrix.col_indices(), matrix.values()))
+
+
+def block_diagonal_csr(matrices) -> torch.Tensor:
+    """Torch CSR matrices stacked block-diagonally, on their device (one copy of their arrays, no sorting)."""
+    matrices = list(matrices)
+    if len(matrices) == 1:
+        return matrices[0]
+    nnz = sum(int(m.values().numel()) for m in matrices)
+    rows = sum(m.shape[0] for m in matrices)
+    cols = sum(m.shape[1] for m in matrices)
+    index_dtype = torch.int32 if max(nnz, rows, cols) < 2**31 - 1 else torch.int64
+    indptr, indices = [torch.zeros(1, dtype=index_dtype, device=matrices[0].device)], []
+    nnz_offset = col_offset = 0
+    for m in matrices:
+        indptr.append(m.crow_indices()[1:].to(index_dtype) + nnz_offset)
+        indices.append(m.col_indices().to(index_dtype) + col_offset)
+        nnz_offset += int(m.values().numel())
+        col_offset += m.shape[1]
+    return _csr_from(torch.cat(indptr), torch.cat(indices), torch.cat([m.values() for m in matrices]), (rows, cols))

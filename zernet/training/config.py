@@ -52,6 +52,7 @@ __all__ = [
     "TARGET_TRANSFORMS",
     "LR_SCHEDULES",
     "PRECISIONS",
+    "RESIDENCY_LEVELS",
     "AUGMENT_ROTATIONS",
     "load_config",
     "apply_overrides",
@@ -64,6 +65,7 @@ LOSSES = ("auto", "cross_entropy", "mse", "l1", "relative_l1")
 TARGET_TRANSFORMS = ("none", "log")
 LR_SCHEDULES = ("constant", "cosine")
 PRECISIONS = ("float32", "bfloat16")
+RESIDENCY_LEVELS = ("auto", "device", "host", "stream")  # see zernet.training.residency
 AUGMENT_ROTATIONS = ("none", "vertical", "any")  # see zernet.training.augment
 
 
@@ -222,6 +224,10 @@ class DataSection(_Section):
     # A shape that fails to load or preprocess: stop before training, listing every failure (raise), or
     # train without it (skip; the run lists it in train.log and metrics.json).
     on_error: str = _rule("raise", "str", choices=ON_ERROR_CHOICES)
+    # Where the prepared patch operators of the training and validation shapes live between steps:
+    # device, host (copied ahead of each step), stream (read for every step) or auto (by size and free
+    # memory); see zernet.training.residency. Every level trains the same numbers.
+    residency: str = _rule("auto", "str", choices=RESIDENCY_LEVELS)
     options: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:

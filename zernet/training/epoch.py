@@ -1,4 +1,7 @@
-"""One training epoch and one validation pass."""
+"""One training epoch and one validation pass (each reading the next step's shapes ahead).
+
+Shapes come from a :class:`~zernet.training.residency.ShapeStore`: held on the device, held in host memory
+and copied ahead, or read from the cache for every step (``data.residency``)."""
 
 from __future__ import annotations
 
@@ -33,15 +36,17 @@ class Objective:
     feature_stats: dict | None
 
 
-def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.Optimizer, dataset,
+def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.Optimizer, shapes,
                     train_idx: Sequence[int], epoch: int, train: TrainSection, objective: Objective,
                     ctx: DistributedContext, progress: bool) -> dict:
     """Run the optimiser steps of ``epoch`` over the training shapes; returns its history entry so far
     (``epoch``, ``train_loss`` and, for classification, ``train_accuracy``), summed over the ranks.
 
     ``net`` is what the forward pass goes through (DistributedDataParallel in a distributed run),
-    ``model`` the module itself (its parameters are clipped).
+    ``model`` the module itself (its parameters are clipped); ``shapes`` the run's
+    :class:`~zernet.training.residency.ShapeStore`, or the data set itself (its records as it gives them).
     """
+    dataset = getattr(shapes, "dataset", shapes)
     device = ctx.device
     net.train()
     ctx.seed_epoch(train.seed, epoch)  # distributed only: per-rank dropout, exact resume
@@ -58,11 +63,11 @@ def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: tor
 
     def step_batch(numbered_group):
         step, group = numbered_group
-        records = augment_records([dataset[i] for i in group], train, dataset.feature_kind,
+        records = augment_records([shapes[i] for i in group], train, dataset.feature_kind,
                                   [c.n_max for c in dataset.patch_configs], epoch, step, directional)
         return Batch(records, device, objective.target_stats, objective.feature_stats, directional, basis_orders)
 
-    # The next step's shapes are read (from the cache, for a streamed data set) while this step computes.
+    # The next step's shapes are read (or copied to the device) while this step computes.
     batches = prefetched(step_batch, enumerate(groups, start=1))
     bar = tqdm(batches, total=len(groups), desc=f"epoch {epoch}/{train.epochs}", unit="step", leave=False,
                disable=not progress, dynamic_ncols=True)
@@ -98,26 +103,28 @@ def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: tor
 
 
 @torch.no_grad()
-def validate(model: torch.nn.Module, dataset, indices: Sequence[int], device: torch.device,
+def validate(model: torch.nn.Module, shapes, indices: Sequence[int], device: torch.device,
              objective: Objective) -> dict:
-    """Mean validation loss and metric (accuracy, or MAPE for regression) over shapes, each counting once."""
+    """Mean validation loss and metric (accuracy, or MAPE for regression) over shapes, each counting once
+    (``shapes``: a :class:`~zernet.training.residency.ShapeStore`, or any sequence of records)."""
     model.eval()
     losses, scores = [], []
     directional = model_directional_order(model)
     basis_orders = model_basis_orders(model)
 
     def shape_batch(i):
-        return i, Batch([dataset[i]], device, objective.target_stats, objective.feature_stats, directional,
-                        basis_orders)
+        record = shapes[i]
+        return record, Batch([record], device, objective.target_stats, objective.feature_stats, directional,
+                             basis_orders)
 
-    for i, batch in prefetched(shape_batch, indices):
+    for record, batch in prefetched(shape_batch, indices):
         output = model(batch.features, batch.geometry)
         losses.append(compute_loss(objective.loss, output, batch.target, objective.target_stats).item())
         if objective.task == "classification":
             scores.append(zmetrics.accuracy(output.argmax(dim=1), batch.target))
         else:
             pred = unstandardise(output.reshape(-1), objective.target_stats)
-            scores.append(zmetrics.regression_scores(pred, dataset[i].target)["MAPE"])
+            scores.append(zmetrics.regression_scores(pred, record.target)["MAPE"])
     model.train()
     key = "val_accuracy" if objective.task == "classification" else "val_MAPE"
     return {"val_loss": float(np.mean(losses)), key: float(np.mean(scores))}

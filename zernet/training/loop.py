@@ -57,7 +57,9 @@ from zernet.training.config import ConfigError, EvalSection, RunConfig, TrainSec
 from zernet.training.epoch import Objective, train_one_epoch, validate
 from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
 from zernet.training.init_from import InitSource, describe as describe_init, initialise_from, load_init_source
+from zernet.training.batch import model_basis_orders, model_directional_order
 from zernet.training.losses import check_loss_targets, resolve_loss
+from zernet.training.residency import ShapeStore
 from zernet.training.run_dir import (
     clear_run_files,
     close_log,
@@ -149,12 +151,13 @@ def _fresh_run_config(config, run_dir: Path, overwrite: bool) -> RunConfig:
 
 #: What may change when a run is resumed: none of it changes the weights still to train (on_error only says
 #: what a shape that fails to load would do; the shapes of a run are cached).
-RESUME_CHANGEABLE = (("train", "epochs"), ("train", "patience"), ("train", "threads"), ("data", "on_error"))
+RESUME_CHANGEABLE = (("train", "epochs"), ("train", "patience"), ("train", "threads"), ("data", "on_error"),
+                     ("data", "residency"))
 
 
 def merge_resume_config(stored: Mapping[str, Any], given, logger: logging.Logger, trained: int = 0) -> RunConfig:
     """On resume the stored configuration wins, except for :data:`RESUME_CHANGEABLE` (the epoch budget,
-    patience, CPU threads, the bad-shape policy). ``train.epochs`` never drops below the ``trained`` epochs,
+    patience, CPU threads, the bad-shape policy, the residency of the shapes). ``train.epochs`` never drops below the ``trained`` epochs,
     so ``config.yaml`` never claims fewer epochs than the checkpoints hold."""
     config = parse_config(stored)
     if given is None:
@@ -204,10 +207,14 @@ def _run(config: RunConfig, run_dir: Path, checkpoint: dict | None, progress: bo
     logger.info(f"model {record.model_spec['name']} ({sum(p.numel() for p in model.parameters()):,} parameters), "
                 f"loss {objective.loss}, lr {config.train.lr} ({config.train.lr_schedule}), "
                 f"{config.train.shapes_per_step} shape(s) per step")
+    shapes = ShapeStore(dataset, splits.train + splits.val, config.data.residency, ctx.device,
+                        model_directional_order(model), model_basis_orders(model), progress)
+    logger.info(shapes.describe())
     monitor = Monitor.for_task(objective.task)
     with flush_denormals():  # tiny softmax gradients would otherwise slow late epochs down by 2-3x
-        _fit(model, optimizer, state, dataset, splits, record, objective, monitor, config.train, ctx, run_dir,
+        _fit(model, optimizer, state, shapes, splits, record, objective, monitor, config.train, ctx, run_dir,
              progress, logger)
+    del shapes  # the held operators are not needed for the test
     if not ctx.is_main:
         # Rank 0 alone evaluates the selected model on the test split and writes metrics.json.
         return {"rank": ctx.rank, "epochs_trained": state["epoch"], "best_epoch": state["best_epoch"],
@@ -346,9 +353,9 @@ def _build_model(spec: dict, train: TrainSection, checkpoint: dict | None, devic
     return model, optimizer, state
 
 
-def _fit(model, optimizer, state: dict, dataset, splits: _Splits, record: RunRecord, objective: Objective,
-         monitor: Monitor, train: TrainSection, ctx: DistributedContext, run_dir: Path, progress: bool,
-         logger) -> None:
+def _fit(model, optimizer, state: dict, shapes: ShapeStore, splits: _Splits, record: RunRecord,
+         objective: Objective, monitor: Monitor, train: TrainSection, ctx: DistributedContext, run_dir: Path,
+         progress: bool, logger) -> None:
     """Train epoch by epoch until early stopping or the budget; checkpoint after every epoch."""
     # DistributedDataParallel in a distributed run (averages the gradients over the ranks), else the model
     # itself. Only the training forward goes through it; validation, checkpoints and evaluation use `model`.
@@ -357,12 +364,12 @@ def _fit(model, optimizer, state: dict, dataset, splits: _Splits, record: RunRec
     while not state["stopped"] and state["epoch"] < train.epochs:
         epoch = state["epoch"] + 1
         started = time.perf_counter()
-        entry = train_one_epoch(net, model, optimizer, dataset, splits.train, epoch, train, objective, ctx,
+        entry = train_one_epoch(net, model, optimizer, shapes, splits.train, epoch, train, objective, ctx,
                                 progress)
         if splits.val:
             # Split over the ranks and recombined exactly: every rank sees the same metric and stops alike.
             entry.update(ctx.mean_over_shards(
-                lambda part: validate(model, dataset, part, ctx.device, objective), splits.val))
+                lambda part: validate(model, shapes, part, ctx.device, objective), splits.val))
         entry["seconds"] = time.perf_counter() - started
         improved = record_epoch(state, entry, monitor, train.epochs, train.patience, bool(splits.val))
         checkpoint = make_checkpoint(record, model, optimizer, state)

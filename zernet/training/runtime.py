@@ -16,13 +16,15 @@ __all__ = ["resolve_device", "precision_autocast", "keep_freed_memory", "flush_d
 def resolve_device(name: str) -> torch.device:
     """``auto`` picks CUDA when available; anything else is handed to ``torch.device`` and checked."""
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        name = "cuda" if torch.cuda.is_available() else "cpu"
     try:
         device = torch.device(name)
     except RuntimeError:
         raise ConfigError(f"train.device: {name!r} is not a device (use auto, cpu, cuda or cuda:N)") from None
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError(f"train.device is {name!r} but CUDA is not available on this machine")
+    if device.type == "cuda" and device.index is None:  # as tensors report it: cuda is cuda:0
+        device = torch.device("cuda", torch.cuda.current_device())
     return device
 
 
