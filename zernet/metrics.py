@@ -20,6 +20,7 @@ __all__ = [
     "segmentation_scores",
     "geodesic_diameter",
     "geodesic_errors",
+    "GeodesicErrors",
     "error_curve",
     "correspondence_scores",
     "regression_scores",
@@ -188,6 +189,57 @@ def geodesic_diameter(surface_or_vertices, faces=None, n_sweeps: int = 4, seed: 
     return best
 
 
+class GeodesicErrors:
+    """Per-vertex correspondence errors of the Princeton protocol on one test mesh, for any number of
+    predictions (unrefined and refined, ensemble members): the geodesic diameter is computed once, and each
+    distinct (true, predicted) vertex pair is measured once, by an exact edge-flip geodesic (``_Geodesics``),
+    and remembered.
+
+    Why per pair and not a distance table: the pairs an evaluation needs are mostly near misses, which an
+    exact edge-flip path measures in 0.02-0.5 ms; potpourri3d's heat method costs 6-10 ms per source vertex
+    on a FAUST-size body and underestimates near pairs by 6-19 % of their length (0.0006-0.0008 of the
+    diameter: measured on a generated 6,890-vertex body, ``docs/ARCHITECTURE.md``), which would move the
+    error curve at the radii it is read at. ``diameter``: give it when known.
+    """
+
+    def __init__(self, surface_or_vertices, faces=None, diameter: float | None = None):
+        self.vertices, self.faces = _mesh_arrays(surface_or_vertices, faces)
+        self.n = len(self.vertices)
+        self.diameter = geodesic_diameter(self.vertices, self.faces) if diameter is None else float(diameter)
+        if not self.diameter > 0:
+            raise ValueError(f"geodesic diameter must be positive, got {self.diameter}")
+        self._geodesics: _Geodesics | None = None
+        self._component: np.ndarray | None = None
+        self._lengths: dict[int, float] = {}  # true * n + predicted -> geodesic length
+
+    def __call__(self, pred, target) -> np.ndarray:
+        """(N,) float64 errors in units of the diameter: the distance on this mesh between ``pred[i]`` and
+        ``target[i]`` (vertex indices; ``pred`` may be (N, C) scores, read by argmax)."""
+        pred, target = _labels(pred), _numpy(target).astype(np.int64)
+        if pred.shape != target.shape:
+            raise ValueError(f"prediction has {pred.shape[0]} vertices but the target has {target.shape[0]}")
+        for what, values in (("predicted", pred), ("true", target)):
+            if values.size and (values.min() < 0 or values.max() >= self.n):
+                raise ValueError(f"{what} vertex indices must lie in [0, {self.n}) for a mesh with {self.n} vertices")
+        errors = np.zeros(len(pred), dtype=np.float64)
+        wrong = np.flatnonzero(pred != target)
+        if len(wrong):
+            keys, inverse = np.unique(target[wrong] * self.n + pred[wrong], return_inverse=True)
+            lengths = np.array([self._length(int(key)) for key in keys])
+            errors[wrong] = lengths[np.asarray(inverse).reshape(-1)] / self.diameter
+        return errors
+
+    def _length(self, key: int) -> float:
+        if key not in self._lengths:
+            if self._geodesics is None:
+                self._geodesics = _Geodesics(self.vertices, self.faces)
+                self._component = _component_labels(self.faces, self.n)
+            a, b = divmod(key, self.n)
+            # Pairs in different connected components have no geodesic: count them as infinitely wrong.
+            self._lengths[key] = self._geodesics.pair(a, b) if self._component[a] == self._component[b] else np.inf
+        return self._lengths[key]
+
+
 def geodesic_errors(surface_or_vertices, pred, target, faces=None, diameter: float | None = None) -> np.ndarray:
     """Per-vertex correspondence error of the Princeton protocol, in units of the geodesic diameter.
 
@@ -198,32 +250,10 @@ def geodesic_errors(surface_or_vertices, pred, target, faces=None, diameter: flo
     pred: (N,) vertex indices or (N, C) scores (argmax); target: (N,) vertex indices.
     Returns (N,) float64. Cost: one exact edge-flip geodesic per distinct (true, predicted) pair with
     pred != true (about 0.3 ms for short pairs, 3 ms for long ones on 10k vertices); correct predictions
-    cost nothing, and no all-pairs distance matrix is ever formed.
+    cost nothing, and no all-pairs distance matrix is ever formed. Several predictions on one mesh:
+    :class:`GeodesicErrors` (the diameter and each pair once).
     """
-    vertices, faces = _mesh_arrays(surface_or_vertices, faces)
-    pred, target = _labels(pred), _numpy(target).astype(np.int64)
-    if pred.shape != target.shape:
-        raise ValueError(f"prediction has {pred.shape[0]} vertices but the target has {target.shape[0]}")
-    n = len(vertices)
-    for what, values in (("predicted", pred), ("true", target)):
-        if values.size and (values.min() < 0 or values.max() >= n):
-            raise ValueError(f"{what} vertex indices must lie in [0, {n}) for a mesh with {n} vertices")
-    if diameter is None:
-        diameter = geodesic_diameter(vertices, faces)
-    if not diameter > 0:
-        raise ValueError(f"geodesic diameter must be positive, got {diameter}")
-
-    errors = np.zeros(len(pred), dtype=np.float64)
-    wrong = np.flatnonzero(pred != target)
-    if len(wrong):
-        geo = _Geodesics(vertices, faces)
-        # Different vertices with the same (true, predicted) pair share one geodesic computation.
-        pairs, inverse = np.unique(np.stack([target[wrong], pred[wrong]], axis=1), axis=0, return_inverse=True)
-        # Pairs in different connected components have no geodesic: count them as infinitely wrong.
-        component = _component_labels(faces, n)
-        lengths = np.array([geo.pair(a, b) if component[a] == component[b] else np.inf for a, b in pairs])
-        errors[wrong] = lengths[np.asarray(inverse).reshape(-1)] / diameter
-    return errors
+    return GeodesicErrors(surface_or_vertices, faces, diameter)(pred, target)
 
 
 def error_curve(errors, radii: Sequence[float] | np.ndarray = DEFAULT_CURVE_RADII) -> tuple[np.ndarray, np.ndarray]:

@@ -1,5 +1,9 @@
 """Scoring a trained model or an ensemble on a split: metrics, baselines, the correspondence refinement
-chosen on validation, and the one-line summary."""
+chosen on validation, and the one-line summary.
+
+A correspondence is refined on the run's device (torch sparse products, :mod:`zernet.training.refine`),
+and its geodesic errors are measured once per test shape for the unrefined and the refined map together
+(:class:`zernet.metrics.GeodesicErrors`: the diameter once, each distinct vertex pair once)."""
 
 from __future__ import annotations
 
@@ -32,19 +36,22 @@ def _kind(checkpoint: dict) -> str:
     return "correspondence" if checkpoint.get("correspondence", False) else "segmentation"
 
 
-def _refined(probabilities: np.ndarray, record, rings: int) -> np.ndarray:
-    """Correspondence by vertex index: every shape has the template's connectivity, so the record's faces
-    serve for both the shape and the template."""
+def _refined(probabilities: torch.Tensor, record, rings: int) -> np.ndarray:
+    """The refined map, computed where ``probabilities`` are (the run's device). Correspondence by vertex
+    index: every shape has the template's connectivity, so the record's faces serve for both the shape and
+    the template."""
     faces = record.surface.faces
     if faces is None:
         raise ValueError(f"shape {record.name}: refining a correspondence needs a triangle mesh")
-    return refine_correspondence(probabilities, faces, faces, rings).argmax(axis=1)
+    return refine_correspondence(probabilities, faces, faces, rings).argmax(dim=1).cpu().numpy()
 
 
-def _score_shape(kind: str, record, pred: np.ndarray, target: np.ndarray, n_classes: int | None):
-    """(per-shape scores, per-vertex error) of one shape; segmentation also returns its confusion matrix."""
+def _score_shape(kind: str, record, pred: np.ndarray, target: np.ndarray, n_classes: int | None,
+                 geodesic_errors=None):
+    """(per-shape scores, per-vertex error) of one shape; segmentation also returns its confusion matrix.
+    ``geodesic_errors``: the shape's :class:`~zernet.metrics.GeodesicErrors` (correspondence)."""
     if kind == "correspondence":
-        errors = zmetrics.geodesic_errors(record.surface, pred, target)
+        errors = geodesic_errors(pred, target)
         scores = zmetrics.correspondence_scores(errors)
         return {k: v for k, v in scores.items() if not k.startswith("curve_")}, errors, None
     if kind == "segmentation":
@@ -75,10 +82,12 @@ def evaluate_members(members: Sequence[tuple], dataset, indices: Sequence[int], 
             raise ValueError(f"shape {record.name} has no ground truth to evaluate against")
         pred, probabilities = predict_record(members, record, device)
         target = np.asarray(record.target)
+        geodesics = zmetrics.GeodesicErrors(record.surface) if kind == "correspondence" else None
         if refine_rings:
-            unrefined_errors.append(zmetrics.geodesic_errors(record.surface, pred, target))
-            pred = _refined(probabilities, record, refine_rings)
-        per_shape[record.name], errors, shape_confusion = _score_shape(kind, record, pred, target, n_classes)
+            unrefined_errors.append(geodesics(pred, target))
+            pred = _refined(torch.from_numpy(probabilities).to(device), record, refine_rings)
+        per_shape[record.name], errors, shape_confusion = _score_shape(kind, record, pred, target, n_classes,
+                                                                       geodesics)
         if kind == "correspondence":
             errors_all.append(errors)
         elif kind == "segmentation":
@@ -139,6 +148,7 @@ def select_refine_rings(members: Sequence[tuple], dataset, candidates: Sequence[
         pred, probabilities = predict_record(members, record, device)
         target = np.asarray(record.target)
         total += len(target)
+        probabilities = torch.from_numpy(probabilities).to(device)  # refined there, once per candidate
         for rings in candidates:
             refined = pred if rings == 0 else _refined(probabilities, record, rings)
             hits[rings] += int(np.sum(refined == target))

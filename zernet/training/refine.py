@@ -16,15 +16,22 @@ one ring: repeated averaging weights each vertex by how its rings overlap its ne
 irregular mesh moves the maximum off a perfect map.
 
 Cost: two sparse-dense products with as many non-zeros per row as a ring holds (7, 19, 37 vertices for 1,
-2, 3 rings of a regular mesh): about 0.2 s for 6,890 × 6,890 scores and one ring.
+2, 3 rings of a regular mesh), computed with torch on the device the probabilities are on (the run's device
+during evaluation: no scipy on the host while the GPU waits). The ring averages of a mesh are built once per
+(faces, rings, device) and kept (:func:`ring_average_tensor`): every shape of a correspondence by vertex
+index shares the template's faces.
 """
 
 from __future__ import annotations
 
+import hashlib
+import warnings
+
 import numpy as np
 import scipy.sparse as sp
+import torch
 
-__all__ = ["ring_average", "refine_correspondence"]
+__all__ = ["ring_average", "ring_average_tensor", "refine_correspondence"]
 
 
 def ring_average(faces: np.ndarray, n_vertices: int, rings: int) -> sp.csr_matrix:
@@ -50,30 +57,57 @@ def ring_average(faces: np.ndarray, n_vertices: int, rings: int) -> sp.csr_matri
     return (sp.diags(1.0 / count).astype(np.float32) @ reach).tocsr()
 
 
-def refine_correspondence(probabilities: np.ndarray, shape_faces: np.ndarray, template_faces: np.ndarray,
-                          rings: int) -> np.ndarray:
+def ring_average_tensor(faces: np.ndarray, n_vertices: int, rings: int, device) -> torch.Tensor:
+    """:func:`ring_average` as a torch float32 CSR matrix on ``device``, built once per (faces, rings,
+    device) and kept (the last :data:`_KEPT` of them)."""
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    key = (hashlib.sha1(faces.tobytes()).hexdigest(), faces.shape, int(n_vertices), int(rings), str(torch.device(device)))
+    if key not in _RING_AVERAGES:
+        matrix = ring_average(faces, n_vertices, rings)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
+            tensor = torch.sparse_csr_tensor(torch.from_numpy(matrix.indptr.astype(np.int64)),
+                                             torch.from_numpy(matrix.indices.astype(np.int64)),
+                                             torch.from_numpy(matrix.data), size=matrix.shape)
+        _RING_AVERAGES[key] = tensor.to(device)
+        while len(_RING_AVERAGES) > _KEPT:
+            _RING_AVERAGES.pop(next(iter(_RING_AVERAGES)))
+    return _RING_AVERAGES[key]
+
+
+#: Ring averages kept by :func:`ring_average_tensor` (a data set has one template: one per rings candidate).
+_KEPT = 8
+_RING_AVERAGES: dict[tuple, torch.Tensor] = {}
+
+
+def refine_correspondence(probabilities, shape_faces: np.ndarray, template_faces: np.ndarray,
+                          rings: int):
     """The probabilities averaged over the ``rings``-ring of the shape's vertex and of the template's.
 
     Args:
         probabilities: (N, M) predicted probabilities: row ``i`` scores the M template vertices for vertex
-            ``i`` of the shape.
+            ``i`` of the shape. A torch tensor is refined on its device; a numpy array on the CPU.
         shape_faces: (F, 3) faces of the shape (N vertices).
         template_faces: (F', 3) faces of the template (M vertices). With correspondence by vertex index
             (FAUST, generated bodies) every shape has the template's connectivity.
         rings: the neighbourhood radius in mesh edges; 0 returns the probabilities unchanged.
 
     Returns:
-        (N, M) float32 scores, each row a distribution; its maximum is the refined correspondence.
+        (N, M) float32 scores, each row a distribution (its maximum is the refined correspondence), of the
+        input's kind: a tensor on its device, or a numpy array.
     """
-    probabilities = np.asarray(probabilities, dtype=np.float32)
-    if probabilities.ndim != 2:
-        raise ValueError(f"probabilities must have shape (N, M), got {probabilities.shape}")
+    as_numpy = not isinstance(probabilities, torch.Tensor)
+    scores = torch.as_tensor(np.asarray(probabilities, dtype=np.float32) if as_numpy else probabilities,
+                             dtype=torch.float32)
+    if scores.dim() != 2:
+        raise ValueError(f"probabilities must have shape (N, M), got {tuple(scores.shape)}")
     if rings < 0:
         raise ValueError(f"rings must be >= 0, got {rings}")
-    if rings == 0:
-        return probabilities
-    n, m = probabilities.shape
-    scores = ring_average(shape_faces, n, rings) @ probabilities
-    scores = np.asarray((ring_average(template_faces, m, rings) @ scores.T).T)  # Q·Aᵀ = (A·Qᵀ)ᵀ: sparse left
-    scores /= scores.sum(axis=1, keepdims=True)  # Aᵀ is not stochastic: keep each row a distribution
-    return np.ascontiguousarray(scores)
+    if rings > 0:
+        n, m = scores.shape
+        shape_average = ring_average_tensor(shape_faces, n, rings, scores.device)
+        template_average = ring_average_tensor(template_faces, m, rings, scores.device)
+        scores = shape_average @ scores  # A·P
+        scores = (template_average @ scores.T.contiguous()).T  # Q·Aᵀ = (A·Qᵀ)ᵀ: the sparse factor on the left
+        scores = (scores / scores.sum(dim=1, keepdim=True)).contiguous()  # Aᵀ is not stochastic
+    return scores.cpu().numpy() if as_numpy else scores
