@@ -39,7 +39,8 @@ A data set too large for memory (``zernet.data.preprocess.IN_MEMORY_VERTEX_LIMIT
 back from its cache on each access, and holding the operators instead would take the memory that limit
 exists to save. So the pairs and angles, which depend on the patch operator only, are kept in a file
 beside the patch operator's cache file (:func:`patch_transport`, written on the first access, about 0.02 s
-to read back), and only the matrices are rebuilt on every step of a streamed data set.
+to read back), and only the matrices are rebuilt on every step when the shapes are not held
+(``data.residency: stream``, or ``host`` on CUDA: :mod:`zernet.training.residency`).
 """
 
 from __future__ import annotations
