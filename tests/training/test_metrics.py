@@ -108,3 +108,24 @@ def test_metrics_files_are_strict_json_with_null_for_undefined_scores(tmp_path):
     assert loaded["inf"] is None and loaded["n"] == 3 and loaded["array"] == [1.5, None] and loaded["flag"] is True
     with pytest.raises(TypeError, match="not JSON serialisable: object"):
         write_json(tmp_path / "bad.json", {"x": object()})
+
+
+def test_geodesic_errors_of_one_mesh_measure_each_pair_once(sphere, monkeypatch):
+    vertices, faces = sphere
+    n = len(vertices)
+    rng = np.random.default_rng(4)
+    truth = np.arange(n)
+    first, second = truth.copy(), truth.copy()
+    first[:20] = rng.integers(0, n, 20)
+    second[10:30] = rng.integers(0, n, 20)
+    second[10:20] = first[10:20]  # pairs both predictions share are measured once
+    errors = metrics.GeodesicErrors(vertices, faces)
+    calls = []
+    pair = metrics._Geodesics.pair
+    monkeypatch.setattr(metrics._Geodesics, "pair", lambda self, a, b: calls.append((a, b)) or pair(self, a, b))
+    got = [errors(first, truth), errors(second, truth)]
+    distinct = {(int(t), int(p)) for prediction in (first, second) for t, p in zip(truth, prediction) if t != p}
+    assert sorted(calls) == sorted(distinct)
+    for prediction, values in zip((first, second), got):  # the same numbers as one call each
+        np.testing.assert_array_equal(values, metrics.geodesic_errors(vertices, prediction, truth, faces=faces,
+                                                                      diameter=errors.diameter))
