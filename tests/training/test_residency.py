@@ -92,3 +92,17 @@ def test_residency_is_checked_and_may_change_on_resume(tmp_path, cache_dir):
     with pytest.raises(ConfigError, match="data.residency"):
         parse_config(config)
     assert ("data", "residency") in RESUME_CHANGEABLE
+
+
+def test_a_step_copy_shares_the_host_arrays_and_leaves_the_held_geometry_alone(cache_dir):
+    config = parse_config(tiny_config(cache_dir))
+    dataset = build_dataset(config, progress=False, workers=0)
+    record = dataset[dataset.splits["train"][0]]
+    held = record.geometry.with_directional(1).to("cpu", [tuple(range(10))[::-1]])
+    before = {key: tuple(matrices) for key, matrices in held.operators[0]._tensors.items()}
+    copy = held.copy_to("cpu")
+    assert copy.operators[0] is not held.operators[0] and copy.directional[0].operator is copy.operators[0]
+    assert copy.operators[0].matrix is held.operators[0].matrix  # host arrays shared, not copied
+    assert {key: tuple(matrices) for key, matrices in held.operators[0]._tensors.items()} == before
+    x = torch.randn(held.n_vertices, 4)
+    assert torch.equal(copy.operators[0].apply(x), held.operators[0].apply(x))

@@ -91,8 +91,11 @@ class Geometry:
         """A copy on ``device`` whose operators' prepared tensors are copied there (``copy_to``), while this
         geometry keeps its own: a record held in host memory, copied to the GPU for one step."""
         move = lambda t: None if t is None else t.to(device, non_blocking=non_blocking)  # noqa: E731
-        return Geometry([op.copy_to(device, non_blocking) for op in self.operators], move(self.edge_index),
-                        move(self.batch), [op.copy_to(device, non_blocking) for op in self.directional])
+        copies = {id(op): op.copy_to(device, non_blocking) for op in self.operators}
+        directional = [op.copy_to(device, non_blocking, operator=copies.get(id(op.operator)))  # copied once
+                       for op in self.directional]
+        return Geometry([copies[id(op)] for op in self.operators], move(self.edge_index), move(self.batch),
+                        directional)
 
     def pin_memory(self) -> Geometry:
         """The host tensors of this geometry in page-locked memory (CUDA only): operators in place, the

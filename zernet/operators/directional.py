@@ -233,13 +233,16 @@ class DirectionalOperator:
             self.torch_matrices(harmonics, dtype, device)
         return self
 
-    def copy_to(self, device, non_blocking: bool = False) -> DirectionalOperator:
+    def copy_to(self, device, non_blocking: bool = False, operator=None) -> DirectionalOperator:
         """A copy whose torch matrices (and its scalar operator's) are on ``device``; this one keeps its own
-        (a host-resident record copied for one step, :mod:`zernet.training.residency`)."""
+        (a host-resident record copied for one step, :mod:`zernet.training.residency`). ``operator``: the
+        scalar operator's copy when the caller has made it already."""
         device = canonical_device(device)
         copy = DirectionalOperator.__new__(DirectionalOperator)
         copy.__dict__.update(self.__dict__)
-        copy.operator = self.operator.copy_to(device, non_blocking) if hasattr(self.operator, "copy_to") else self.operator
+        if operator is None and hasattr(self.operator, "copy_to"):
+            operator = self.operator.copy_to(device, non_blocking)
+        copy.operator = self.operator if operator is None else operator
         copy.parts = [part.copy_to(device, non_blocking) for part in self.parts]
         copy._torch = {(harmonics, dtype, device): tuple(csr_copy_to(m, device, non_blocking) for m in matrices)
                        for (harmonics, dtype, _), matrices in self._torch.items()}
