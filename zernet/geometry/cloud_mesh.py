@@ -13,15 +13,18 @@ vertex (so per-point features and predictions stay one per point):
    half-plane bounds the point's Voronoi cell (by polar duality, the vertices of the convex hull of the
    inverted offsets ``2 q / |q|²`` and the origin); consecutive ring members, by angle, span a triangle
    unless the angular gap reaches π (an open rim);
-4. a triangle is kept when at least two of its corners propose it (on a smooth, well sampled surface all
-   three do: the local rings agree with the Delaunay triangulation); a point that ends up in no kept
-   triangle keeps the triangles it proposed itself, so that no point is left without a patch. Every
-   triangle is oriented along its corners' normals.
+4. a triangle whose plane is more than 60 degrees from a corner's tangent plane is dropped: it stands
+   across the surface, bridging two sheets closer than the point spacing (lips, eyelids, touching toes);
+5. triangles are accepted most proposed first (on a smooth, well sampled surface all three corners
+   propose a triangle: the local rings agree with the Delaunay triangulation), ties by the shorter
+   longest edge, while none of their edges already has two triangles (edge-manifold);
+6. every triangle is turned along its corners' normals, and each connected piece outward (by its signed
+   volume), which corrects a cloud whose spanning tree flipped all normals;
+7. holes of at most 12 edges, where the local rings disagreed, are closed ear by ear; longer loops (the
+   rim of a partial scan) stay open.
 
-The result may have a few non-manifold edges and small holes where the local rings disagree; the front
-handles both (it moves over faces around vertices, not along a half-edge structure) and only stops at
-holes, which truncates a patch instead of bending it through the air. Measured in
-``benchmarks/bench_geodesics.py`` against exact polyhedral geodesics on the mesh the points came from.
+The front only stops at holes, which truncates a patch instead of bending it through the air. Measured
+in ``benchmarks/bench_geodesics.py`` against exact polyhedral geodesics on the mesh the points came from.
 
 Public API: :data:`CLOUD_MESH_NEIGHBOURS`, :func:`triangulate_cloud`, :func:`mesh_from_cloud`.
 """
@@ -30,6 +33,8 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+import scipy.sparse
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from zernet.geometry.surface import Surface, SurfaceError
@@ -40,8 +45,10 @@ __all__ = ["CLOUD_MESH_NEIGHBOURS", "triangulate_cloud", "mesh_from_cloud"]
 CLOUD_MESH_NEIGHBOURS = 16
 # Neighbours whose normal makes more than acos(0.25) ~ 75 degrees with the point's are on a facing sheet.
 _MIN_NORMAL_AGREEMENT = 0.25
-# Votes (corners proposing it) a triangle needs to be kept.
-_MIN_VOTES = 2
+# A triangle is kept only if its plane is within acos(0.5) = 60 degrees of every corner's tangent plane.
+_MIN_FACE_AGREEMENT = 0.5
+# Boundary loops of at most this many edges are holes where the local rings disagreed: they are closed.
+_MAX_HOLE_EDGES = 12
 
 
 def triangulate_cloud(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_MESH_NEIGHBOURS) -> np.ndarray:
@@ -49,31 +56,23 @@ def triangulate_cloud(points: np.ndarray, normals: np.ndarray, k: int = CLOUD_ME
 
     Args:
         points: (N, 3) float64 positions, N >= 3.
-        normals: (N, 3) float64 consistently oriented unit normals.
-        k: neighbours per point among which its local Delaunay ring is found.
+        normals: (N, 3) float64 unit normals, oriented as well as a cloud allows (a whole piece flipped is
+            corrected from the triangles).
 
     Returns:
-        (F, 3) int64 triangles over the N points, each oriented so that its normal agrees with the sum of
-        its corners' normals. Points may be shared by non-manifold edges; points in no triangle are rare
-        (isolated outliers).
+        (F, 3) int64 triangles over the N points, turned along the normals and outward (by the signed volume
+        of each connected piece). Points in no triangle are rare (isolated outliers).
     """
     points = np.ascontiguousarray(points, dtype=np.float64)
-    normals = np.ascontiguousarray(normals, dtype=np.float64)
     n = len(points)
     k = min(k, n - 1)
     _, neighbours = cKDTree(points).query(points, k=k + 1)
     neighbours = np.ascontiguousarray(neighbours[:, 1:], dtype=np.int64)
-    proposed, proposer = _local_rings(points, normals, neighbours, _MIN_NORMAL_AGREEMENT)
-    if len(proposed) == 0:
-        return np.zeros((0, 3), dtype=np.int64)
-    triangles, votes = np.unique(np.sort(proposed, axis=1), axis=0, return_counts=True)
-    longest = np.linalg.norm(points[triangles] - points[np.roll(triangles, 1, axis=1)], axis=2).max(axis=1)
-    triangles = triangles[_edge_manifold_selection(triangles, votes, longest)]
-    # Orient every triangle along its corners' normals.
-    a, b, c = (points[triangles[:, i]] for i in range(3))
-    facing = np.einsum("fi,fi->f", np.cross(b - a, c - a), normals[triangles].sum(axis=1))
-    triangles[facing < 0] = triangles[facing < 0][:, [0, 2, 1]]
-    return triangles
+    faces = _orient_faces(points, normals, _select_triangles(points, normals, neighbours))
+    if len(faces) == 0:
+        return faces
+    # The normals of the oriented triangles: a piece may have been turned against the cloud's normals.
+    return _fill_small_holes(points, Surface(points, faces).vertex_normals(), faces)
 
 
 def mesh_from_cloud(surface: Surface, k: int = CLOUD_MESH_NEIGHBOURS) -> Surface:
@@ -87,6 +86,119 @@ def mesh_from_cloud(surface: Surface, k: int = CLOUD_MESH_NEIGHBOURS) -> Surface
     if len(faces) == 0:
         raise SurfaceError(f"{surface.name}: no triangle could be formed through the points (all collinear?)")
     return Surface(surface.vertices, faces, surface.normals, surface.fields, surface.name)
+
+
+def _select_triangles(points: np.ndarray, normals: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """Steps 2-5 of the module docstring: the proposed triangles, filtered and selected (unoriented)."""
+    proposed = _local_rings(points, np.ascontiguousarray(normals, dtype=np.float64), neighbours,
+                            _MIN_NORMAL_AGREEMENT)
+    if len(proposed) == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    triangles, votes = np.unique(np.sort(proposed, axis=1), axis=0, return_counts=True)
+    # A triangle standing across the surface (bridging two sheets closer than the point spacing: lips,
+    # eyelids, touching toes) is far from every corner's tangent plane, whatever the normals' signs.
+    corners = points[triangles]
+    face_normal = _unit(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
+    lying = np.abs(np.einsum("fi,fci->fc", face_normal, normals[triangles])).min(axis=1) >= _MIN_FACE_AGREEMENT
+    triangles, votes = triangles[lying], votes[lying]
+    longest = np.linalg.norm(points[triangles] - points[np.roll(triangles, 1, axis=1)], axis=2).max(axis=1)
+    return triangles[_edge_manifold_selection(triangles, votes, longest)]
+
+
+def _orient_faces(points: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Each face turned along its corners' normals, then each connected piece turned outward if its signed
+    volume about its centroid is negative: the cloud's spanning tree may have flipped all its normals
+    (it starts from one point's guess). A one-sided partial scan bulges towards the camera, so the rule
+    holds for it too."""
+    if len(faces) == 0:
+        return faces
+    corners = points[faces]
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    along = np.einsum("fi,fi->f", cross, normals[faces].sum(axis=1)) >= 0
+    faces = np.where(along[:, None], faces, faces[:, [0, 2, 1]])
+    cross = np.where(along[:, None], cross, -cross)
+    n = len(points)
+    adjacency = scipy.sparse.coo_matrix((np.ones(3 * len(faces)), (faces.ravel(), np.roll(faces, 1, axis=1).ravel())),
+                                        shape=(n, n))
+    _, piece_of_vertex = connected_components(adjacency, directed=False)
+    piece = piece_of_vertex[faces[:, 0]]
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    centroid = corners.mean(axis=1)
+    weight = np.maximum(np.bincount(piece, weights=area), 1e-300)
+    middle = np.stack([np.bincount(piece, weights=area * centroid[:, i]) for i in range(3)], axis=1) / weight[:, None]
+    volume = np.bincount(piece, weights=np.einsum("fi,fi->f", centroid - middle[piece], cross))
+    inward = volume[piece] < 0
+    faces[inward] = faces[inward][:, [0, 2, 1]]
+    return faces
+
+
+def _fill_small_holes(points: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Close every simple boundary loop of at most :data:`_MAX_HOLE_EDGES` edges, ear by ear (shortest new
+    edge first), with triangles oriented like their neighbours. Long loops (the rim of an open scan) stay,
+    and so does a loop whose filling would face against its corners' normals (not a hole but the rim of a
+    fold, whose inside is covered already)."""
+    half = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    key = np.sort(half, axis=1)
+    _, edge, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    boundary = half[count[edge.reshape(-1)] == 1]
+    existing = {(int(a), int(b)) for a, b in key}
+    following: dict[int, list[int]] = {}
+    for a, b in boundary:
+        following.setdefault(int(a), []).append(int(b))
+    added = []
+    used: set[int] = set()
+    for start in list(following):
+        if start in used or len(following[start]) != 1:
+            continue
+        loop = [start]
+        while len(loop) <= _MAX_HOLE_EDGES:
+            ahead = following.get(loop[-1], [])
+            if len(ahead) != 1 or ahead[0] in used:
+                break
+            if ahead[0] == start:
+                break
+            loop.append(ahead[0])
+        closed = following.get(loop[-1], [None]) == [start]
+        if not closed or len(loop) < 3 or len(loop) > _MAX_HOLE_EDGES or len(set(loop)) != len(loop):
+            continue
+        used.update(loop)
+        patch = _clip_ears(points, loop, set(existing))
+        if patch:
+            patch = np.asarray(patch, dtype=np.int64)
+            corners = points[patch]
+            cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+            if (np.einsum("fi,fi->f", cross, normals[patch].sum(axis=1)) > 0).all():
+                added.extend(patch.tolist())
+                existing.update((min(a, b), max(a, b)) for a, b in patch[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2).tolist())
+    if not added:
+        return faces
+    return np.concatenate([faces, np.asarray(added, dtype=np.int64)])
+
+
+def _clip_ears(points: np.ndarray, loop: list[int], existing: set) -> list[tuple[int, int, int]]:
+    """Triangles filling one boundary loop (its edges run ``loop[i] -> loop[i + 1]`` in their faces)."""
+    loop = list(loop)
+    triangles = []
+    while len(loop) > 3:
+        candidates = []
+        for i in range(len(loop)):
+            before, after = loop[i - 1], loop[(i + 1) % len(loop)]
+            if (min(before, after), max(before, after)) not in existing:
+                candidates.append((np.linalg.norm(points[before] - points[after]), i))
+        if not candidates:
+            return []  # every diagonal is an edge already: leave the hole open rather than fold the mesh
+        _, i = min(candidates)
+        before, middle, after = loop[i - 1], loop[i], loop[(i + 1) % len(loop)]
+        triangles.append((after, middle, before))
+        existing.add((min(before, after), max(before, after)))
+        loop.pop(i)
+    triangles.append((loop[2], loop[1], loop[0]))
+    return triangles
+
+
+def _unit(vectors: np.ndarray) -> np.ndarray:
+    length = np.linalg.norm(vectors, axis=1, keepdims=True)
+    return np.divide(vectors, length, out=np.zeros_like(vectors), where=length > 0)
 
 
 def _edge_manifold_selection(triangles: np.ndarray, votes: np.ndarray, longest: np.ndarray) -> np.ndarray:
@@ -117,7 +229,7 @@ def _greedy_accept(triangle_edges, order):
 def _local_rings(points, normals, neighbours, min_agreement):
     """The triangles each point proposes: its local Delaunay ring (module docstring, step 3).
 
-    Returns ``(triangles, proposer)``: (T, 3) int64 ``(p, a, b)`` and (T,) the proposing point ``p``.
+    Returns (T, 3) int64 triangles ``(p, a, b)``, ``p`` the proposing point.
     """
     n, k = neighbours.shape
     out = np.empty((n * k, 3), dtype=np.int64)
@@ -172,8 +284,7 @@ def _local_rings(points, normals, neighbours, min_agreement):
             if gap < np.pi and i != j:
                 out[count, 0], out[count, 1], out[count, 2] = p, member[i], member[j]
                 count += 1
-    proposer = out[:count, 0].copy()
-    return out[:count].copy(), proposer
+    return out[:count].copy()
 
 
 @numba.njit(cache=True)

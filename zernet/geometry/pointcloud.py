@@ -67,7 +67,7 @@ def orient_normals(points: np.ndarray, normals: np.ndarray, neighbours: np.ndarr
     """Flip normals (N, 3) to a consistent orientation (Hoppe et al. 1992); returns unit rows.
 
     Signs propagate along a minimum spanning tree of the neighbour graph that prefers nearly parallel
-    normals, starting in each connected part from the point with the largest x, whose normal is made to
+    normals and steps along the tangent planes (so it does not hop between the facing sheets of a thin part), starting in each connected part from the point with the largest x, whose normal is made to
     point towards +x (outward for a closed surface).
     """
     normals = np.array(normals, dtype=np.float64)
@@ -75,7 +75,12 @@ def orient_normals(points: np.ndarray, normals: np.ndarray, neighbours: np.ndarr
     rows = np.repeat(np.arange(n), k)
     cols = neighbours.ravel()
     alignment = np.abs(np.einsum("ij,ij->i", normals[rows], normals[cols]))
-    weight = 1.0 - alignment + 1e-9  # strictly positive: csgraph treats 0 as "no edge"
+    # Hoppe's weight (1 - |n_i·n_j|) plus how far the step leaves both tangent planes: across a thin part
+    # or between touching limbs the normals are antiparallel (weight ~0 by Hoppe's term alone, so the tree
+    # would cross there and flip the far sheet inward), but the step runs along the normals.
+    offset = unit_rows(points[cols] - points[rows])
+    leaving = np.abs(np.einsum("ij,ij->i", offset, normals[rows])) + np.abs(np.einsum("ij,ij->i", offset, normals[cols]))
+    weight = 1.0 - alignment + leaving + 1e-9  # strictly positive: csgraph treats 0 as "no edge"
     graph = scipy.sparse.coo_matrix((weight, (rows, cols)), shape=(n, n)).tocsr()
     graph = graph.maximum(graph.T)
     tree = minimum_spanning_tree(graph)
