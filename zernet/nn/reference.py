@@ -28,6 +28,7 @@ from zernet.operators import (
     reorder_basis_rows,
     to_torch_csr,
 )
+from zernet.operators.sparse import canonical_device
 from zernet.zernike import n_max_for, rotate_coefficients
 
 from .conv import ZernikeConv
@@ -106,7 +107,7 @@ class MatrixOperator:
     accepts_basis_order = True  # as PatchOperator.apply
 
     def _tensors(self, dtype, device, basis_order=None):
-        key = (dtype, str(device), basis_order)
+        key = (dtype, canonical_device(device), basis_order)
         if key not in self._cache:
             matrix = self.matrix if basis_order is None else reorder_basis_rows(self.matrix, self.k, basis_order)
             self._cache[key] = (to_torch_csr(matrix, dtype, device), to_torch_csr(matrix.T, dtype, device))
@@ -126,7 +127,7 @@ class MatrixOperator:
         """Builds the float32 tensors of ``basis_orders`` (as :meth:`zernet.operators.PatchOperator.to`) on
         ``device``; others are built on first use (cached per dtype and device). Returns self."""
         for order in basis_orders_of_size(basis_orders, self.k):
-            self._tensors(torch.float32, torch.device(device), order)
+            self._tensors(torch.float32, canonical_device(device), order)
         return self
 
     @staticmethod

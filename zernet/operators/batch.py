@@ -91,7 +91,8 @@ class Geometry:
         """A copy on ``device`` whose operators' prepared tensors are copied there (``copy_to``), while this
         geometry keeps its own: a record held in host memory, copied to the GPU for one step."""
         move = lambda t: None if t is None else t.to(device, non_blocking=non_blocking)  # noqa: E731
-        copies = {id(op): op.copy_to(device, non_blocking) for op in self.operators}
+        copies = {id(op): op.copy_to(device, non_blocking) if hasattr(op, "copy_to") else op.to(device)
+                  for op in self.operators}
         directional = [op.copy_to(device, non_blocking, operator=copies.get(id(op.operator)))  # copied once
                        for op in self.directional]
         return Geometry([copies[id(op)] for op in self.operators], move(self.edge_index), move(self.batch),
@@ -101,7 +102,8 @@ class Geometry:
         """The host tensors of this geometry in page-locked memory (CUDA only): operators in place, the
         edge and batch tensors replaced by pinned copies; returns ``self``."""
         for op in self.operators:
-            op.pin_memory()
+            if hasattr(op, "pin_memory"):
+                op.pin_memory()
         pin = lambda t: None if t is None else t.pin_memory()  # noqa: E731
         self.edge_index, self.batch = pin(self.edge_index), pin(self.batch)
         return self
