@@ -1,5 +1,10 @@
 """Matching two surfaces: descriptors -> functional map -> point map -> ZoomOut -> confidence.
 
+A model whose inputs depend on the pose (xyz) and whose spec says ``align_target`` sees the target turned
+into the source's frame: the 4 rotations that carry the target's principal axes onto the source's
+(:func:`candidate_alignments`) are tried, and the one whose two maps (source -> target and back) agree
+best is kept. The candidates do not depend on the target's pose, so neither does the match.
+
 :func:`match_shapes` works on two prepared shapes (:func:`zernet.matching.shapes.prepare_shape`);
 :func:`match_surfaces` takes two surfaces or files as a user has them, repairs them (merged duplicate
 vertices are mapped back) and answers per *input* vertex. Both directions are solved (source -> target and
@@ -22,10 +27,10 @@ from scipy.spatial import cKDTree
 from zernet.geometry import Surface, read_surface, repair_surface
 from zernet.matching.fmap import cycle_confidence, functional_map, pointmap_from_fmap, zoomout
 from zernet.matching.model import DescriptorModel, load_matching_model
-from zernet.matching.shapes import MatchShape, prepare_shape
+from zernet.matching.shapes import MatchShape, prepare_shape, rotating_columns
 from zernet.matching.spectral import SpectralBasis
 
-__all__ = ["MatchResult", "shape_descriptors", "descriptor_fmap", "match_shapes", "match_surfaces",
+__all__ = ["MatchResult", "shape_descriptors", "principal_axes", "candidate_alignments", "descriptor_fmap", "match_shapes", "match_surfaces",
            "nearest_vertex_map", "CONFIDENCE_SCALE"]
 
 #: The round-trip distance, as a fraction of the square root of the source's area, at which the
@@ -55,11 +60,36 @@ class MatchResult:
 
 
 @torch.no_grad()
-def shape_descriptors(model: DescriptorModel, shape: MatchShape) -> torch.Tensor:
-    """(N, d) float32 descriptors of a prepared shape."""
+def shape_descriptors(model: DescriptorModel, shape: MatchShape, rotation: np.ndarray | None = None) -> torch.Tensor:
+    """(N, d) float32 descriptors of a prepared shape; ``rotation`` (3, 3) turns its pose-dependent input
+    columns (xyz, normals) first."""
     model.eval()
-    features = torch.as_tensor(shape.features, dtype=torch.float32)
-    return model(features, shape.geometry)
+    features = shape.features
+    if rotation is not None:
+        features = features.copy()
+        n_max = int(model.spec.patch_configs[0].get("n_max", 5))
+        for columns in rotating_columns(model.spec.feature_kind, n_max):
+            features[:, columns] = features[:, columns] @ rotation.T.astype(np.float32)
+    return model(torch.as_tensor(features, dtype=torch.float32), shape.geometry)
+
+
+def principal_axes(shape: MatchShape) -> np.ndarray:
+    """(3, 3) rows: the area-weighted principal axes of a shape (largest spread first), a right-handed frame."""
+    weights = shape.basis.mass / shape.basis.mass.sum()
+    centred = shape.surface.vertices - weights @ shape.surface.vertices
+    _, vectors = np.linalg.eigh((centred * weights[:, None]).T @ centred)
+    axes = vectors[:, ::-1].T
+    axes[2] = np.cross(axes[0], axes[1])
+    return axes
+
+
+def candidate_alignments(source: MatchShape, target: MatchShape) -> list[np.ndarray]:
+    """The 4 rotations (3, 3) that carry the target's principal frame onto the source's, one per proper
+    choice of the axes' signs (the signs of a principal axis are arbitrary; reflections are left out, as a
+    mirror image is not a pose). For a target in any rotation, the same 4 candidates result."""
+    source_axes, target_axes = principal_axes(source), principal_axes(target)
+    signs = [np.diag(s) for s in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))]
+    return [source_axes.T @ sign @ target_axes for sign in signs]
 
 
 def descriptor_fmap(model: DescriptorModel, descriptors_x: torch.Tensor, descriptors_y: torch.Tensor,
@@ -88,22 +118,28 @@ def match_shapes(model: DescriptorModel, source: MatchShape, target: MatchShape,
     zoomout_end = spec.zoomout_end if zoomout_end is None else int(zoomout_end)
     seconds = {}
     start = time.perf_counter()
-    descriptors_s, descriptors_t = shape_descriptors(model, source), shape_descriptors(model, target)
-    seconds["descriptors"] = time.perf_counter() - start
-    start = time.perf_counter()
-    with torch.no_grad():
-        fmap_ts = descriptor_fmap(model, descriptors_t, descriptors_s, target, source).double().numpy()
-        fmap_st = descriptor_fmap(model, descriptors_s, descriptors_t, source, target).double().numpy()
-    # C_ts carries target functions to the source, so it gives the point map source -> target.
-    vertex_map = pointmap_from_fmap(fmap_ts, target.basis, source.basis)
-    reverse_map = pointmap_from_fmap(fmap_st, source.basis, target.basis)
-    seconds["fmap"] = time.perf_counter() - start
+    descriptors_s = shape_descriptors(model, source)
+    scale = CONFIDENCE_SCALE * np.sqrt(source.surface.area)
+    rotations = candidate_alignments(source, target) if spec.align_target else [None]
+    best = None
+    for rotation in rotations:
+        descriptors_t = shape_descriptors(model, target, rotation)
+        with torch.no_grad():
+            fmap_ts = descriptor_fmap(model, descriptors_t, descriptors_s, target, source).double().numpy()
+            fmap_st = descriptor_fmap(model, descriptors_s, descriptors_t, source, target).double().numpy()
+        # C_ts carries target functions to the source, so it gives the point map source -> target.
+        candidate = (pointmap_from_fmap(fmap_ts, target.basis, source.basis),
+                     pointmap_from_fmap(fmap_st, source.basis, target.basis), fmap_ts)
+        agreement = cycle_confidence(candidate[0], candidate[1], source.surface.vertices, scale).mean()
+        if best is None or agreement > best[0]:
+            best = (agreement, *candidate)
+    _, vertex_map, reverse_map, fmap_ts = best
+    seconds["descriptors+fmap"] = time.perf_counter() - start
     start = time.perf_counter()
     vertex_map, refined_ts = _refined(vertex_map, target.basis, source.basis, spec.n_fmap, zoomout_end,
                                       spec.zoomout_step)
     reverse_map, _ = _refined(reverse_map, source.basis, target.basis, spec.n_fmap, zoomout_end, spec.zoomout_step)
     seconds["zoomout"] = time.perf_counter() - start
-    scale = CONFIDENCE_SCALE * np.sqrt(source.surface.area)
     confidence = cycle_confidence(vertex_map, reverse_map, source.surface.vertices, scale)
     return MatchResult(vertex_map, reverse_map, fmap_ts if refined_ts is None else refined_ts, confidence, seconds)
 

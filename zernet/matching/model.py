@@ -47,6 +47,9 @@ class MatchingSpec:
         n_fmap: eigenpairs of the functional-map layer.
         regularisation, gamma: of the layer (:func:`zernet.matching.fmap.functional_map`).
         zoomout_end, zoomout_step: ZoomOut from ``n_fmap`` to ``zoomout_end`` eigenpairs (0: no ZoomOut).
+        align_target: turn the target's pose-dependent inputs (xyz, normals) into the source's frame before
+            its descriptors are computed, trying the 4 proper sign choices of the principal axes and keeping
+            the most consistent match (:func:`zernet.matching.match.candidate_alignments`).
         feature_mean, feature_std: per-channel standardisation of the inputs (training shapes' statistics).
     """
 
@@ -62,6 +65,7 @@ class MatchingSpec:
     gamma: float = 0.5
     zoomout_end: int = 80
     zoomout_step: int = 2
+    align_target: bool = False
     feature_mean: tuple[float, ...] | None = None
     feature_std: tuple[float, ...] | None = None
 

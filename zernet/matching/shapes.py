@@ -21,7 +21,7 @@ from zernet.geometry import Surface
 from zernet.matching.spectral import SpectralBasis, heat_kernel_signature, laplacian_eigenbasis
 from zernet.operators import Geometry, PatchConfig
 
-__all__ = ["MatchShape", "prepare_shape", "input_features", "matching_feature_channels"]
+__all__ = ["MatchShape", "prepare_shape", "input_features", "matching_feature_channels", "rotating_columns"]
 
 
 @dataclass
@@ -105,3 +105,15 @@ def prepare_shape(surface: Surface, patch_configs: list[PatchConfig], area: floa
     basis = laplacian_eigenbasis(spectral_surface, n_eigen, cache_dir=cache_dir)
     features = input_features(record.features if zernet_kind else None, basis, feature_kind)
     return MatchShape(record.name, scaled, record.scale, is_cloud, features, record.geometry, basis)
+
+
+def rotating_columns(feature_kind: str, n_max: int) -> list[slice]:
+    """The column slices of the parts that turn with the surface (xyz, normals)."""
+    from zernet.data.features import feature_parts
+    from zernet.training.augment import feature_slices
+
+    zernet_kind = "+".join(part for part in feature_kind.split("+") if part != "hks")
+    if not zernet_kind:
+        return []
+    slices = feature_slices(zernet_kind, [n_max])
+    return [slices[part] for part in ("xyz", "normals") if part in feature_parts(zernet_kind)]

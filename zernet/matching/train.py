@@ -38,15 +38,14 @@ import numpy as np
 import torch
 import yaml
 
-from zernet.data.features import feature_parts
 from zernet.io_utils import atomic_write_bytes, plain, write_json
 from zernet.matching.bodies import LocatedForm, body_forms, ground_truth_map
 from zernet.matching.fmap import fmap_from_pointmap, pointmap_from_fmap
 from zernet.matching.match import descriptor_fmap
 from zernet.matching.model import DescriptorModel, MatchingSpec, save_matching_model
-from zernet.matching.shapes import MatchShape, matching_feature_channels, prepare_shape
+from zernet.matching.shapes import MatchShape, matching_feature_channels, prepare_shape, rotating_columns
 from zernet.operators import Geometry
-from zernet.training.augment import feature_slices, random_rotation
+from zernet.training.augment import random_rotation
 
 __all__ = ["TrainingPair", "prepare_bodies", "pair_loss", "validation_error", "train", "load_config", "main"]
 
@@ -93,13 +92,27 @@ def prepare_bodies(config: dict, spec: MatchingSpec, indices, split: str = "trai
     return located, shapes, body_vertices, faces
 
 
-def rotating_columns(feature_kind: str, n_max: int) -> list[slice]:
-    """The column slices of the parts that turn with the surface (xyz, normals)."""
-    zernet_kind = "+".join(part for part in feature_kind.split("+") if part != "hks")
-    if not zernet_kind:
-        return []
-    slices = feature_slices(zernet_kind, [n_max])
-    return [slices[part] for part in ("xyz", "normals") if part in feature_parts(zernet_kind)]
+def small_rotation(rng: np.random.Generator, max_degrees: float) -> np.ndarray:
+    """A rotation about a uniformly random axis by an angle uniform in [0, max_degrees] (Rodrigues)."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = np.radians(rng.uniform(0.0, max_degrees))
+    cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+
+
+def pair_rotations(rng: np.random.Generator, mode: str, jitter_degrees: float) -> tuple[np.ndarray, np.ndarray]:
+    """The rotations of a training pair's rotating feature columns.
+
+    ``mode``: ``none``; ``any`` (each shape its own uniform rotation: descriptors must not depend on the
+    pose); ``pair`` (one uniform rotation for both, each then turned by up to ``jitter_degrees``: the
+    matcher aligns the target to the source first, :func:`zernet.matching.match.candidate_alignments`, so
+    descriptors need only agree between two shapes in nearly the same frame, whatever that frame is).
+    """
+    if mode == "pair":
+        common = random_rotation(rng, "any")
+        return tuple(common @ small_rotation(rng, jitter_degrees) for _ in range(2))
+    return random_rotation(rng, mode), random_rotation(rng, mode)
 
 
 def feature_statistics(shapes: list[MatchShape], rotating: list[slice]) -> tuple[np.ndarray, np.ndarray]:
@@ -220,7 +233,7 @@ def train(config: dict, run_dir: str | Path, command: str = "") -> dict:
         model.train()
         a, b = rng.choice(n_train, size=2, replace=False)
         pair = make_pairs(forms, shapes, body_vertices, faces, [(a, b)])[0]
-        rotations = (random_rotation(rng, rotate), random_rotation(rng, rotate)) if rotating else None
+        rotations = pair_rotations(rng, rotate, float(settings.get("rotate_jitter", 0.0))) if rotating else None
         loss = pair_loss(model, pair, settings["loss"], float(settings.get("point_weight", 1.0)), rotations, rotating)
         optimiser.zero_grad()
         loss.backward()
