@@ -1,0 +1,65 @@
+"""Ground truth between two forms of bodies that share a template, and the target alignment of the matcher
+(independent of the target's pose). Procedural meshes stand in for bodies: no anny needed."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from zernet.data.bodies_forms import closest_points
+from zernet.geometry import Surface
+from zernet.matching.bodies import LocatedForm, ground_truth_map
+from zernet.matching.match import candidate_alignments
+from zernet.matching.shapes import prepare_shape
+from zernet.matching.train import pair_rotations, small_rotation
+from zernet.operators import PatchConfig
+
+
+def _template():
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    return np.asarray(sphere.vertices) * [0.3, 0.8, 0.2], np.asarray(sphere.faces, dtype=np.int64)
+
+
+def _located(body_vertices, faces, points, name):
+    face_index, barycentric, on_body, _ = closest_points(body_vertices, faces, points)
+    return LocatedForm(name, "cloud", 0, Surface(points, None, name=name), face_index, barycentric, on_body)
+
+
+def test_ground_truth_map_follows_the_template_between_bodies():
+    """Body 2 is body 1 stretched (same template): a source point's true image is its stretched position."""
+    vertices, faces = _template()
+    stretch = np.array([1.3, 0.9, 1.1])
+    rng = np.random.default_rng(0)
+    points_1 = _located(vertices, faces, vertices[rng.choice(len(vertices), 300, replace=False)], "a")
+    target_points = vertices[rng.choice(len(vertices), 400, replace=False)] * stretch
+    target = _located(vertices * stretch, faces, target_points, "b")
+    truth = ground_truth_map(points_1, target, vertices * stretch, faces)
+    expected = points_1.on_body * stretch
+    distances = np.linalg.norm(target.on_body[None] - expected[:, None], axis=2)
+    # The nearest target point (by distance: the symmetric ellipsoid has exact ties between mirror points).
+    np.testing.assert_allclose(distances[np.arange(300), truth], distances.min(axis=1), atol=1e-12)
+    assert ground_truth_map(points_1, points_1, vertices, faces).tolist() == list(range(300))
+
+
+def test_target_alignment_does_not_depend_on_the_target_pose():
+    vertices, faces = _template()
+    vertices = vertices * (1 + 0.05 * np.sin(7 * vertices[:, :1]))
+    config = [PatchConfig(r0=4.0, n_samples=800)]
+    source = prepare_shape(Surface(vertices, faces), config, 1000.0, "xyz", 10)
+    rotation = small_rotation(np.random.default_rng(1), 180.0)
+    turned = prepare_shape(Surface(vertices @ rotation.T, faces), config, 1000.0, "xyz", 10)
+    plain = [turned_xyz for turned_xyz in (source.features @ r.T for r in candidate_alignments(source, source))]
+    moved = [turned.features @ r.T for r in candidate_alignments(source, turned)]
+    for a, b in zip(plain, moved):
+        np.testing.assert_allclose(a, b, atol=1e-3)
+    np.testing.assert_allclose(plain[0], source.features, atol=1e-4)   # the identity is a candidate
+
+
+def test_pair_rotations_turn_both_shapes_nearly_alike():
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        first, second = pair_rotations(rng, "pair", 20.0)
+        relative = first.T @ second
+        angle = np.degrees(np.arccos(np.clip((np.trace(relative) - 1) / 2, -1, 1)))
+        assert angle <= 40.0 + 1e-6
+        np.testing.assert_allclose(first @ first.T, np.eye(3), atol=1e-12)
