@@ -100,7 +100,14 @@ def score(polar, exact, centres, r0, regions=None) -> dict:
             angle_error.extend(errors)
             if regions is not None:
                 region_errors.setdefault(str(regions[centre]), []).extend(errors)
+    far_by_region = {}
+    if regions is not None:
+        for name in sorted(set(str(regions[c]) for c in chosen)):
+            in_region = [key for key in kept if str(regions[key[0]]) == name]
+            beyond = sum(1 for key in in_region if exact.get(key, (np.inf,))[0] > 1.1 * r0)
+            far_by_region[name] = 100.0 * beyond / max(1, len(in_region))
     return {"kept_beyond_1.1r0_percent": 100.0 * far / max(1, len(kept)),
+            "kept_beyond_1.1r0_percent_by_region": far_by_region,
             "true_dropped_percent": 100.0 * dropped / max(1, len(true)),
             "radius_median_percent_r0": 100.0 * float(np.median(radius_error)),
             "radius_p95_percent_r0": 100.0 * float(np.percentile(radius_error, 95)),
@@ -244,6 +251,10 @@ def print_rows(row) -> None:
         if "build_second_seconds_per_1000_vertices" in b:
             print(f"operator build ({name}): {b['build_first_seconds_per_1000_vertices']:.2f} s / 1000 vertices first, "
                   f"{b['build_second_seconds_per_1000_vertices']:.2f} second")
+    for name, b in row["backends"].items():
+        if b["kept_beyond_1.1r0_percent_by_region"]:
+            print(f"kept beyond 1.1 r0 by region, % ({name}): " + ", ".join(
+                f"{region} {value:.2f}" for region, value in b["kept_beyond_1.1r0_percent_by_region"].items()))
     for name, b in row["backends"].items():
         if b["angle_p95_rad_by_region"]:
             print(f"angle p95 by region ({name}): " + ", ".join(f"{region} {p95:.3f}" for region, p95 in b["angle_p95_rad_by_region"].items()))

@@ -18,8 +18,9 @@ vertex (so per-point features and predictions stay one per point):
 5. triangles are accepted most proposed first (on a smooth, well sampled surface all three corners
    propose a triangle: the local rings agree with the Delaunay triangulation), ties by the shorter
    longest edge, while none of their edges already has two triangles (edge-manifold);
-6. every triangle is turned along its corners' normals, and each connected piece outward (by its signed
-   volume), which corrects a cloud whose spanning tree flipped all normals;
+6. the triangles are oriented consistently across shared edges (along a spanning tree that crosses
+   folds last) and each connected piece outward by its signed volume: this corrects the cloud's normals
+   where its own spanning tree flipped them, in a region (the head's fine detail) or as a whole;
 7. holes of at most 12 edges, where the local rings disagreed, are closed ear by ear; longer loops (the
    rim of a partial scan) stay open.
 
@@ -34,6 +35,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 import scipy.sparse
+import scipy.sparse.linalg
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
@@ -47,6 +49,10 @@ CLOUD_MESH_NEIGHBOURS = 16
 _MIN_NORMAL_AGREEMENT = 0.25
 # A triangle is kept only if its plane is within acos(0.5) = 60 degrees of every corner's tangent plane.
 _MIN_FACE_AGREEMENT = 0.5
+# Weight of the cloud's own normals against the agreement of neighbouring faces (see _orient_faces).
+_ORIENTATION_PRIOR = 1e-2
+# A connected piece of fewer faces is too small for its signed volume to say which side is out.
+_MIN_PIECE_FACES = 20
 # Boundary loops of at most this many edges are holes where the local rings disagreed: they are closed.
 _MAX_HOLE_EDGES = 12
 
@@ -106,28 +112,58 @@ def _select_triangles(points: np.ndarray, normals: np.ndarray, neighbours: np.nd
 
 
 def _orient_faces(points: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Each face turned along its corners' normals, then each connected piece turned outward if its signed
-    volume about its centroid is negative: the cloud's spanning tree may have flipped all its normals
-    (it starts from one point's guess). A one-sided partial scan bulges towards the camera, so the rule
-    holds for it too."""
+    """Faces turned to one orientation, and each connected piece outward.
+
+    Every face agrees with its neighbours across shared edges as far as possible, smooth steps counting
+    more than folds, with the cloud's normals as a weak prior (a signed-Laplacian least-squares problem,
+    see the code): where the cloud's normals flipped (its spanning tree crosses thin parts and the head's
+    fine detail) the triangles are still turned to agree with the surface around them. Each connected
+    piece is then turned outward by
+    the sign of its volume about its centroid (a one-sided partial scan bulges towards the camera, so the
+    rule holds for it too); a piece of a few faces follows its corners' normals instead.
+    """
     if len(faces) == 0:
         return faces
+    n_faces = len(faces)
     corners = points[faces]
     cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     along = np.einsum("fi,fi->f", cross, normals[faces].sum(axis=1)) >= 0
     faces = np.where(along[:, None], faces, faces[:, [0, 2, 1]])
-    cross = np.where(along[:, None], cross, -cross)
-    n = len(points)
-    adjacency = scipy.sparse.coo_matrix((np.ones(3 * len(faces)), (faces.ravel(), np.roll(faces, 1, axis=1).ravel())),
-                                        shape=(n, n))
-    _, piece_of_vertex = connected_components(adjacency, directed=False)
-    piece = piece_of_vertex[faces[:, 0]]
+    unit = _unit(np.where(along[:, None], cross, -cross))
+    # Faces sharing an edge (two faces per edge: the selection is edge-manifold).
+    half = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])  # half-edge h of face h % F
+    _, edge, count = np.unique(np.sort(half, axis=1), axis=0, return_inverse=True, return_counts=True)
+    edge = edge.reshape(-1)
+    shared = np.flatnonzero(count[edge] == 2)
+    pairs = shared[np.argsort(edge[shared], kind="stable")].reshape(-1, 2)
+    first, second = pairs[:, 0] % n_faces, pairs[:, 1] % n_faces
+    # Consistent neighbours run through their shared edge in opposite directions.
+    disagree = half[pairs[:, 0], 0] == half[pairs[:, 1], 0]
+    smoothness = np.abs(np.einsum("fi,fi->f", unit[first], unit[second]))
+    # Signs s_f = ±1 (keep or flip each face) minimising sum_e w_e (s_f - r_e s_g)^2 + λ sum_f (s_f - 1)^2:
+    # r_e = -1 where two faces run through their edge the same way, w_e the smoothness of the step (a fold
+    # or a bridging triangle weighs little), and the prior keeps the cloud's normals where nothing else
+    # decides. Relaxed to real s, this is one sparse linear system (a signed graph Laplacian).
+    relation = np.where(disagree, -1.0, 1.0)
+    laplacian = scipy.sparse.coo_matrix(
+        (np.concatenate([smoothness, smoothness, -smoothness * relation, -smoothness * relation]),
+         (np.concatenate([first, second, first, second]), np.concatenate([first, second, second, first]))),
+        shape=(n_faces, n_faces)).tocsc()
+    signs = scipy.sparse.linalg.spsolve(laplacian + _ORIENTATION_PRIOR * scipy.sparse.identity(n_faces, format="csc"),
+                                        np.full(n_faces, _ORIENTATION_PRIOR))
+    flip = signs < 0
+    faces = np.where(flip[:, None], faces[:, [0, 2, 1]], faces)
+    _, piece = connected_components(scipy.sparse.coo_matrix((np.ones(len(first)), (first, second)),
+                                                            shape=(n_faces, n_faces)), directed=False)
+    corners = points[faces]
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     area = 0.5 * np.linalg.norm(cross, axis=1)
     centroid = corners.mean(axis=1)
-    weight = np.maximum(np.bincount(piece, weights=area), 1e-300)
-    middle = np.stack([np.bincount(piece, weights=area * centroid[:, i]) for i in range(3)], axis=1) / weight[:, None]
+    weight_sum = np.maximum(np.bincount(piece, weights=area), 1e-300)
+    middle = np.stack([np.bincount(piece, weights=area * centroid[:, i]) for i in range(3)], axis=1) / weight_sum[:, None]
     volume = np.bincount(piece, weights=np.einsum("fi,fi->f", centroid - middle[piece], cross))
-    inward = volume[piece] < 0
+    size = np.bincount(piece)
+    inward = (volume[piece] < 0) & (size[piece] >= _MIN_PIECE_FACES)
     faces[inward] = faces[inward][:, [0, 2, 1]]
     return faces
 
