@@ -1,0 +1,174 @@
+"""Matching held-out generated bodies, each in a form of its own: the shipped descriptor model against
+ZoomOut alone (from a rigid nearest-neighbour initial map), per setting.
+
+Settings (pairs of test bodies i -> i + 1, never seen in training; each body remeshed or sampled on its own):
+
+- ``remeshed``: source and target each remeshed independently (MeshLab, 0.55-1.0 times the body's vertex
+  count, shuffled vertex order);
+- ``rotated``: the same pairs, the target turned by a random rotation (the error must not change);
+- ``cloud``: the source a noisy point cloud (half the vertex count, density varying 3x, 2 mm noise), the
+  target remeshed;
+- ``partial`` (not in the default list): the source a one-sided scan (the faces a camera sees), the target
+  remeshed whole.
+
+Error (the field's convention): the geodesic distance on the target between the predicted vertex and the
+true one (the target vertex nearest to the true image, :func:`zernet.matching.bodies.ground_truth_map`),
+divided by the square root of the target's area, x100; the curve is the fraction of source vertices
+within 0-10 % of the target's geodesic diameter. Time per pair: both shapes prepared from scratch (no
+cache: operators, features, eigenbases) plus the match, one thread.
+
+    python benchmarks/matching.py [--topology faust] [--pairs 8] [--model FILE] [--out benchmarks/results/matching]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from zernet.geometry import Surface
+from zernet.io_utils import write_json
+from zernet.matching.bodies import body_forms, ground_truth_map
+from zernet.matching.fmap import zoomout
+from zernet.matching.match import match_shapes, nearest_vertex_map
+from zernet.matching.model import load_matching_model
+from zernet.matching.shapes import prepare_shape
+from zernet.metrics import error_curve, geodesic_diameter, geodesic_errors
+from zernet.training.augment import random_rotation
+from zernet.viz import plot_error_curve, render_side_by_side
+
+#: ZoomOut alone starts from this many eigenpairs (the rigid map is only trusted at low frequency).
+ZOOMOUT_ALONE_START = 10
+
+
+def errors_on_target(target: Surface, predicted: np.ndarray, truth: np.ndarray, diameter: float) -> tuple[np.ndarray, np.ndarray]:
+    """(errors x100 / sqrt(area), errors / geodesic diameter) per source vertex."""
+    root_area = np.sqrt(target.area)
+    relative = geodesic_errors(target.vertices, predicted, truth, faces=target.faces, diameter=root_area)
+    return 100 * relative, relative * root_area / diameter
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--topology", default="faust")
+    parser.add_argument("--pairs", type=int, default=8)
+    parser.add_argument("--settings", default="remeshed,rotated,cloud")
+    parser.add_argument("--model", default=None, help="matching model file or run folder (default: the shipped one)")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/matching"))
+    parser.add_argument("--cache-dir", default=".zernet-cache")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    model, provenance = load_matching_model(args.model)
+    spec = model.spec
+    settings = args.settings.split(",")
+    indices = range(args.pairs + 1)
+    targets, target_bodies, faces = body_forms(indices, "test", {"remeshed": 1.0}, 0, args.topology, "varied", 0,
+                                               args.cache_dir)
+    sources = {"remeshed": targets, "rotated": targets}
+    for setting, form in (("cloud", "cloud-noisy"), ("partial", "partial")):
+        if setting in settings:
+            sources[setting] = body_forms(indices, "test", {form: 1.0}, 0, args.topology, "varied", 0,
+                                          args.cache_dir)[0]
+    rng = np.random.default_rng(0)
+    methods = {"shipped model": {}, "shipped model, no ZoomOut": {}, "ZoomOut alone (rigid start)": {}}
+    results = {setting: {name: {"errors": [], "diameter_errors": [], "pair_means": []} for name in methods}
+               for setting in settings}
+    seconds, example = [], None
+    for i in range(args.pairs):
+        target_form = targets[i + 1]
+        truth_body = target_bodies[target_form.body]
+        for setting in settings:
+            source_form = sources[setting][i]
+            truth = ground_truth_map(source_form, target_form, truth_body, faces)
+            target_surface = target_form.surface
+            if setting == "rotated":
+                rotation = random_rotation(rng, "any")
+                target_surface = Surface(target_surface.vertices @ rotation.T, target_surface.faces, name="rotated")
+            start = time.perf_counter()
+            source = prepare_shape(source_form.surface, spec.patch_config_objects(), spec.area, spec.feature_kind,
+                                   spec.n_eigen, cache_dir=None, name=source_form.name)
+            target = prepare_shape(target_surface, spec.patch_config_objects(), spec.area, spec.feature_kind,
+                                   spec.n_eigen, cache_dir=None, name=target_form.name)
+            result = match_shapes(model, source, target)
+            elapsed = time.perf_counter() - start
+            if setting == "remeshed":
+                seconds.append({"pair": i, "source_vertices": source.n_vertices, "target_vertices": target.n_vertices,
+                                "seconds": elapsed, **{f"{k}_seconds": v for k, v in result.seconds.items()}})
+            layer_only = match_shapes(model, source, target, zoomout_end=0).vertex_map
+            rigid, _ = zoomout(nearest_vertex_map(source, target), target.basis, source.basis,
+                               ZOOMOUT_ALONE_START, spec.zoomout_end, spec.zoomout_step)
+            # Errors are measured on the target in its own units (rotation does not change them).
+            diameter = geodesic_diameter(target.surface)
+            for name, predicted in (("shipped model", result.vertex_map), ("shipped model, no ZoomOut", layer_only),
+                                    ("ZoomOut alone (rigid start)", rigid)):
+                area_errors, diameter_errors = errors_on_target(target.surface, predicted, truth, diameter)
+                entry = results[setting][name]
+                entry["errors"].append(area_errors)
+                entry["diameter_errors"].append(diameter_errors)
+                entry["pair_means"].append(float(area_errors.mean()))
+            print(f"pair {i} {setting}: " + ", ".join(f"{name} {results[setting][name]['pair_means'][-1]:.2f}"
+                                                    for name in methods) + f" ({elapsed:.1f} s)", flush=True)
+            if setting == "remeshed" and example is None:
+                example = (source, target, result)
+    summary = {"topology": args.topology, "pairs": args.pairs, "model": str(args.model or "shipped"),
+               "model_provenance": {k: provenance.get(k) for k in ("commit", "command", "step", "val_error")},
+               "threads": 1, "time_per_pair": seconds,
+               "mean_seconds_per_pair": float(np.mean([s["seconds"] for s in seconds])) if seconds else None,
+               "settings": {}}
+    curves = {}
+    for setting in settings:
+        summary["settings"][setting] = {}
+        for name, entry in results[setting].items():
+            errors = np.concatenate(entry["errors"])
+            radii, fractions = error_curve(np.concatenate(entry["diameter_errors"]))
+            summary["settings"][setting][name] = {
+                "mean_error_x100": float(errors.mean()), "median_error_x100": float(np.median(errors)),
+                "pair_means": entry["pair_means"], "curve_radii": radii.tolist(), "curve_fractions": fractions.tolist()}
+            curves[f"{setting}: {name}"] = (radii, fractions)
+    if "rotated" in settings and "remeshed" in settings:
+        name = "shipped model"
+        summary["rotation_change"] = float(np.max(np.abs(np.subtract(
+            results["rotated"][name]["pair_means"], results["remeshed"][name]["pair_means"]))))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_json(args.out.with_suffix(".json"), summary)
+    plot_error_curve(curves, args.out.with_name(args.out.name + "_curves.png"),
+                     title=f"Matching held-out generated bodies ({args.topology}, each remeshed on its own)")
+    if example is not None:
+        from zernet.matching.cli import source_colour_field, transfer_field
+
+        source, target, result = example
+        field = source_colour_field(source.surface.vertices)
+        render_side_by_side([source.surface, target.surface], [field, transfer_field(field, result.reverse_map)],
+                            args.out.with_name(args.out.name + "_example.png"), ["source", "target"],
+                            title="colour on the source, carried to the target by the map")
+    write_markdown(summary, args.out.with_suffix(".md"), " ".join(["python benchmarks/matching.py"] + sys.argv[1:]))
+    print(args.out.with_suffix(".md").read_text())
+    return 0
+
+
+def write_markdown(summary: dict, path: Path, command: str) -> None:
+    lines = [f"# Matching held-out generated bodies ({summary['topology']} topology, {summary['pairs']} pairs)", "",
+             f"`{command}` (one thread). Model: {summary['model']} "
+             f"(commit {str(summary['model_provenance'].get('commit'))[:10]}).", "",
+             "Mean geodesic error x100 / sqrt(target area) (median in brackets); every body in a form of its own.", "",
+             "| setting | " + " | ".join(next(iter(summary["settings"].values()))) + " |",
+             "|---|" + "---:|" * len(next(iter(summary["settings"].values())))]
+    for setting, methods in summary["settings"].items():
+        lines.append(f"| {setting} | " + " | ".join(f"{m['mean_error_x100']:.2f} ({m['median_error_x100']:.2f})"
+                                                     for m in methods.values()) + " |")
+    if "rotation_change" in summary:
+        lines += ["", f"Largest change of a pair's mean error when the target is rotated: {summary['rotation_change']:.3f}."]
+    if summary["time_per_pair"]:
+        sizes = [(s["source_vertices"], s["target_vertices"]) for s in summary["time_per_pair"]]
+        lines += ["", f"Time per pair (remeshed, {min(min(s) for s in sizes)}-{max(max(s) for s in sizes)} vertices, "
+                      f"both shapes prepared from scratch, one thread): mean {summary['mean_seconds_per_pair']:.1f} s, "
+                      f"max {max(s['seconds'] for s in summary['time_per_pair']):.1f} s."]
+    path.write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
