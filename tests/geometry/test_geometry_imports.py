@@ -33,21 +33,16 @@ def test_no_geometry_module_imports_torch(path):
                    "imports torch at module level for atomic_save_torch; drop this mark once it does not")
 def test_geometry_imports_in_a_process_without_torch():
     # sys.modules["torch"] = None makes every `import torch` raise ImportError.
-    code = "import sys; sys.modules['torch'] = None; import zernet.geometry; import zernet.surface"
+    code = "import sys; sys.modules['torch'] = None; import zernet.geometry"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
 
 
-def test_old_import_paths_give_the_same_objects():
-    import zernet.geometry.membrane
-    import zernet.geometry.polar
-    import zernet.membrane
-    import zernet.polar
-    import zernet.surface
+def test_old_import_paths_are_gone():
+    """The deprecated re-export modules of 0.1 were removed in 0.2 (CHANGELOG.md)."""
+    import importlib
 
-    for name in ("Surface", "SurfaceError", "SurfaceWarning", "load_surface", "validate_surface",
-                 "normalize_area", "SurfaceSamples", "sample_surface"):
-        assert getattr(zernet.surface, name) is getattr(zernet.geometry, name)
-    for name in ("BACKENDS", "PolarCoordinates", "compute_polar", "tangent_frames", "transport_angles"):
-        assert getattr(zernet.polar, name) is getattr(zernet.geometry.polar, name)
-    assert zernet.membrane.membrane_stress is zernet.geometry.membrane.membrane_stress
+    for name in ("zernet.surface", "zernet.polar", "zernet.membrane", "zernet.patches", "zernet.train",
+                 "zernet.nn.geometry", "zernet.nn.baselines", "zernet.data.base"):
+        with pytest.raises(ModuleNotFoundError):
+            importlib.import_module(name)
