@@ -3,4 +3,4 @@
 Data flows one way: surface -> polar coordinates -> patch operator -> layers -> models -> training.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
