@@ -21,11 +21,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from zernet.matching.spectral import SpectralBasis
 
-__all__ = ["resolvent_mask", "functional_map", "fmap_from_pointmap", "pointmap_from_fmap", "zoomout",
+__all__ = ["resolvent_mask", "functional_map", "fmap_from_pointmap", "nearest_rows", "pointmap_from_fmap", "zoomout",
            "cycle_confidence"]
 
 
@@ -79,13 +78,26 @@ def fmap_from_pointmap(pointmap_yx: np.ndarray, basis_x: SpectralBasis, basis_y:
     return basis_y.eigenvectors[:, :k_y].T @ (basis_y.mass[:, None] * pulled_back)
 
 
+def nearest_rows(queries: np.ndarray, points: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """(M,) int64 index of the row of ``points`` (N, k) nearest to each row of ``queries`` (M, k).
+
+    Brute force by matrix products in chunks (``‖p‖² - 2 q·p`` per chunk of queries): in the 30-80
+    dimensions of a spectral embedding a k-d tree prunes almost nothing, and this was 1.4-2.9x faster than
+    ``scipy.spatial.cKDTree`` at 6,000 x 7,000 points (k = 30, 80; one thread), with the same answers."""
+    queries_t = torch.as_tensor(np.ascontiguousarray(queries, dtype=np.float64))
+    points_t = torch.as_tensor(np.ascontiguousarray(points, dtype=np.float64))
+    squared = (points_t * points_t).sum(dim=1)
+    nearest = [(squared[None, :] - 2 * queries_t[start:start + chunk] @ points_t.T).argmin(dim=1)
+               for start in range(0, len(queries_t), chunk)]
+    return torch.cat(nearest).numpy().astype(np.int64) if nearest else np.zeros(0, dtype=np.int64)
+
+
 def pointmap_from_fmap(fmap_xy: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis) -> np.ndarray:
     """The point map ``T: Y -> X`` (N_y,) int64 of ``C_xy`` (k_y, k_x): for each Y vertex, the X vertex
-    nearest to ``Φ_y[y] C_xy`` in the spectral embedding ``Φ_x[:, :k_x]`` (a k-d tree)."""
+    nearest to ``Φ_y[y] C_xy`` in the spectral embedding ``Φ_x[:, :k_x]`` (:func:`nearest_rows`)."""
     k_y, k_x = fmap_xy.shape
     embedding_y = basis_y.eigenvectors[:, :k_y] @ fmap_xy                     # (N_y, k_x)
-    _, nearest = cKDTree(basis_x.eigenvectors[:, :k_x]).query(embedding_y)
-    return np.asarray(nearest, dtype=np.int64)
+    return nearest_rows(embedding_y, basis_x.eigenvectors[:, :k_x])
 
 
 def zoomout(pointmap_yx: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis, k_start: int,

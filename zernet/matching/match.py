@@ -2,8 +2,8 @@
 
 A model whose inputs depend on the pose (xyz) and whose spec says ``align_target`` sees the target turned
 into the source's frame: the 4 rotations that carry the target's principal axes onto the source's
-(:func:`candidate_alignments`) are tried, and the one whose two maps (source -> target and back) agree
-best is kept. The candidates do not depend on the target's pose, so neither does the match.
+(:func:`candidate_alignments`) are tried, and the one under whose map the descriptors agree best (the
+mean squared distance between a source vertex's descriptor and its image's) is kept. The candidates do not depend on the target's pose, so neither does the match.
 
 :func:`match_shapes` works on two prepared shapes (:func:`zernet.matching.shapes.prepare_shape`);
 :func:`match_surfaces` takes two surfaces or files as a user has them, repairs them (merged duplicate
@@ -119,27 +119,31 @@ def match_shapes(model: DescriptorModel, source: MatchShape, target: MatchShape,
     seconds = {}
     start = time.perf_counter()
     descriptors_s = shape_descriptors(model, source)
-    scale = CONFIDENCE_SCALE * np.sqrt(source.surface.area)
     rotations = candidate_alignments(source, target) if spec.align_target else [None]
     best = None
     for rotation in rotations:
         descriptors_t = shape_descriptors(model, target, rotation)
         with torch.no_grad():
             fmap_ts = descriptor_fmap(model, descriptors_t, descriptors_s, target, source).double().numpy()
-            fmap_st = descriptor_fmap(model, descriptors_s, descriptors_t, source, target).double().numpy()
         # C_ts carries target functions to the source, so it gives the point map source -> target.
-        candidate = (pointmap_from_fmap(fmap_ts, target.basis, source.basis),
-                     pointmap_from_fmap(fmap_st, source.basis, target.basis), fmap_ts)
-        agreement = cycle_confidence(candidate[0], candidate[1], source.surface.vertices, scale).mean()
-        if best is None or agreement > best[0]:
-            best = (agreement, *candidate)
-    _, vertex_map, reverse_map, fmap_ts = best
+        vertex_map = pointmap_from_fmap(fmap_ts, target.basis, source.basis)
+        # How well the descriptors agree under the map: a flipped or upside-down alignment maps
+        # consistently (both directions agree) but pairs unlike descriptors.
+        disagreement = float(((descriptors_s - descriptors_t[vertex_map]) ** 2).sum(dim=1).mean())
+        if best is None or disagreement < best[0]:
+            best = (disagreement, vertex_map, fmap_ts, descriptors_t)
+    _, vertex_map, fmap_ts, descriptors_t = best
+    with torch.no_grad():
+        fmap_st = descriptor_fmap(model, descriptors_s, descriptors_t, source, target).double().numpy()
+    reverse_map = pointmap_from_fmap(fmap_st, source.basis, target.basis)
     seconds["descriptors+fmap"] = time.perf_counter() - start
     start = time.perf_counter()
+    # ZoomOut refines the answer (source -> target); the reverse map serves the confidence and the
+    # picture and keeps the layer's resolution (ZoomOut in both directions doubled the time).
     vertex_map, refined_ts = _refined(vertex_map, target.basis, source.basis, spec.n_fmap, zoomout_end,
                                       spec.zoomout_step)
-    reverse_map, _ = _refined(reverse_map, source.basis, target.basis, spec.n_fmap, zoomout_end, spec.zoomout_step)
     seconds["zoomout"] = time.perf_counter() - start
+    scale = CONFIDENCE_SCALE * np.sqrt(source.surface.area)
     confidence = cycle_confidence(vertex_map, reverse_map, source.surface.vertices, scale)
     return MatchResult(vertex_map, reverse_map, fmap_ts if refined_ts is None else refined_ts, confidence, seconds)
 
