@@ -13,20 +13,21 @@ uneven density, and cut to a partial scan; ground truth through the position on 
    vertex accuracy against the form's ground truth; a form that raises counts as *refused*;
 3. writes ``benchmarks/results/scans.md`` and ``scans.json`` (accuracy per model and form, pooled over the
    vertices of the 20 test bodies, its drop from the original form, refusals, seconds per shape) and one
-   picture per form (``scans_<form>.png``: the first test body coloured by the predicted part, and where
-   the prediction is wrong).
+   picture per form (``scans_<form>.png``: the first test body coloured by zernet's predicted part, and
+   where the prediction is wrong).
 
 Partial scans cover part of the body, so scaling them to the training area would enlarge them: they are
 scaled instead by the factor that takes the training bodies (all in metres) to the training area, the
 median over the training bodies, as a user who knows their scanner's units would (``predict(scale=...)``,
 ``zernet predict --scale``).
 
-    .venv/bin/python benchmarks/scans.py --bodies data/scans --runs runs/scans --models zernet feastnet
+    .venv/bin/python benchmarks/scans.py --bodies data/scans --runs runs/scans --models zernet feastnet zernet-mixed
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 import time
@@ -51,8 +52,12 @@ from zernet.viz import render_comparison  # noqa: E402
 RESULTS = ROOT / "benchmarks" / "results"
 CONFIG = ROOT / "configs" / "bodies_segmentation.yaml"
 FORMS = ("original", "remeshed", "decimated", "cloud", "cloud-noisy", "partial")
-#: The model section of each model: the shipped recipe's, or FeaStNet with the same widths and dropout.
-MODELS = ("zernet", "feastnet")
+#: zernet and FeaStNet (the same widths and dropout) trained on the original bodies; zernet-mixed: the zernet
+#: run fine-tuned for one epoch on the original training bodies plus the uniform and the noisy cloud of half
+#: of them (augmentation by resampling).
+MODELS = ("zernet", "feastnet", "zernet-mixed")
+#: Training bodies whose clouds join the mixed training set, and the forms taken.
+MIXED_BODIES, MIXED_FORMS = 40, ("cloud", "cloud-noisy")
 #: Model options only zernet takes.
 ZERNET_ONLY = ("angular_resolution", "pooling")
 
@@ -80,22 +85,52 @@ def ensure_bodies(bodies: Path) -> None:
 
 
 def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
-    """Train ``model`` on the original training bodies unless ``run_dir`` already holds a trained run."""
+    """Train ``model`` (see :data:`MODELS`) unless ``run_dir`` already holds a trained run."""
     if (run_dir / "best.pt").is_file():
         return run_dir
     config = load_config(CONFIG)
-    config["data"].update(meshes=str(bodies / "segmentation" / "meshes"), labels=str(bodies / "segmentation" / "labels"))
+    segmentation = bodies / "segmentation"
+    config["data"].update(meshes=str(segmentation / "meshes"), labels=str(segmentation / "labels"))
     config["train"].update(epochs=args.epochs, threads=args.threads)
     config["eval"]["renders"] = 0
+    extra = []
     if model == "feastnet":
         config["model"] = {key: value for key, value in config["model"].items() if key not in ZERNET_ONLY}
         config["model"]["name"] = "feastnet"
+    if model == "zernet-mixed":
+        mixed = mixed_training_folder(bodies)
+        config["data"].update(meshes=str(mixed / "meshes"), labels=str(mixed / "labels"))
+        config["train"].update(epochs=1, lr=1.0e-3)
+        extra = ["--init-from", str(ensure_run("zernet", bodies, run_dir.parent / "zernet", args))]
     path = run_dir.parent / f"{model}.yaml"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(config))
     subprocess.run([sys.executable, "-m", "zernet.cli", "train", str(path), "--run-dir", str(run_dir), "--no-progress",
-                    "--workers", "1"], check=True)
+                    "--workers", "1", *extra], check=True)
     return run_dir
+
+
+def mixed_training_folder(bodies: Path) -> Path:
+    """A segmentation folder of links: the original training and test bodies, plus the clouds
+    (:data:`MIXED_FORMS`) of the first :data:`MIXED_BODIES` training bodies (generated if missing)."""
+    forms = bodies / "train-forms"
+    if not (forms / "forms" / MIXED_FORMS[0] / "meshes" / "train").is_dir():
+        subprocess.run([sys.executable, "-m", "zernet.cli", "bodies", str(forms), "--count", "100", "--n-test", "20",
+                        "--seed", "0", "--forms", ",".join(MIXED_FORMS), "--forms-split", "all"], check=True)
+    mixed = bodies / "mixed"
+    links = [(bodies / "segmentation" / kind / split / f"{path.stem}{suffix}", mixed / kind / split / f"{path.stem}{suffix}")
+             for split in ("train", "test") for path in sorted((bodies / "segmentation" / "meshes" / split).glob("*.ply"))
+             for kind, suffix in (("meshes", ".ply"), ("labels", ".txt"))]
+    for form in MIXED_FORMS:
+        for path in sorted((forms / "forms" / form / "meshes" / "train").glob("*.ply"))[:MIXED_BODIES]:
+            for kind, suffix in (("meshes", ".ply"), ("labels", ".txt")):
+                links.append((forms / "forms" / form / kind / "train" / f"{path.stem}{suffix}",
+                              mixed / kind / "train" / f"{path.stem}_{form}{suffix}"))
+    for source, link in links:
+        link.parent.mkdir(parents=True, exist_ok=True)
+        if not link.exists():
+            link.symlink_to(source.resolve())
+    return mixed
 
 
 def form_files(bodies: Path, form: str) -> list[tuple[Path, Path]]:
@@ -171,12 +206,17 @@ def main(argv=None) -> int:
         results[model] = {}
         for form in args.forms:
             files = form_files(args.bodies, form)[: args.limit]
-            picture = RESULTS / f"{args.out}_{form}.png" if model == args.models[0] else None
+            picture = RESULTS / f"{args.out}_{form}.png" if model == "zernet" else None
             row = score_form(run_dir, files, scale if form == "partial" else None, picture)
             results[model][form] = row
             accuracy = "-" if row["accuracy"] is None else f"{100 * row['accuracy']:.2f} %"
             print(f"{model:9} {form:12} {accuracy:>9}  refused {len(row['refused'])}", flush=True)
-    write_json(RESULTS / f"{args.out}.json", {"models": results, "partial_scale": scale, "argv": sys.argv[1:]})
+    # Models measured by an earlier call with the same --out are kept (one model at a time fits a session).
+    stored = RESULTS / f"{args.out}.json"
+    if stored.is_file():
+        earlier = json.loads(stored.read_text())["models"]
+        results = {**{m: r for m, r in earlier.items() if m not in results}, **results}
+    write_json(stored, {"models": results, "partial_scale": scale, "argv": sys.argv[1:]})
     atomic_write_bytes(RESULTS / f"{args.out}.md", markdown(results, args, scale).encode())
     print(markdown(results, args, scale))
     return 0
