@@ -31,10 +31,9 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from zernet.data.features import MEMBRANE_PRESTRESSES  # noqa: E402
+from zernet.geometry import load_surface, membrane_stress  # noqa: E402
 from zernet.io_utils import atomic_write_bytes  # noqa: E402
-from zernet.geometry import membrane_stress  # noqa: E402
 from zernet.metrics import regression_scores  # noqa: E402
-from zernet.geometry import load_surface  # noqa: E402
 from zernet.training import apply_overrides, evaluate, load_config, resolve_config, train  # noqa: E402
 
 # The paper's Table 3, ZerNet columns (MAPE, RRMSE, HR in %; PCC as a fraction).

@@ -48,8 +48,17 @@ from scipy.spatial import cKDTree
 
 from zernet.data.bodies import generate_bodies
 from zernet.data.segmentation import HUMAN_PART_NAMES
-from zernet.geometry import (PolarCoordinates, Surface, SurfaceSamples, compute_polar, load_surface, mesh_from_cloud,
-                             normalize_area, sample_surface, tangent_frames)
+from zernet.geometry import (
+    PolarCoordinates,
+    Surface,
+    SurfaceSamples,
+    compute_polar,
+    load_surface,
+    mesh_from_cloud,
+    normalize_area,
+    sample_surface,
+    tangent_frames,
+)
 from zernet.geometry.exact import ExactGeodesics
 from zernet.io_utils import atomic_write_bytes
 from zernet.operators import PatchConfig, assemble_operator, build_patch_operator

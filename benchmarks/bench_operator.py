@@ -123,7 +123,7 @@ def bench_surface(surface: Surface, config: PatchConfig, backends, n_centres: in
            "samples": config.n_samples, "centres": int(len(centres)), "reference_s": time.perf_counter() - started}
     for backend in backends:
         backend_config = PatchConfig(**{**config.to_dict(), "backend": backend})
-        build, _ = _best_time(lambda: build_patch_operator(surface, backend_config, n_jobs=n_jobs), 1 if backend == "accurate" else repeats)
+        build, _ = _best_time(lambda config=backend_config: build_patch_operator(surface, config, n_jobs=n_jobs), 1 if backend == "accurate" else repeats)
         polar = compute_polar(surface, samples, config.r0, backend=backend, n_jobs=n_jobs)
         row[backend] = {"operator_build_s": build, "polar_s": polar.seconds, **score(polar, exact, centres, config.r0)}
     return row

@@ -37,7 +37,6 @@ Writes ``benchmarks/results/bodies.md``, ``bodies.json`` and ``bodies.png`` (``-
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import sys
 import time
@@ -56,7 +55,12 @@ import torch  # noqa: E402
 from zernet.data.bodies import TOPOLOGIES, write_bodies  # noqa: E402
 from zernet.io_utils import atomic_write_bytes, plain, write_json  # noqa: E402
 from zernet.training import (  # noqa: E402
-    apply_overrides, build_dataset, load_checkpoint, load_config, parse_config, train,
+    apply_overrides,
+    build_dataset,
+    load_checkpoint,
+    load_config,
+    parse_config,
+    train,
 )
 from zernet.training.evaluation import evaluate_members, select_refine_rings  # noqa: E402
 from zernet.training.predict import model_from_checkpoint, predict_record  # noqa: E402
@@ -234,7 +238,7 @@ def _pct(value) -> str:
 
 def markdown(results: list[dict], args) -> str:
     first = results[0]
-    lines = [f"# Generated bodies: zernet variants, the paper's formulation and FeaStNet", "",
+    lines = ["# Generated bodies: zernet variants, the paper's formulation and FeaStNet", "",
              f"`{' '.join(['benchmarks/bodies.py'] + sys.argv[1:])}`", "",
              f"Bodies: topology {args.topology} ({first['n_vertices']} vertices), {first['n_train']} train / "
              f"{first['n_val']} validation / {first['n_test']} test, seed {args.seed}; {args.epochs} epochs each, "

@@ -46,7 +46,6 @@ from pathlib import Path
 
 import torch
 import yaml
-
 from report_tables import (
     BODY_AREA,
     BODY_PATCH,
@@ -62,13 +61,13 @@ from report_tables import (
     training_models,
     write_report,
 )
+
 from zernet.data.bodies import BodyGenerator
 from zernet.data.preprocess import mesh_edge_index
 from zernet.geometry import normalize_area
 from zernet.nn.models import build_model
 from zernet.operators import Geometry, PatchConfig, PatchOperator, build_patch_operator
 from zernet.training import keep_freed_memory, load_checkpoint, train
-
 
 # --------------------------------------------------------------------------------------------------------
 # Inputs

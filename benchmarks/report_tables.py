@@ -17,8 +17,8 @@ import torch_geometric
 import yaml
 
 matplotlib.use("Agg")
-import matplotlib.ticker  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 N_VERTICES = 6890

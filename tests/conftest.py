@@ -6,7 +6,6 @@ pytest loads this file first and, because the test folders have no ``__init__.py
 
 import pytest
 import torch
-
 from meshes import grid, icosphere, open_cylinder, tetrahedron
 
 

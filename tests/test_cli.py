@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 import trimesh
 import yaml
-
 from training.tiny_configs import cli_config
 
 from zernet.cli import _ADVICE, DEMO_CONFIG, build_parser, command_advice, main

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from meshes import cylinder_mesh, icosphere, random_sphere_points
 from torch_geometric.data import Batch, Data, InMemoryDataset
 from torch_geometric.loader import DataLoader
 
-from meshes import cylinder_mesh, icosphere, random_sphere_points
 from zernet.data.features import compute_features
 from zernet.geometry import Surface, normalize_area
 from zernet.nn.models import build_model
@@ -88,7 +88,7 @@ def test_point_cloud_and_pair_operator_round_trip(tmp_path):
     both = PairOperator.concatenate([pairs, shuffled])
     _same_matrix(both.matrix, PatchOperator.concatenate([reference, reference]).matrix.astype(np.float32))
     with pytest.raises(AttributeError, match="patch samples"):
-        pairs.patch_sample_index
+        _ = pairs.patch_sample_index
 
 
 MODELS = {

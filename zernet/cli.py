@@ -22,9 +22,9 @@ from zernet.data.bodies import POSE_MODES as BODY_POSES
 from zernet.data.bodies import TOPOLOGIES as BODY_TOPOLOGIES
 from zernet.data.bodies import write_bodies
 from zernet.distributed import is_main
+from zernet.geometry import SurfaceError, read_surface, repair_surface
 from zernet.io_utils import atomic_write_bytes, write_json
 from zernet.matching.cli import add_match_command
-from zernet.geometry import SurfaceError, read_surface, repair_surface
 from zernet.training import (
     RESUME_CHANGEABLE,
     ConfigError,

@@ -24,8 +24,8 @@ from zernet.data.bodies_pose import JOINTS, bone_rotations, rotation_matrix
 from zernet.data.faust import load_faust
 from zernet.data.options import LoaderOptions
 from zernet.data.segmentation import HUMAN_PART_NAMES, load_segmentation, read_labels
-from zernet.operators import PatchConfig
 from zernet.geometry import Surface, load_surface, validate_surface
+from zernet.operators import PatchConfig
 
 COARSE = "coarse-369"
 CONFIGS = [PatchConfig(r0=20.0, n_samples=800, patch_size=20, n_max=2)]

@@ -12,8 +12,8 @@ from zernet.data.features import (
     feature_channels,
     shape_descriptors,
 )
-from zernet.operators import PatchConfig, build_patch_operator
 from zernet.geometry import Surface
+from zernet.operators import PatchConfig, build_patch_operator
 from zernet.zernike import index_to_nm, orders
 
 # patch_size large enough that every patch covers its whole disk, so the fit sees the analytic field.

@@ -31,8 +31,8 @@ from zernet.data.features import MEMBRANE_PRESTRESSES, default_features, feature
 from zernet.data.regression import leave_one_out_splits, load_aneurysm, load_regression
 from zernet.data.segmentation import face_to_vertex_labels, load_segmentation
 from zernet.data.synthetic import PART_NAMES, load_creature, make_creature, make_synthetic_dataset
-from zernet.operators import PatchConfig
 from zernet.geometry import Surface
+from zernet.operators import PatchConfig
 
 # Tiny surfaces are normalised to area 100 (an icosphere of radius ~2.8); r0 = 1.2 keeps ~10 vertices and,
 # with 1500 samples, ~70 samples per patch disk.

@@ -15,8 +15,8 @@ import pytest
 import scipy.io
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
 from meshes import tetrahedron
+
 from zernet.data.dataset import DatasetError
 from zernet.data.preprocess import prepare_record
 from zernet.data.regression import load_mat_field, read_values

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 import trimesh
+from meshes import grid_mesh, icosphere
 from scipy.spatial import Delaunay
 
-from meshes import grid_mesh, icosphere
 from zernet.geometry import Surface, compute_polar, mesh_from_cloud, sample_surface
 from zernet.geometry.cloud_mesh import triangulate_cloud
 from zernet.operators import PatchConfig, build_patch_operator

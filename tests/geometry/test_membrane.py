@@ -4,9 +4,9 @@ errors, cache; and the "membrane" feature part built on it."""
 import numpy as np
 import pytest
 import trimesh
+from meshes import grid, icosphere, open_cylinder
 from scipy.spatial.transform import Rotation
 
-from meshes import grid, icosphere, open_cylinder
 from zernet.data.dataset import DatasetError
 from zernet.data.features import compute_features, feature_channels, feature_parts
 from zernet.geometry import Surface, SurfaceError, membrane_stress

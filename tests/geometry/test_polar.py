@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 import trimesh
-
 from meshes import cylinder_mesh, grid_mesh
+
 from zernet.geometry import Surface, compute_polar, sample_surface, tangent_frames, transport_angles
 from zernet.geometry.polar import wrap_angle as wrap
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import scipy.io
 import trimesh
+from meshes import grid, icosphere, random_sphere_points
 
-from meshes import grid, icosphere, open_cylinder, random_sphere_points
 from zernet.geometry import (
     Surface,
     SurfaceError,

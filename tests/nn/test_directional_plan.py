@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import torch
+from meshes import patch_like_operator
 
 from zernet.fourier import fourier_dim, rotate_fourier
 from zernet.nn.directional import DirectionalPooling, DirectionalZernikeConv
@@ -14,7 +15,6 @@ from zernet.nn.directional_plan import coupling_tensor, directional_plan, harmon
 from zernet.nn.models import DirectionalZerNet
 from zernet.nn.pooling import continuous_max
 from zernet.nn.reference import MatrixOperator
-from meshes import patch_like_operator
 from zernet.operators import Geometry, build_directional_operator
 from zernet.operators.directional import patch_pairs
 from zernet.zernike import num_bases, orders, rotate_coefficients

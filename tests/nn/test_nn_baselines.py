@@ -12,11 +12,11 @@ import torch
 import trimesh
 from torch_geometric.nn import FeaStConv
 
-from zernet.nn.models import FeaStNet, PaperZernikeConv, PaperZerNet, build_model
+from zernet.geometry import Surface
 from zernet.nn.conv import ZernikeConv
+from zernet.nn.models import FeaStNet, PaperZerNet, PaperZernikeConv, build_model
 from zernet.nn.reference import MatrixOperator
 from zernet.operators import Geometry, PatchConfig, build_patch_operator
-from zernet.geometry import Surface
 from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
 
 SMALL = dict(widths=(8, 12, 16))

@@ -20,9 +20,11 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import torch
+from meshes import random_frames
 
 import zernet.operators.directional as directional_operators
 from zernet.fourier import fourier_rotation_matrix, fourier_to_samples, rotate_fourier, samples_to_fourier, trig_table
+from zernet.geometry import transport_angles
 from zernet.nn.conv import ZernikeConv
 from zernet.nn.directional import (
     DirectionalLayerNorm,
@@ -33,9 +35,7 @@ from zernet.nn.directional import (
 )
 from zernet.nn.models import DirectionalZerNet
 from zernet.nn.reference import MatrixOperator
-from meshes import random_frames
 from zernet.operators import Geometry, build_directional_operator
-from zernet.geometry import transport_angles
 from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
 
 N_MAX = 3
@@ -87,14 +87,16 @@ def test_fourier_samples_round_trip_and_rotation():
     torch.testing.assert_close(samples_to_fourier(samples, L, dim=1), c)
     # direct evaluation of h(ψ) = a0 + Σ a cos ℓψ + b sin ℓψ
     psi = 2 * math.pi * 4 / s
-    direct = c[:, 0] + sum(c[:, 2 * l - 1] * math.cos(l * psi) + c[:, 2 * l] * math.sin(l * psi) for l in range(1, L + 1))
+    direct = c[:, 0] + sum(c[:, 2 * order - 1] * math.cos(order * psi) + c[:, 2 * order] * math.sin(order * psi)
+                         for order in range(1, L + 1))
     torch.testing.assert_close(samples[:, 4], direct)
     # rotate_fourier(·, δ) gives h(ψ + δ); by 2π a / s it is a cyclic shift of the samples
     delta = 0.37
     rotated = fourier_to_samples(rotate_fourier(c, delta, dim=1), 1, dim=1)[:, 0]
     at_delta = fourier_to_samples(rotate_fourier(c, 0.0, dim=1), 1, dim=1)  # h(0)
     assert at_delta.shape == (5, 1, 2)
-    direct = c[:, 0] + sum(c[:, 2 * l - 1] * math.cos(l * delta) + c[:, 2 * l] * math.sin(l * delta) for l in range(1, L + 1))
+    direct = c[:, 0] + sum(c[:, 2 * order - 1] * math.cos(order * delta) + c[:, 2 * order] * math.sin(order * delta)
+                         for order in range(1, L + 1))
     torch.testing.assert_close(rotated, direct)
     shifted = fourier_to_samples(rotate_fourier(c, 2 * math.pi * 2 / s, dim=1), s, dim=1)
     torch.testing.assert_close(shifted, torch.roll(samples, -2, dims=1))
@@ -445,9 +447,8 @@ def test_registered_as_zernet_directional():
 def sphere_patches():
     """Polar coordinates and the patch operator of a 162-vertex icosphere (n_max = 3)."""
     trimesh = pytest.importorskip("trimesh")
+    from zernet.geometry import Surface, compute_polar, sample_surface
     from zernet.operators import PatchConfig, assemble_operator
-    from zernet.geometry import compute_polar
-    from zernet.geometry import Surface, sample_surface
 
     mesh = trimesh.creation.icosphere(subdivisions=2)
     surface = Surface(vertices=np.asarray(mesh.vertices, dtype=np.float64), faces=np.asarray(mesh.faces, dtype=np.int64))

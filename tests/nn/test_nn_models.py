@@ -172,8 +172,8 @@ def ellipsoid_geometry():
     import trimesh
 
     from zernet.data.preprocess import mesh_edge_index
-    from zernet.operators import PatchConfig, build_patch_operator
     from zernet.geometry import Surface
+    from zernet.operators import PatchConfig, build_patch_operator
 
     mesh = trimesh.creation.icosphere(subdivisions=2)
     surface = Surface(vertices=np.asarray(mesh.vertices) * [1.3, 1.0, 0.8], faces=np.asarray(mesh.faces), name="ellipsoid")

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import torch
-
 from meshes import icosphere, patch_like_operator, random_frames
+
 from zernet.data.preprocess import ShapeSource, build_dataset
 from zernet.fourier import fourier_dim
 from zernet.nn.models import build_model

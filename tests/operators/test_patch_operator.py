@@ -7,9 +7,15 @@ import pytest
 import torch
 import trimesh
 
-from zernet.operators import CacheWarning, PatchConfig, PatchOperator, assemble_operator, build_patch_operator, cache_key
-from zernet.geometry import compute_polar
-from zernet.geometry import Surface, sample_surface
+from zernet.geometry import Surface, compute_polar, sample_surface
+from zernet.operators import (
+    CacheWarning,
+    PatchConfig,
+    PatchOperator,
+    assemble_operator,
+    build_patch_operator,
+    cache_key,
+)
 from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
 
 

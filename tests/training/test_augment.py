@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from tiny_configs import tiny_config
 
 from zernet.data.dataset import ShapeRecord

@@ -17,7 +17,6 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-
 from tiny_configs import ddp_config
 
 from zernet.distributed import DistributedContext, shard_indices

@@ -24,16 +24,15 @@ import pytest
 import torch
 import trimesh
 import yaml
-
 from tiny_configs import faults_config
 
 from zernet import io_utils
 from zernet.cli import main
 from zernet.data import PreprocessError, ShapeSource, SkippedShapesWarning, build_dataset
 from zernet.data.preprocess import WORKER_DIED, file_key, preprocess_shapes
+from zernet.geometry import load_surface
 from zernet.io_utils import atomic_save_torch, atomic_write_bytes
 from zernet.operators import PatchConfig
-from zernet.geometry import load_surface
 from zernet.training import load_checkpoint, train
 
 pytestmark = pytest.mark.timeout(240)

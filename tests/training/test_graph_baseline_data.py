@@ -6,12 +6,11 @@ import numpy as np
 import pytest
 import torch
 from meshes import icosphere
+from tiny_configs import tiny_config
 
 from zernet.data import DatasetError, LoaderOptions, load_dataset
 from zernet.training import ConfigError, load_checkpoint, parse_config, predict, train
 from zernet.training.build import needs_operators
-
-from tiny_configs import tiny_config
 
 PATCH = [{"r0": 5.0, "n_samples": 800, "patch_size": 20, "n_max": 3}]
 SYNTHETIC = dict(task="segmentation", n_shapes=4, n_vertices=200, test_fraction=0.25)

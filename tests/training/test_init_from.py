@@ -9,7 +9,6 @@ import json
 import pytest
 import torch
 import yaml
-
 from tiny_configs import tiny_config
 
 from zernet.cli import main

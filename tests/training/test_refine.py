@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-
 from meshes import icosphere
+
 from zernet.cli import main
 from zernet.data import LoaderOptions, load_faust
 from zernet.operators import PatchConfig
-from zernet.training.config import ConfigError, EvalSection
 from zernet.training import evaluate, predict, train
 from zernet.training.checkpoint import load_checkpoint
+from zernet.training.config import ConfigError, EvalSection
 from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
-from zernet.training.refine import ring_average, refine_correspondence
+from zernet.training.refine import refine_correspondence, ring_average
 
 
 def test_ring_average_is_the_mean_over_the_vertices_within_so_many_edges(tetrahedron_surface, sphere_surface):

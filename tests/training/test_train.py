@@ -14,13 +14,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-
 from tiny_configs import tiny_config
 
 import zernet.training.loop as loop
 from zernet.data.synthetic import make_creature
-from zernet.metrics import regression_scores
 from zernet.geometry import Surface
+from zernet.metrics import regression_scores
 from zernet.training import (
     ConfigError,
     apply_overrides,

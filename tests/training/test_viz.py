@@ -6,9 +6,9 @@ import pytest
 import trimesh
 
 from zernet import viz
+from zernet.geometry import Surface
 from zernet.metrics import error_curve, regression_scores
 from zernet.training.run_dir import regression_title
-from zernet.geometry import Surface
 
 
 @pytest.fixture(scope="module")

@@ -29,8 +29,7 @@ import trimesh
 from tqdm.auto import tqdm
 
 from zernet.data.bodies_forms import BodyForm, check_form_dependencies, make_forms, resolve_forms
-from zernet.data.bodies_generator import (GENERATOR_VERSION, SPLIT_CODES, Body, generate_bodies,
-                                          package_version)
+from zernet.data.bodies_generator import GENERATOR_VERSION, SPLIT_CODES, Body, generate_bodies, package_version
 from zernet.data.dataset import DatasetError
 from zernet.data.segmentation import HUMAN_PART_NAMES
 from zernet.io_utils import atomic_write_bytes, write_json

@@ -22,9 +22,9 @@ import numpy as np
 
 from zernet.data.dataset import DatasetError
 from zernet.data.source import ShapeSource
+from zernet.geometry import Surface
 from zernet.io_utils import atomic_write_bytes
 from zernet.operators import PatchConfig
-from zernet.geometry import Surface
 
 __all__ = [
     "CACHE_FORMAT",

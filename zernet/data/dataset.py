@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from zernet.operators import Geometry
 from zernet.geometry import Surface
+from zernet.operators import Geometry
 
 __all__ = ["TASKS", "DatasetError", "ShapeRecord", "ShapeDataset", "carve_validation", "as_target"]
 

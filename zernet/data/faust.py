@@ -28,8 +28,8 @@ from zernet.data.dataset import DatasetError, ShapeDataset
 from zernet.data.options import LoaderOptions
 from zernet.data.preprocess import build_dataset
 from zernet.data.source import ShapeSource, file_key
-from zernet.operators import PatchConfig
 from zernet.geometry import Surface, load_surface
+from zernet.operators import PatchConfig
 
 __all__ = ["FAUST_AREA", "FAUST_VERTICES", "load_faust", "registration_numbers", "find_registrations",
            "faust_patch_configs"]

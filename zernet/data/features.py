@@ -14,8 +14,7 @@ import scipy.sparse
 from scipy.spatial import cKDTree
 
 from zernet.data.dataset import DatasetError
-from zernet.geometry import membrane_stress
-from zernet.geometry import Surface
+from zernet.geometry import Surface, membrane_stress
 from zernet.zernike import harmonic_pairs, index_to_nm, orders
 
 __all__ = [

@@ -47,12 +47,11 @@ from zernet.data.cache import (
 )
 from zernet.data.dataset import DatasetError, ShapeDataset, ShapeRecord, as_target, carve_validation
 from zernet.data.features import compute_features, feature_channels, feature_parts
-from zernet.data.pool import WORKER_DIED, pool_context, run_jobs, worker_init
+from zernet.data.pool import WORKER_DIED, run_jobs
 from zernet.data.source import ShapeSource, file_key
-from zernet.operators import Geometry
-from zernet.operators import PatchConfig, build_patch_operator
 from zernet.geometry import Surface, normalize_area, resolve_backend, validate_surface
 from zernet.geometry.cloud_mesh import mesh_from_cloud
+from zernet.operators import Geometry, PatchConfig, build_patch_operator
 
 __all__ = [
     "ShapeSource",

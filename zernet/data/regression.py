@@ -29,8 +29,8 @@ from zernet.data.options import LoaderOptions
 from zernet.data.preprocess import build_dataset
 from zernet.data.segmentation import MESH_EXTENSIONS, draw_test_names, find_meshes
 from zernet.data.source import ShapeSource, file_key, read_text_numbers
-from zernet.operators import PatchConfig
 from zernet.geometry import Surface, load_surface
+from zernet.operators import PatchConfig
 
 __all__ = [
     "ANEURYSM_AREA",

@@ -41,8 +41,8 @@ from zernet.data.dataset import DatasetError, ShapeDataset
 from zernet.data.options import LoaderOptions
 from zernet.data.preprocess import build_dataset
 from zernet.data.source import ShapeSource
-from zernet.operators import PatchConfig
 from zernet.geometry import Surface
+from zernet.operators import PatchConfig
 
 __all__ = [
     "SYNTHETIC_AREA",

@@ -15,13 +15,21 @@ Modules, each with one job:
 - :mod:`~zernet.geometry.membrane` — :func:`membrane_stress`.
 """
 
+from zernet.geometry.cloud_mesh import mesh_from_cloud
 from zernet.geometry.io import load_surface, read_surface
 from zernet.geometry.membrane import membrane_stress
-from zernet.geometry.polar import BACKEND_VERSIONS, BACKENDS, PolarCoordinates, resolve_backend, compute_polar, tangent_frames, transport_angles
+from zernet.geometry.polar import (
+    BACKEND_VERSIONS,
+    BACKENDS,
+    PolarCoordinates,
+    compute_polar,
+    resolve_backend,
+    tangent_frames,
+    transport_angles,
+)
 from zernet.geometry.sampling import SurfaceSamples, normalize_area, sample_surface
 from zernet.geometry.surface import Surface, SurfaceError, SurfaceWarning
 from zernet.geometry.validate import RepairedSurface, repair_surface, validate_surface
-from zernet.geometry.cloud_mesh import mesh_from_cloud
 
 __all__ = [
     "Surface",

@@ -39,7 +39,7 @@ from torch import Tensor, nn
 
 from zernet.zernike import harmonic_pairs, n_max_for, num_bases, orders
 
-from .pooling import POOLING_MODES, continuous_max, discrete_max, evaluate_harmonics, equispaced_angles
+from .pooling import POOLING_MODES, continuous_max, discrete_max, equispaced_angles, evaluate_harmonics
 
 __all__ = ["HarmonicPlan", "harmonic_plan", "harmonic_contraction", "ZernikeConv", "float32_forward"]
 

@@ -18,8 +18,8 @@ from zernet.data import DatasetError, load_dataset
 from zernet.data.features import feature_channels, needs_patch_operators
 from zernet.io_utils import plain
 from zernet.nn.models import MODEL_REGISTRY, available_models, build_model, reads_patch_operators
-from zernet.training.config import ConfigError, DataSection, ModelSection, PatchSection, RunConfig, parse_config
 from zernet.operators import PatchConfig
+from zernet.training.config import ConfigError, DataSection, ModelSection, PatchSection, RunConfig, parse_config
 from zernet.zernike import num_bases
 
 __all__ = ["build_dataset", "load_data", "needs_operators", "check_model_config", "model_spec",

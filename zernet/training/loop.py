@@ -35,9 +35,11 @@ import torch
 
 from zernet.data import PreprocessError, SkippedShapesWarning
 from zernet.data.preprocess import failure_listing
-from zernet.distributed import DistributedContext, is_main, setup as setup_distributed
+from zernet.distributed import DistributedContext, is_main
+from zernet.distributed import setup as setup_distributed
 from zernet.io_utils import atomic_save_torch, plain
 from zernet.training.augment import check_augmentation
+from zernet.training.batch import model_basis_orders, model_directional_order
 from zernet.training.build import (
     build_dataset,
     build_model_from_spec,
@@ -56,8 +58,8 @@ from zernet.training.checkpoint import (
 from zernet.training.config import ConfigError, EvalSection, RunConfig, TrainSection, parse_config
 from zernet.training.epoch import Objective, train_one_epoch, validate
 from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
-from zernet.training.init_from import InitSource, describe as describe_init, initialise_from, load_init_source
-from zernet.training.batch import model_basis_orders, model_directional_order
+from zernet.training.init_from import InitSource, initialise_from, load_init_source
+from zernet.training.init_from import describe as describe_init
 from zernet.training.losses import check_loss_targets, resolve_loss
 from zernet.training.residency import ShapeStore
 from zernet.training.run_dir import (

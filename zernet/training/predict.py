@@ -10,8 +10,8 @@ import numpy as np
 import torch
 
 from zernet.data import prepare_record
-from zernet.operators import PatchConfig
 from zernet.geometry import Surface, read_surface, repair_surface
+from zernet.operators import PatchConfig
 from zernet.training.batch import Batch, model_basis_orders, model_directional_order
 from zernet.training.build import build_model_from_spec
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint

@@ -20,11 +20,16 @@ from .base import (
 )
 from .baselines import FeaStNet
 from .directional import DirectionalZerNet
-from .paper import PaperZernikeConv, PaperZerNet, ridge_normal_matrix
+from .paper import PaperZerNet, PaperZernikeConv, ridge_normal_matrix
 from .registry import (
-    MODEL_REGISTRY, available_models, build_model, directional_order, reads_patch_operators, register_model,
+    MODEL_REGISTRY,
+    available_models,
+    build_model,
+    directional_order,
+    reads_patch_operators,
+    register_model,
 )
-from .zernet import MultiScaleZerNet, ZernikeBlock, ZerNet
+from .zernet import MultiScaleZerNet, ZerNet, ZernikeBlock
 
 __all__ = [
     "MODEL_REGISTRY",
