@@ -63,3 +63,19 @@ def test_pair_rotations_turn_both_shapes_nearly_alike():
         angle = np.degrees(np.arccos(np.clip((np.trace(relative) - 1) / 2, -1, 1)))
         assert angle <= 40.0 + 1e-6
         np.testing.assert_allclose(first @ first.T, np.eye(3), atol=1e-12)
+
+
+def test_matching_configs_build_their_model():
+    """Every config under configs/matching/ names a spec the descriptor model builds from."""
+    from pathlib import Path
+
+    from zernet.matching.model import DescriptorModel
+    from zernet.matching.train import load_config, make_spec
+
+    paths = sorted((Path(__file__).resolve().parents[2] / "configs" / "matching").glob("*.yaml"))
+    assert paths
+    for path in paths:
+        config = load_config(path)
+        assert {"data", "spec", "train"} <= set(config)
+        model = DescriptorModel(make_spec(config))
+        assert model.spec.in_channels == 3 + 16 or model.spec.feature_kind != "xyz+hks"

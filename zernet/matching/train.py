@@ -19,7 +19,7 @@ target's area) of the point map read off the layer's ``C`` (no ZoomOut, so it me
 the weights of the best validation score are kept (``best.pt``).
 
 Run: ``python -m zernet.matching.train CONFIG --out RUN_DIR [--set section.key=value ...]`` (see
-``configs/matching_bodies.yaml``); the run folder gets ``config.yaml``, ``train.log``, ``history.json``,
+``configs/matching/bodies.yaml``); the run folder gets ``config.yaml``, ``train.log``, ``history.json``,
 ``best.pt`` / ``last.pt`` (matching model files, :func:`zernet.matching.model.save_matching_model`).
 """
 
