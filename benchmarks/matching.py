@@ -45,7 +45,9 @@ from zernet.viz import plot_error_curve, render_side_by_side
 ZOOMOUT_ALONE_START = 10
 
 
-def errors_on_target(target: Surface, predicted: np.ndarray, truth: np.ndarray, diameter: float) -> tuple[np.ndarray, np.ndarray]:
+def errors_on_target(
+    target: Surface, predicted: np.ndarray, truth: np.ndarray, diameter: float
+) -> tuple[np.ndarray, np.ndarray]:
     """(errors x100 / sqrt(area), errors / geodesic diameter) per source vertex."""
     root_area = np.sqrt(target.area)
     relative = geodesic_errors(target.vertices, predicted, truth, faces=target.faces, diameter=root_area)
@@ -66,17 +68,21 @@ def main(argv=None) -> int:
     spec = model.spec
     settings = args.settings.split(",")
     indices = range(args.pairs + 1)
-    targets, target_bodies, faces = body_forms(indices, "test", {"remeshed": 1.0}, 0, args.topology, "varied", 0,
-                                               args.cache_dir)
+    targets, target_bodies, faces = body_forms(
+        indices, "test", {"remeshed": 1.0}, 0, args.topology, "varied", 0, args.cache_dir
+    )
     sources = {"remeshed": targets, "rotated": targets}
     for setting, form in (("cloud", "cloud-noisy"), ("partial", "partial")):
         if setting in settings:
-            sources[setting] = body_forms(indices, "test", {form: 1.0}, 0, args.topology, "varied", 0,
-                                          args.cache_dir)[0]
+            sources[setting] = body_forms(indices, "test", {form: 1.0}, 0, args.topology, "varied", 0, args.cache_dir)[
+                0
+            ]
     rng = np.random.default_rng(0)
     methods = {"shipped model": {}, "shipped model, no ZoomOut": {}, "ZoomOut alone (rigid start)": {}}
-    results = {setting: {name: {"errors": [], "diameter_errors": [], "pair_means": []} for name in methods}
-               for setting in settings}
+    results = {
+        setting: {name: {"errors": [], "diameter_errors": [], "pair_means": []} for name in methods}
+        for setting in settings
+    }
     seconds, example = [], None
     for i in range(args.pairs):
         target_form = targets[i + 1]
@@ -89,36 +95,75 @@ def main(argv=None) -> int:
                 rotation = random_rotation(rng, "any")
                 target_surface = Surface(target_surface.vertices @ rotation.T, target_surface.faces, name="rotated")
             start = time.perf_counter()
-            source = prepare_shape(source_form.surface, spec.patch_config_objects(), spec.area, spec.feature_kind,
-                                   spec.n_eigen, cache_dir=None, name=source_form.name)
-            target = prepare_shape(target_surface, spec.patch_config_objects(), spec.area, spec.feature_kind,
-                                   spec.n_eigen, cache_dir=None, name=target_form.name)
+            source = prepare_shape(
+                source_form.surface,
+                spec.patch_config_objects(),
+                spec.area,
+                spec.feature_kind,
+                spec.n_eigen,
+                cache_dir=None,
+                name=source_form.name,
+            )
+            target = prepare_shape(
+                target_surface,
+                spec.patch_config_objects(),
+                spec.area,
+                spec.feature_kind,
+                spec.n_eigen,
+                cache_dir=None,
+                name=target_form.name,
+            )
             result = match_shapes(model, source, target)
             elapsed = time.perf_counter() - start
             if setting == "remeshed":
-                seconds.append({"pair": i, "source_vertices": source.n_vertices, "target_vertices": target.n_vertices,
-                                "seconds": elapsed, **{f"{k}_seconds": v for k, v in result.seconds.items()}})
+                seconds.append(
+                    {
+                        "pair": i,
+                        "source_vertices": source.n_vertices,
+                        "target_vertices": target.n_vertices,
+                        "seconds": elapsed,
+                        **{f"{k}_seconds": v for k, v in result.seconds.items()},
+                    }
+                )
             layer_only = match_shapes(model, source, target, zoomout_end=0).vertex_map
-            rigid, _ = zoomout(nearest_vertex_map(source, target), target.basis, source.basis,
-                               ZOOMOUT_ALONE_START, spec.zoomout_end, spec.zoomout_step)
+            rigid, _ = zoomout(
+                nearest_vertex_map(source, target),
+                target.basis,
+                source.basis,
+                ZOOMOUT_ALONE_START,
+                spec.zoomout_end,
+                spec.zoomout_step,
+            )
             # Errors are measured on the target in its own units (rotation does not change them).
             diameter = geodesic_diameter(target.surface)
-            for name, predicted in (("shipped model", result.vertex_map), ("shipped model, no ZoomOut", layer_only),
-                                    ("ZoomOut alone (rigid start)", rigid)):
+            for name, predicted in (
+                ("shipped model", result.vertex_map),
+                ("shipped model, no ZoomOut", layer_only),
+                ("ZoomOut alone (rigid start)", rigid),
+            ):
                 area_errors, diameter_errors = errors_on_target(target.surface, predicted, truth, diameter)
                 entry = results[setting][name]
                 entry["errors"].append(area_errors)
                 entry["diameter_errors"].append(diameter_errors)
                 entry["pair_means"].append(float(area_errors.mean()))
-            print(f"pair {i} {setting}: " + ", ".join(f"{name} {results[setting][name]['pair_means'][-1]:.2f}"
-                                                    for name in methods) + f" ({elapsed:.1f} s)", flush=True)
+            print(
+                f"pair {i} {setting}: "
+                + ", ".join(f"{name} {results[setting][name]['pair_means'][-1]:.2f}" for name in methods)
+                + f" ({elapsed:.1f} s)",
+                flush=True,
+            )
             if setting == "remeshed" and example is None:
                 example = (source, target, result)
-    summary = {"topology": args.topology, "pairs": args.pairs, "model": str(args.model or "shipped"),
-               "model_provenance": {k: provenance.get(k) for k in ("commit", "command", "step", "val_error")},
-               "threads": 1, "time_per_pair": seconds,
-               "mean_seconds_per_pair": float(np.mean([s["seconds"] for s in seconds])) if seconds else None,
-               "settings": {}}
+    summary = {
+        "topology": args.topology,
+        "pairs": args.pairs,
+        "model": str(args.model or "shipped"),
+        "model_provenance": {k: provenance.get(k) for k in ("commit", "command", "step", "val_error")},
+        "threads": 1,
+        "time_per_pair": seconds,
+        "mean_seconds_per_pair": float(np.mean([s["seconds"] for s in seconds])) if seconds else None,
+        "settings": {},
+    }
     curves = {}
     for setting in settings:
         summary["settings"][setting] = {}
@@ -126,47 +171,73 @@ def main(argv=None) -> int:
             errors = np.concatenate(entry["errors"])
             radii, fractions = error_curve(np.concatenate(entry["diameter_errors"]))
             summary["settings"][setting][name] = {
-                "mean_error_x100": float(errors.mean()), "median_error_x100": float(np.median(errors)),
-                "pair_means": entry["pair_means"], "curve_radii": radii.tolist(), "curve_fractions": fractions.tolist()}
+                "mean_error_x100": float(errors.mean()),
+                "median_error_x100": float(np.median(errors)),
+                "pair_means": entry["pair_means"],
+                "curve_radii": radii.tolist(),
+                "curve_fractions": fractions.tolist(),
+            }
             curves[f"{setting}: {name}"] = (radii, fractions)
     if "rotated" in settings and "remeshed" in settings:
         name = "shipped model"
-        summary["rotation_change"] = float(np.max(np.abs(np.subtract(
-            results["rotated"][name]["pair_means"], results["remeshed"][name]["pair_means"]))))
+        summary["rotation_change"] = float(
+            np.max(np.abs(np.subtract(results["rotated"][name]["pair_means"], results["remeshed"][name]["pair_means"])))
+        )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_json(args.out.with_suffix(".json"), summary)
-    plot_error_curve(curves, args.out.with_name(args.out.name + "_curves.png"),
-                     title=f"Matching held-out generated bodies ({args.topology}, each remeshed on its own)")
+    plot_error_curve(
+        curves,
+        args.out.with_name(args.out.name + "_curves.png"),
+        title=f"Matching held-out generated bodies ({args.topology}, each remeshed on its own)",
+    )
     if example is not None:
         from zernet.matching.cli import source_colour_field, transfer_field
 
         source, target, result = example
         field = source_colour_field(source.surface.vertices)
-        render_side_by_side([source.surface, target.surface], [field, transfer_field(field, result.reverse_map)],
-                            args.out.with_name(args.out.name + "_example.png"), ["source", "target"],
-                            title="colour on the source, carried to the target by the map")
+        render_side_by_side(
+            [source.surface, target.surface],
+            [field, transfer_field(field, result.reverse_map)],
+            args.out.with_name(args.out.name + "_example.png"),
+            ["source", "target"],
+            title="colour on the source, carried to the target by the map",
+        )
     write_markdown(summary, args.out.with_suffix(".md"), " ".join(["python benchmarks/matching.py"] + sys.argv[1:]))
     print(args.out.with_suffix(".md").read_text())
     return 0
 
 
 def write_markdown(summary: dict, path: Path, command: str) -> None:
-    lines = [f"# Matching held-out generated bodies ({summary['topology']} topology, {summary['pairs']} pairs)", "",
-             f"`{command}` (one thread). Model: {summary['model']} "
-             f"(commit {str(summary['model_provenance'].get('commit'))[:10]}).", "",
-             "Mean geodesic error x100 / sqrt(target area) (median in brackets); every body in a form of its own.", "",
-             "| setting | " + " | ".join(next(iter(summary["settings"].values()))) + " |",
-             "|---|" + "---:|" * len(next(iter(summary["settings"].values())))]
+    lines = [
+        f"# Matching held-out generated bodies ({summary['topology']} topology, {summary['pairs']} pairs)",
+        "",
+        f"`{command}` (one thread). Model: {summary['model']} "
+        f"(commit {str(summary['model_provenance'].get('commit'))[:10]}).",
+        "",
+        "Mean geodesic error x100 / sqrt(target area) (median in brackets); every body in a form of its own.",
+        "",
+        "| setting | " + " | ".join(next(iter(summary["settings"].values()))) + " |",
+        "|---|" + "---:|" * len(next(iter(summary["settings"].values()))),
+    ]
     for setting, methods in summary["settings"].items():
-        lines.append(f"| {setting} | " + " | ".join(f"{m['mean_error_x100']:.2f} ({m['median_error_x100']:.2f})"
-                                                     for m in methods.values()) + " |")
+        lines.append(
+            f"| {setting} | "
+            + " | ".join(f"{m['mean_error_x100']:.2f} ({m['median_error_x100']:.2f})" for m in methods.values())
+            + " |"
+        )
     if "rotation_change" in summary:
-        lines += ["", f"Largest change of a pair's mean error when the target is rotated: {summary['rotation_change']:.3f}."]
+        lines += [
+            "",
+            f"Largest change of a pair's mean error when the target is rotated: {summary['rotation_change']:.3f}.",
+        ]
     if summary["time_per_pair"]:
         sizes = [(s["source_vertices"], s["target_vertices"]) for s in summary["time_per_pair"]]
-        lines += ["", f"Time per pair (remeshed, {min(min(s) for s in sizes)}-{max(max(s) for s in sizes)} vertices, "
-                      f"both shapes prepared from scratch, one thread): mean {summary['mean_seconds_per_pair']:.1f} s, "
-                      f"max {max(s['seconds'] for s in summary['time_per_pair']):.1f} s."]
+        lines += [
+            "",
+            f"Time per pair (remeshed, {min(min(s) for s in sizes)}-{max(max(s) for s in sizes)} vertices, "
+            f"both shapes prepared from scratch, one thread): mean {summary['mean_seconds_per_pair']:.1f} s, "
+            f"max {max(s['seconds'] for s in summary['time_per_pair']):.1f} s.",
+        ]
     path.write_text("\n".join(lines) + "\n")
 
 

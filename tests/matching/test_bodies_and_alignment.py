@@ -52,7 +52,7 @@ def test_target_alignment_does_not_depend_on_the_target_pose():
     moved = [turned.features @ r.T for r in candidate_alignments(source, turned)]
     for a, b in zip(plain, moved):
         np.testing.assert_allclose(a, b, atol=1e-3)
-    np.testing.assert_allclose(plain[0], source.features, atol=1e-4)   # the identity is a candidate
+    np.testing.assert_allclose(plain[0], source.features, atol=1e-4)  # the identity is a candidate
 
 
 def test_pair_rotations_turn_both_shapes_nearly_alike():

@@ -7,11 +7,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from meshes import icosphere
+
 from zernet.geometry import Surface
-from zernet.matching.fmap import (cycle_confidence, fmap_from_pointmap, functional_map, pointmap_from_fmap,
-                                  resolvent_mask, zoomout)
+from zernet.matching.fmap import (
+    cycle_confidence,
+    fmap_from_pointmap,
+    functional_map,
+    pointmap_from_fmap,
+    resolvent_mask,
+    zoomout,
+)
 from zernet.matching.spectral import heat_kernel_signature, laplacian_eigenbasis
 
 
@@ -63,8 +69,10 @@ def test_identity_map_on_the_same_shape():
     fmap = functional_map(descriptors, descriptors, vectors, vectors, mass, mass, values, values)
     np.testing.assert_allclose(fmap.numpy(), np.eye(30), atol=1e-6)
     np.testing.assert_array_equal(pointmap_from_fmap(fmap.numpy(), basis, basis), np.arange(surface.n_vertices))
-    assert cycle_confidence(np.arange(surface.n_vertices), np.arange(surface.n_vertices), surface.vertices,
-                            0.1).min() == 1.0
+    assert (
+        cycle_confidence(np.arange(surface.n_vertices), np.arange(surface.n_vertices), surface.vertices, 0.1).min()
+        == 1.0
+    )
 
 
 def test_rotated_and_reindexed_copy_is_recovered_vertex_by_vertex():
@@ -72,14 +80,15 @@ def test_rotated_and_reindexed_copy_is_recovered_vertex_by_vertex():
     isometry's map (diagonal ±1), its point map is the permutation, and ZoomOut keeps it."""
     x = bumpy_ellipsoid()
     n = x.n_vertices
-    permutation = np.random.default_rng(3).permutation(n)          # Y vertex i is X vertex permutation[i]
+    permutation = np.random.default_rng(3).permutation(n)  # Y vertex i is X vertex permutation[i]
     inverse = np.argsort(permutation)
     y = Surface(x.vertices[permutation] @ random_rotation(4).T + 5.0, inverse[x.faces], name="copy")
     basis_x, basis_y = laplacian_eigenbasis(x, 40), laplacian_eigenbasis(y, 40)
     descriptors_x = np.random.default_rng(5).standard_normal((n, 40))
     k = 25
-    fmap_xy = functional_map(torch.as_tensor(descriptors_x), torch.as_tensor(descriptors_x[permutation]),
-                             *_pairwise(basis_x, basis_y, k)).numpy()
+    fmap_xy = functional_map(
+        torch.as_tensor(descriptors_x), torch.as_tensor(descriptors_x[permutation]), *_pairwise(basis_x, basis_y, k)
+    ).numpy()
     np.testing.assert_allclose(np.abs(fmap_xy), np.eye(k), atol=1e-5)
     pointmap_yx = pointmap_from_fmap(fmap_xy, basis_x, basis_y)
     np.testing.assert_array_equal(pointmap_yx, permutation)
@@ -118,8 +127,16 @@ def test_layer_gradients_float64():
         values = rng.random(shape) + 0.5 if positive else rng.standard_normal(shape)
         return torch.tensor(values, dtype=torch.float64, requires_grad=True)
 
-    inputs = (leaf(n_x, d), leaf(n_y, d), leaf(n_x, k_x), leaf(n_y, k_y), leaf(n_x, positive=True),
-              leaf(n_y, positive=True), leaf(k_x, positive=True), leaf(k_y, positive=True))
+    inputs = (
+        leaf(n_x, d),
+        leaf(n_y, d),
+        leaf(n_x, k_x),
+        leaf(n_y, k_y),
+        leaf(n_x, positive=True),
+        leaf(n_y, positive=True),
+        leaf(k_x, positive=True),
+        leaf(k_y, positive=True),
+    )
     assert torch.autograd.gradcheck(lambda *a: functional_map(*a, regularisation=0.1), inputs)
 
 

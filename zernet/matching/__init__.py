@@ -16,6 +16,19 @@ from zernet.matching.match import MatchResult, match_shapes, match_surfaces
 from zernet.matching.model import PRETRAINED_MODEL, DescriptorModel, MatchingSpec, load_matching_model
 from zernet.matching.spectral import SpectralBasis, laplacian_eigenbasis
 
-__all__ = ["SpectralBasis", "laplacian_eigenbasis", "functional_map", "fmap_from_pointmap", "pointmap_from_fmap",
-           "zoomout", "cycle_confidence", "MatchingSpec", "DescriptorModel", "load_matching_model", "PRETRAINED_MODEL",
-           "MatchResult", "match_shapes", "match_surfaces"]
+__all__ = [
+    "SpectralBasis",
+    "laplacian_eigenbasis",
+    "functional_map",
+    "fmap_from_pointmap",
+    "pointmap_from_fmap",
+    "zoomout",
+    "cycle_confidence",
+    "MatchingSpec",
+    "DescriptorModel",
+    "load_matching_model",
+    "PRETRAINED_MODEL",
+    "MatchResult",
+    "match_shapes",
+    "match_surfaces",
+]

@@ -61,12 +61,13 @@ class LocatedForm:
 
 def true_points(form: LocatedForm, body_vertices: np.ndarray, template_faces: np.ndarray) -> np.ndarray:
     """(N, 3) where the vertices of ``form`` lie on another body (its vertices ``body_vertices`` (V, 3))."""
-    corners = body_vertices[template_faces[form.face_index]]          # (N, 3 corners, 3)
+    corners = body_vertices[template_faces[form.face_index]]  # (N, 3 corners, 3)
     return np.einsum("nc,ncd->nd", form.barycentric, corners)
 
 
-def ground_truth_map(source: LocatedForm, target: LocatedForm, target_body_vertices: np.ndarray,
-                     template_faces: np.ndarray) -> np.ndarray:
+def ground_truth_map(
+    source: LocatedForm, target: LocatedForm, target_body_vertices: np.ndarray, template_faces: np.ndarray
+) -> np.ndarray:
     """(N_source,) int64: the target vertex nearest to the true image of each source vertex (module
     docstring); ``target_body_vertices`` are the vertices of the body ``target`` was made from."""
     points = true_points(source, target_body_vertices, template_faces)
@@ -79,8 +80,9 @@ def _form_key(generator: BodyGenerator, index: int, split: str, form: str, seed:
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
-def _make_form(generator: BodyGenerator, index: int, split: str, form: str, seed: int,
-               cache: Path | None) -> LocatedForm:
+def _make_form(
+    generator: BodyGenerator, index: int, split: str, form: str, seed: int, cache: Path | None
+) -> LocatedForm:
     """Body ``index`` of ``split`` in form ``form`` (cached)."""
     name = f"{split}_{index:03d}_{form}"
     path = None if cache is None else cache / f"{_form_key(generator, index, split, form, seed)}.npz"
@@ -88,8 +90,9 @@ def _make_form(generator: BodyGenerator, index: int, split: str, form: str, seed
         with np.load(path) as stored:
             faces = stored["faces"] if stored["faces"].size else None
             surface = Surface(stored["vertices"], faces, name=name)
-            return LocatedForm(name, form, index, surface, stored["face_index"], stored["barycentric"],
-                            stored["on_body"])
+            return LocatedForm(
+                name, form, index, surface, stored["face_index"], stored["barycentric"], stored["on_body"]
+            )
     body = generator.body(index, split)
     rng = np.random.default_rng(np.random.SeedSequence([seed, SPLIT_CODES[split], index]))
     made = make_forms(body, [form], rng)[form]
@@ -97,16 +100,28 @@ def _make_form(generator: BodyGenerator, index: int, split: str, form: str, seed
     surface = Surface(made.vertices, made.faces, name=name)
     if path is not None:
         buffer = io.BytesIO()
-        np.savez(buffer, vertices=surface.vertices,
-                 faces=np.zeros((0, 3), np.int64) if made.faces is None else made.faces,
-                 face_index=face_index, barycentric=barycentric, on_body=on_body)
+        np.savez(
+            buffer,
+            vertices=surface.vertices,
+            faces=np.zeros((0, 3), np.int64) if made.faces is None else made.faces,
+            face_index=face_index,
+            barycentric=barycentric,
+            on_body=on_body,
+        )
         atomic_write_bytes(path, buffer.getvalue())
     return LocatedForm(name, form, index, surface, face_index, barycentric, on_body)
 
 
-def body_forms(indices, split: str = "train", forms: dict[str, float] | None = None, seed: int = 0,
-               topology: str = "coarse-1229", poses: str = "varied", body_seed: int = 0,
-               cache_dir: str | os.PathLike | None = ".zernet-cache") -> tuple[list[LocatedForm], dict[int, np.ndarray], np.ndarray]:
+def body_forms(
+    indices,
+    split: str = "train",
+    forms: dict[str, float] | None = None,
+    seed: int = 0,
+    topology: str = "coarse-1229",
+    poses: str = "varied",
+    body_seed: int = 0,
+    cache_dir: str | os.PathLike | None = ".zernet-cache",
+) -> tuple[list[LocatedForm], dict[int, np.ndarray], np.ndarray]:
     """One form of each body ``indices`` of ``split``.
 
     Args:

@@ -21,20 +21,39 @@ __all__ = ["add_match_command", "transfer_field", "source_colour_field"]
 
 def add_match_command(sub, parents: list[argparse.ArgumentParser]) -> None:
     """The ``zernet match`` subcommand."""
-    p = sub.add_parser("match", parents=parents, help="a vertex-to-vertex correspondence between two surfaces",
-                       description="Match two surfaces (meshes or point clouds, any pose, placement, scale and "
-                                   "triangulation) with learned descriptors and functional maps (docs/MATCHING.md). "
-                                   "Without --run, the descriptor model shipped with zernet (trained on "
-                                   "generated human bodies) is used.")
+    p = sub.add_parser(
+        "match",
+        parents=parents,
+        help="a vertex-to-vertex correspondence between two surfaces",
+        description="Match two surfaces (meshes or point clouds, any pose, placement, scale and "
+        "triangulation) with learned descriptors and functional maps (docs/MATCHING.md). "
+        "Without --run, the descriptor model shipped with zernet (trained on "
+        "generated human bodies) is used.",
+    )
     p.add_argument("source", type=Path, metavar="SOURCE", help="mesh or point-cloud file")
     p.add_argument("target", type=Path, metavar="TARGET", help="mesh or point-cloud file")
-    p.add_argument("--out", type=Path, required=True, metavar="PREFIX",
-                   help="writes PREFIX.npy / PREFIX.txt (target vertex per source vertex), PREFIX_fmap.npy, "
-                        "PREFIX_confidence.npy and PREFIX.png")
-    p.add_argument("--run", type=Path, default=None, metavar="RUN",
-                   help="a matching model file or training run folder (default: the shipped model)")
-    p.add_argument("--cache-dir", type=Path, default=None, metavar="DIR",
-                   help="cache of patch operators and eigenbases (default: none)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="PREFIX",
+        help="writes PREFIX.npy / PREFIX.txt (target vertex per source vertex), PREFIX_fmap.npy, "
+        "PREFIX_confidence.npy and PREFIX.png",
+    )
+    p.add_argument(
+        "--run",
+        type=Path,
+        default=None,
+        metavar="RUN",
+        help="a matching model file or training run folder (default: the shipped model)",
+    )
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="cache of patch operators and eigenbases (default: none)",
+    )
     p.add_argument("--no-picture", action="store_true", help="skip PREFIX.png")
     p.set_defaults(func=run_match)
 
@@ -77,15 +96,21 @@ def run_match(args) -> int:
     np.save(written[3], result.confidence.astype(np.float32))
     if not args.no_picture:
         field = source_colour_field(source.vertices)
-        written.append(render_side_by_side(
-            [source, target], [field, transfer_field(field, result.reverse_map)],
-            prefix.with_name(prefix.name + ".png"), [f"source {args.source.name}", f"target {args.target.name}"],
-            title="colour on the source, carried to the target by the map"))
+        written.append(
+            render_side_by_side(
+                [source, target],
+                [field, transfer_field(field, result.reverse_map)],
+                prefix.with_name(prefix.name + ".png"),
+                [f"source {args.source.name}", f"target {args.target.name}"],
+                title="colour on the source, carried to the target by the map",
+            )
+        )
     seconds = ", ".join(f"{name} {value:.2f} s" for name, value in result.seconds.items())
-    print(f"matched {len(result.vertex_map)} source vertices to {len(result.reverse_map)} target vertices "
-          f"(model: {'shipped' if args.run is None else args.run}; mean confidence "
-          f"{float(result.confidence.mean()):.2f}; {seconds})")
+    print(
+        f"matched {len(result.vertex_map)} source vertices to {len(result.reverse_map)} target vertices "
+        f"(model: {'shipped' if args.run is None else args.run}; mean confidence "
+        f"{float(result.confidence.mean()):.2f}; {seconds})"
+    )
     for path in written:
         print(f"  {path}")
     return 0
-

@@ -24,8 +24,15 @@ import torch
 
 from zernet.matching.spectral import SpectralBasis
 
-__all__ = ["resolvent_mask", "functional_map", "fmap_from_pointmap", "nearest_rows", "pointmap_from_fmap", "zoomout",
-           "cycle_confidence"]
+__all__ = [
+    "resolvent_mask",
+    "functional_map",
+    "fmap_from_pointmap",
+    "nearest_rows",
+    "pointmap_from_fmap",
+    "zoomout",
+    "cycle_confidence",
+]
 
 
 def resolvent_mask(eigenvalues_x: torch.Tensor, eigenvalues_y: torch.Tensor, gamma: float = 0.5) -> torch.Tensor:
@@ -39,16 +46,23 @@ def resolvent_mask(eigenvalues_x: torch.Tensor, eigenvalues_y: torch.Tensor, gam
     scale = torch.maximum(eigenvalues_x.max(), eigenvalues_y.max()).clamp_min(1e-12)
     mu_x = (eigenvalues_x / scale).clamp_min(0) ** gamma
     mu_y = (eigenvalues_y / scale).clamp_min(0) ** gamma
-    real_x, imag_x = mu_x / (mu_x ** 2 + 1), 1 / (mu_x ** 2 + 1)
-    real_y, imag_y = mu_y / (mu_y ** 2 + 1), 1 / (mu_y ** 2 + 1)
+    real_x, imag_x = mu_x / (mu_x**2 + 1), 1 / (mu_x**2 + 1)
+    real_y, imag_y = mu_y / (mu_y**2 + 1), 1 / (mu_y**2 + 1)
     return (real_y[:, None] - real_x[None, :]) ** 2 + (imag_y[:, None] - imag_x[None, :]) ** 2
 
 
-def functional_map(descriptors_x: torch.Tensor, descriptors_y: torch.Tensor,
-                   eigenvectors_x: torch.Tensor, eigenvectors_y: torch.Tensor,
-                   mass_x: torch.Tensor, mass_y: torch.Tensor,
-                   eigenvalues_x: torch.Tensor, eigenvalues_y: torch.Tensor,
-                   regularisation: float = 1e-3, gamma: float = 0.5) -> torch.Tensor:
+def functional_map(
+    descriptors_x: torch.Tensor,
+    descriptors_y: torch.Tensor,
+    eigenvectors_x: torch.Tensor,
+    eigenvectors_y: torch.Tensor,
+    mass_x: torch.Tensor,
+    mass_y: torch.Tensor,
+    eigenvalues_x: torch.Tensor,
+    eigenvalues_y: torch.Tensor,
+    regularisation: float = 1e-3,
+    gamma: float = 0.5,
+) -> torch.Tensor:
     """The functional map ``C_xy`` (k_y, k_x) that best carries the descriptors of X to those of Y, with the
     commutativity penalty (module docstring). Differentiable in everything (one batched linear solve).
 
@@ -60,21 +74,26 @@ def functional_map(descriptors_x: torch.Tensor, descriptors_y: torch.Tensor,
         regularisation: λ, the weight of the commutativity penalty.
         gamma: the resolvent's exponent (:func:`resolvent_mask`).
     """
-    coefficients_x = eigenvectors_x.T @ (mass_x[:, None] * descriptors_x)   # A: (k_x, d)
-    coefficients_y = eigenvectors_y.T @ (mass_y[:, None] * descriptors_y)   # B: (k_y, d)
-    mask = resolvent_mask(eigenvalues_x, eigenvalues_y, gamma)              # (k_y, k_x)
-    gram = coefficients_x @ coefficients_x.T                                # A Aᵀ: (k_x, k_x)
-    lhs = gram.unsqueeze(0) + regularisation * torch.diag_embed(mask)       # (k_y, k_x, k_x)
-    rhs = coefficients_y @ coefficients_x.T                                 # rows B_i Aᵀ: (k_y, k_x)
+    coefficients_x = eigenvectors_x.T @ (mass_x[:, None] * descriptors_x)  # A: (k_x, d)
+    coefficients_y = eigenvectors_y.T @ (mass_y[:, None] * descriptors_y)  # B: (k_y, d)
+    mask = resolvent_mask(eigenvalues_x, eigenvalues_y, gamma)  # (k_y, k_x)
+    gram = coefficients_x @ coefficients_x.T  # A Aᵀ: (k_x, k_x)
+    lhs = gram.unsqueeze(0) + regularisation * torch.diag_embed(mask)  # (k_y, k_x, k_x)
+    rhs = coefficients_y @ coefficients_x.T  # rows B_i Aᵀ: (k_y, k_x)
     return torch.linalg.solve(lhs, rhs.unsqueeze(-1)).squeeze(-1)
 
 
-def fmap_from_pointmap(pointmap_yx: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis,
-                       k_x: int | None = None, k_y: int | None = None) -> np.ndarray:
+def fmap_from_pointmap(
+    pointmap_yx: np.ndarray,
+    basis_x: SpectralBasis,
+    basis_y: SpectralBasis,
+    k_x: int | None = None,
+    k_y: int | None = None,
+) -> np.ndarray:
     """``C_xy = Φ_yᵀ M_y Φ_x[T]`` (k_y, k_x) of a point map ``T: Y -> X`` given as (N_y,) X indices."""
     k_x = basis_x.k if k_x is None else k_x
     k_y = basis_y.k if k_y is None else k_y
-    pulled_back = basis_x.eigenvectors[np.asarray(pointmap_yx), :k_x]          # (N_y, k_x)
+    pulled_back = basis_x.eigenvectors[np.asarray(pointmap_yx), :k_x]  # (N_y, k_x)
     return basis_y.eigenvectors[:, :k_y].T @ (basis_y.mass[:, None] * pulled_back)
 
 
@@ -87,8 +106,10 @@ def nearest_rows(queries: np.ndarray, points: np.ndarray, chunk: int = 2048) -> 
     queries_t = torch.as_tensor(np.ascontiguousarray(queries, dtype=np.float64))
     points_t = torch.as_tensor(np.ascontiguousarray(points, dtype=np.float64))
     squared = (points_t * points_t).sum(dim=1)
-    nearest = [(squared[None, :] - 2 * queries_t[start:start + chunk] @ points_t.T).argmin(dim=1)
-               for start in range(0, len(queries_t), chunk)]
+    nearest = [
+        (squared[None, :] - 2 * queries_t[start : start + chunk] @ points_t.T).argmin(dim=1)
+        for start in range(0, len(queries_t), chunk)
+    ]
     return torch.cat(nearest).numpy().astype(np.int64) if nearest else np.zeros(0, dtype=np.int64)
 
 
@@ -96,12 +117,13 @@ def pointmap_from_fmap(fmap_xy: np.ndarray, basis_x: SpectralBasis, basis_y: Spe
     """The point map ``T: Y -> X`` (N_y,) int64 of ``C_xy`` (k_y, k_x): for each Y vertex, the X vertex
     nearest to ``Φ_y[y] C_xy`` in the spectral embedding ``Φ_x[:, :k_x]`` (:func:`nearest_rows`)."""
     k_y, k_x = fmap_xy.shape
-    embedding_y = basis_y.eigenvectors[:, :k_y] @ fmap_xy                     # (N_y, k_x)
+    embedding_y = basis_y.eigenvectors[:, :k_y] @ fmap_xy  # (N_y, k_x)
     return nearest_rows(embedding_y, basis_x.eigenvectors[:, :k_x])
 
 
-def zoomout(pointmap_yx: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis, k_start: int,
-            k_end: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def zoomout(
+    pointmap_yx: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis, k_start: int, k_end: int, step: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
     """ZoomOut (Melzi et al. 2019): refine a point map ``T: Y -> X`` by spectral upsampling.
 
     From ``k = k_start`` to ``k_end`` by ``step``: the k × k functional map of the current point map, then
@@ -121,8 +143,9 @@ def zoomout(pointmap_yx: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBa
     return pointmap, fmap
 
 
-def cycle_confidence(pointmap_xy: np.ndarray, pointmap_yx: np.ndarray, vertices_x: np.ndarray,
-                     scale: float) -> np.ndarray:
+def cycle_confidence(
+    pointmap_xy: np.ndarray, pointmap_yx: np.ndarray, vertices_x: np.ndarray, scale: float
+) -> np.ndarray:
     """(N_x,) confidence in [0, 1] of each X vertex's match: how close the round trip X -> Y -> X comes back.
 
     ``exp(-(d / scale)²)`` with ``d`` the Euclidean distance on X between a vertex and the image of its
@@ -132,4 +155,4 @@ def cycle_confidence(pointmap_xy: np.ndarray, pointmap_yx: np.ndarray, vertices_
     """
     round_trip = np.asarray(pointmap_yx)[np.asarray(pointmap_xy)]
     distance = np.linalg.norm(vertices_x[round_trip] - vertices_x, axis=1)
-    return np.exp(-(distance / scale) ** 2)
+    return np.exp(-((distance / scale) ** 2))

@@ -30,8 +30,17 @@ from zernet.matching.model import DescriptorModel, load_matching_model
 from zernet.matching.shapes import MatchShape, prepare_shape, rotating_columns
 from zernet.matching.spectral import SpectralBasis
 
-__all__ = ["MatchResult", "shape_descriptors", "principal_axes", "candidate_alignments", "descriptor_fmap", "match_shapes", "match_surfaces",
-           "nearest_vertex_map", "CONFIDENCE_SCALE"]
+__all__ = [
+    "MatchResult",
+    "shape_descriptors",
+    "principal_axes",
+    "candidate_alignments",
+    "descriptor_fmap",
+    "match_shapes",
+    "match_surfaces",
+    "nearest_vertex_map",
+    "CONFIDENCE_SCALE",
+]
 
 #: The round-trip distance, as a fraction of the square root of the source's area, at which the
 #: confidence falls to 1/e.
@@ -92,26 +101,43 @@ def candidate_alignments(source: MatchShape, target: MatchShape) -> list[np.ndar
     return [source_axes.T @ sign @ target_axes for sign in signs]
 
 
-def descriptor_fmap(model: DescriptorModel, descriptors_x: torch.Tensor, descriptors_y: torch.Tensor,
-                    shape_x: MatchShape, shape_y: MatchShape) -> torch.Tensor:
+def descriptor_fmap(
+    model: DescriptorModel,
+    descriptors_x: torch.Tensor,
+    descriptors_y: torch.Tensor,
+    shape_x: MatchShape,
+    shape_y: MatchShape,
+) -> torch.Tensor:
     """``C_xy`` (k, k), k = the spec's ``n_fmap``: the functional-map layer on two shapes' descriptors."""
     k = model.spec.n_fmap
     vectors_x, mass_x, values_x = shape_x.basis_tensors(k, descriptors_x.dtype)
     vectors_y, mass_y, values_y = shape_y.basis_tensors(k, descriptors_y.dtype)
-    return functional_map(descriptors_x, descriptors_y, vectors_x, vectors_y, mass_x, mass_y, values_x, values_y,
-                          model.spec.regularisation, model.spec.gamma)
+    return functional_map(
+        descriptors_x,
+        descriptors_y,
+        vectors_x,
+        vectors_y,
+        mass_x,
+        mass_y,
+        values_x,
+        values_y,
+        model.spec.regularisation,
+        model.spec.gamma,
+    )
 
 
-def _refined(pointmap_yx: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis, k_start: int, k_end: int,
-             step: int) -> tuple[np.ndarray, np.ndarray | None]:
+def _refined(
+    pointmap_yx: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis, k_start: int, k_end: int, step: int
+) -> tuple[np.ndarray, np.ndarray | None]:
     """ZoomOut from ``k_start`` to ``k_end`` (none when ``k_end <= k_start``)."""
     if k_end <= k_start:
         return pointmap_yx, None
     return zoomout(pointmap_yx, basis_x, basis_y, k_start, k_end, step)
 
 
-def match_shapes(model: DescriptorModel, source: MatchShape, target: MatchShape,
-                 zoomout_end: int | None = None) -> MatchResult:
+def match_shapes(
+    model: DescriptorModel, source: MatchShape, target: MatchShape, zoomout_end: int | None = None
+) -> MatchResult:
     """Match two prepared shapes (module docstring). ``zoomout_end``: ZoomOut's last size (None: the spec's;
     0: no ZoomOut)."""
     spec = model.spec
@@ -140,8 +166,9 @@ def match_shapes(model: DescriptorModel, source: MatchShape, target: MatchShape,
     start = time.perf_counter()
     # ZoomOut refines the answer (source -> target); the reverse map serves the confidence and the
     # picture and keeps the layer's resolution (ZoomOut in both directions doubled the time).
-    vertex_map, refined_ts = _refined(vertex_map, target.basis, source.basis, spec.n_fmap, zoomout_end,
-                                      spec.zoomout_step)
+    vertex_map, refined_ts = _refined(
+        vertex_map, target.basis, source.basis, spec.n_fmap, zoomout_end, spec.zoomout_step
+    )
     seconds["zoomout"] = time.perf_counter() - start
     scale = CONFIDENCE_SCALE * np.sqrt(source.surface.area)
     confidence = cycle_confidence(vertex_map, reverse_map, source.surface.vertices, scale)
@@ -152,6 +179,7 @@ def nearest_vertex_map(source: MatchShape, target: MatchShape) -> np.ndarray:
     """(N_source,) the target vertex nearest in space to each source vertex, both centred on their
     area-weighted centroids at the same area: the rigid initial map of the "ZoomOut alone" baseline (it
     assumes the two shapes are already aligned)."""
+
     def centred(shape: MatchShape) -> np.ndarray:
         weights = shape.basis.mass
         return shape.surface.vertices - weights @ shape.surface.vertices / weights.sum()
@@ -167,10 +195,13 @@ def _load_input(surface: Surface | str | os.PathLike):
     return repair_surface(surface)
 
 
-def match_surfaces(source: Surface | str | os.PathLike, target: Surface | str | os.PathLike,
-                   model: DescriptorModel | str | os.PathLike | None = None,
-                   cache_dir: str | os.PathLike | None = None, zoomout_end: int | None = None,
-                   ) -> tuple[MatchResult, MatchShape, MatchShape]:
+def match_surfaces(
+    source: Surface | str | os.PathLike,
+    target: Surface | str | os.PathLike,
+    model: DescriptorModel | str | os.PathLike | None = None,
+    cache_dir: str | os.PathLike | None = None,
+    zoomout_end: int | None = None,
+) -> tuple[MatchResult, MatchShape, MatchShape]:
     """Match two surfaces or files, answering per input vertex.
 
     Args:
@@ -191,9 +222,18 @@ def match_surfaces(source: Surface | str | os.PathLike, target: Surface | str | 
     spec = model.spec
     start = time.perf_counter()
     repaired_source, repaired_target = _load_input(source), _load_input(target)
-    prepared = [prepare_shape(item.surface, spec.patch_config_objects(), spec.area, spec.feature_kind, spec.n_eigen,
-                              cache_dir=cache_dir, name=Path(item.surface.name).stem)
-                for item in (repaired_source, repaired_target)]
+    prepared = [
+        prepare_shape(
+            item.surface,
+            spec.patch_config_objects(),
+            spec.area,
+            spec.feature_kind,
+            spec.n_eigen,
+            cache_dir=cache_dir,
+            name=Path(item.surface.name).stem,
+        )
+        for item in (repaired_source, repaired_target)
+    ]
     prepare_seconds = time.perf_counter() - start
     result = match_shapes(model, prepared[0], prepared[1], zoomout_end)
     # Back to input vertices: a merged duplicate answers with its kept copy; a repaired vertex is answered

@@ -23,8 +23,14 @@ from zernet.io_utils import atomic_save_torch, plain
 from zernet.nn.models import build_model
 from zernet.operators import PatchConfig
 
-__all__ = ["MODEL_FORMAT", "PRETRAINED_MODEL", "MatchingSpec", "DescriptorModel", "save_matching_model",
-           "load_matching_model"]
+__all__ = [
+    "MODEL_FORMAT",
+    "PRETRAINED_MODEL",
+    "MatchingSpec",
+    "DescriptorModel",
+    "save_matching_model",
+    "load_matching_model",
+]
 
 MODEL_FORMAT = "zernet-matching-1"
 #: The descriptor model shipped in the package (trained on generated bodies only; provenance beside it).
@@ -110,8 +116,10 @@ class DescriptorModel(torch.nn.Module):
 def save_matching_model(model: DescriptorModel, path: str | Path, provenance: dict | None = None) -> Path:
     """Write ``model`` (spec, weights, ``provenance``) atomically to ``path``."""
     state = {key: value.detach().cpu().clone() for key, value in model.state_dict().items()}
-    return atomic_save_torch({"format": MODEL_FORMAT, "spec": model.spec.to_dict(), "model": state,
-                              "provenance": plain(provenance or {})}, path)
+    return atomic_save_torch(
+        {"format": MODEL_FORMAT, "spec": model.spec.to_dict(), "model": state, "provenance": plain(provenance or {})},
+        path,
+    )
 
 
 def load_matching_model(path: str | Path | None = None) -> tuple[DescriptorModel, dict]:
@@ -127,8 +135,10 @@ def load_matching_model(path: str | Path | None = None) -> tuple[DescriptorModel
     except Exception as error:  # truncated, corrupt, or holding objects weights_only refuses
         raise ValueError(f"{path}: not a readable zernet matching model ({type(error).__name__}: {error})") from None
     if not isinstance(stored, dict) or stored.get("format") != MODEL_FORMAT:
-        raise ValueError(f"{path}: not a zernet matching model (expected format {MODEL_FORMAT}); a run of "
-                         "`zernet train` is a per-vertex classifier, not a descriptor model")
+        raise ValueError(
+            f"{path}: not a zernet matching model (expected format {MODEL_FORMAT}); a run of "
+            "`zernet train` is a per-vertex classifier, not a descriptor model"
+        )
     model = DescriptorModel(MatchingSpec.from_dict(stored["spec"]))
     model.load_state_dict(stored["model"])
     return model.eval(), dict(stored.get("provenance") or {})

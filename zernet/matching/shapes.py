@@ -54,8 +54,11 @@ class MatchShape:
     def basis_tensors(self, k: int, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(eigenvectors (N, k), mass (N,), eigenvalues (k,)) as tensors, for :func:`functional_map`."""
         basis = self.basis.truncated(k)
-        return (torch.as_tensor(basis.eigenvectors, dtype=dtype), torch.as_tensor(basis.mass, dtype=dtype),
-                torch.as_tensor(basis.eigenvalues, dtype=dtype))
+        return (
+            torch.as_tensor(basis.eigenvectors, dtype=dtype),
+            torch.as_tensor(basis.mass, dtype=dtype),
+            torch.as_tensor(basis.eigenvalues, dtype=dtype),
+        )
 
 
 #: Extra feature parts the matcher adds to :mod:`zernet.data.features`' parts: the heat kernel signature of
@@ -83,8 +86,15 @@ def input_features(zernet_features: np.ndarray | None, basis: SpectralBasis, fea
     return np.concatenate(columns, axis=1).astype(np.float32)
 
 
-def prepare_shape(surface: Surface, patch_configs: list[PatchConfig], area: float, feature_kind: str,
-                  n_eigen: int, cache_dir: str | os.PathLike | None = None, name: str | None = None) -> MatchShape:
+def prepare_shape(
+    surface: Surface,
+    patch_configs: list[PatchConfig],
+    area: float,
+    feature_kind: str,
+    n_eigen: int,
+    cache_dir: str | os.PathLike | None = None,
+    name: str | None = None,
+) -> MatchShape:
     """Prepare ``surface`` for matching (module docstring).
 
     Args:
@@ -98,8 +108,9 @@ def prepare_shape(surface: Surface, patch_configs: list[PatchConfig], area: floa
     """
     is_cloud = surface.is_point_cloud
     zernet_kind = "+".join(part for part in feature_kind.split("+") if part != "hks")
-    record = prepare_record(surface, patch_configs, cache_dir=cache_dir, target_area=area,
-                            feature_kind=zernet_kind or "ones", name=name)
+    record = prepare_record(
+        surface, patch_configs, cache_dir=cache_dir, target_area=area, feature_kind=zernet_kind or "ones", name=name
+    )
     scaled = record.surface
     spectral_surface = Surface(scaled.vertices, None, name=scaled.name) if is_cloud else scaled
     basis = laplacian_eigenbasis(spectral_surface, n_eigen, cache_dir=cache_dir)

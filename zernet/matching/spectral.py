@@ -32,8 +32,15 @@ from zernet.geometry import Surface
 from zernet.io_utils import atomic_write_bytes
 from zernet.operators.cache import CacheWarning
 
-__all__ = ["SPECTRAL_VERSION", "CLOUD_NEIGHBOURS", "SpectralBasis", "laplacian", "laplacian_eigenbasis",
-           "spectral_cache_key", "heat_kernel_signature"]
+__all__ = [
+    "SPECTRAL_VERSION",
+    "CLOUD_NEIGHBOURS",
+    "SpectralBasis",
+    "laplacian",
+    "laplacian_eigenbasis",
+    "spectral_cache_key",
+    "heat_kernel_signature",
+]
 
 #: Bumped when a change alters the stored bases, so older cache files get another key.
 SPECTRAL_VERSION = 1
@@ -87,8 +94,10 @@ def laplacian(surface: Surface) -> tuple[scipy.sparse.csr_matrix, np.ndarray]:
 def spectral_cache_key(surface: Surface, k: int) -> str:
     """sha256 of the geometry hash, ``k``, the Laplacian kind and :data:`SPECTRAL_VERSION`."""
     kind = f"cloud-{CLOUD_NEIGHBOURS}" if surface.is_point_cloud else "mesh"
-    text = json.dumps({"geometry": surface.geometry_hash(), "k": int(k), "laplacian": kind,
-                       "version": SPECTRAL_VERSION}, sort_keys=True)
+    text = json.dumps(
+        {"geometry": surface.geometry_hash(), "k": int(k), "laplacian": kind, "version": SPECTRAL_VERSION},
+        sort_keys=True,
+    )
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -117,8 +126,14 @@ def laplacian_eigenbasis(surface: Surface, k: int, cache_dir: str | os.PathLike 
     basis = SpectralBasis(np.maximum(eigenvalues[order], 0.0), np.ascontiguousarray(eigenvectors[:, order]), mass)
     if path is not None:
         buffer = io.BytesIO()
-        np.savez(buffer, eigenvalues=basis.eigenvalues, eigenvectors=basis.eigenvectors, mass=basis.mass,
-                 key=np.asarray(key), version=np.asarray(SPECTRAL_VERSION))
+        np.savez(
+            buffer,
+            eigenvalues=basis.eigenvalues,
+            eigenvectors=basis.eigenvectors,
+            mass=basis.mass,
+            key=np.asarray(key),
+            version=np.asarray(SPECTRAL_VERSION),
+        )
         atomic_write_bytes(path, buffer.getvalue())
     return basis
 
@@ -140,7 +155,7 @@ def heat_kernel_signature(basis: SpectralBasis, n_times: int = 16) -> np.ndarray
     if len(eigenvalues) == 0:
         raise ValueError("the heat kernel signature needs at least one positive eigenvalue")
     times = np.geomspace(4 * np.log(10) / eigenvalues[-1], 4 * np.log(10) / eigenvalues[0], n_times)
-    squares = basis.eigenvectors ** 2                                   # (N, k)
-    signature = squares @ np.exp(-np.outer(basis.eigenvalues, times))   # (N, n_times)
+    squares = basis.eigenvectors**2  # (N, k)
+    signature = squares @ np.exp(-np.outer(basis.eigenvalues, times))  # (N, n_times)
     signature /= (basis.mass @ signature / basis.mass.sum())[None, :]
     return signature.astype(np.float32)

@@ -56,7 +56,7 @@ class TrainingPair:
 
     source: MatchShape
     target: MatchShape
-    truth: np.ndarray   # (N_source,) int64
+    truth: np.ndarray  # (N_source,) int64
 
 
 def load_config(path: str | Path, overrides: list[str] = ()) -> dict:
@@ -77,18 +77,38 @@ def make_spec(config: dict, feature_mean=None, feature_std=None) -> MatchingSpec
     patch = tuple(dict(p) for p in values.pop("patch"))
     n_max = int(patch[0].get("n_max", 5))
     in_channels = matching_feature_channels(values["feature_kind"], n_max)
-    return MatchingSpec(patch_configs=patch, in_channels=in_channels, feature_mean=feature_mean,
-                        feature_std=feature_std, **values)
+    return MatchingSpec(
+        patch_configs=patch, in_channels=in_channels, feature_mean=feature_mean, feature_std=feature_std, **values
+    )
 
 
-def prepare_bodies(config: dict, spec: MatchingSpec, indices, split: str = "train",
-                   forms: dict | None = None) -> tuple[list[LocatedForm], list[MatchShape], dict, np.ndarray]:
+def prepare_bodies(
+    config: dict, spec: MatchingSpec, indices, split: str = "train", forms: dict | None = None
+) -> tuple[list[LocatedForm], list[MatchShape], dict, np.ndarray]:
     """The located forms of bodies ``indices`` and their prepared shapes."""
     data = config["data"]
-    located, body_vertices, faces = body_forms(indices, split, forms or data["forms"], data["form_seed"],
-                                               data["topology"], data["poses"], data["body_seed"], data["cache_dir"])
-    shapes = [prepare_shape(form.surface, spec.patch_config_objects(), spec.area, spec.feature_kind, spec.n_eigen,
-                            cache_dir=data["cache_dir"], name=form.name) for form in located]
+    located, body_vertices, faces = body_forms(
+        indices,
+        split,
+        forms or data["forms"],
+        data["form_seed"],
+        data["topology"],
+        data["poses"],
+        data["body_seed"],
+        data["cache_dir"],
+    )
+    shapes = [
+        prepare_shape(
+            form.surface,
+            spec.patch_config_objects(),
+            spec.area,
+            spec.feature_kind,
+            spec.n_eigen,
+            cache_dir=data["cache_dir"],
+            name=form.name,
+        )
+        for form in located
+    ]
     return located, shapes, body_vertices, faces
 
 
@@ -126,8 +146,14 @@ def feature_statistics(shapes: list[MatchShape], rotating: list[slice]) -> tuple
     return mean, np.maximum(std, 1e-6)
 
 
-def pair_loss(model: DescriptorModel, pair: TrainingPair, loss: str, point_weight: float,
-              rotations: tuple[np.ndarray, np.ndarray] | None, rotating: list[slice]) -> torch.Tensor:
+def pair_loss(
+    model: DescriptorModel,
+    pair: TrainingPair,
+    loss: str,
+    point_weight: float,
+    rotations: tuple[np.ndarray, np.ndarray] | None,
+    rotating: list[slice],
+) -> torch.Tensor:
     """The training loss of one pair (module docstring); ``rotations``: one 3x3 per shape for the rotating
     feature columns (None: none)."""
     features = []
@@ -141,15 +167,16 @@ def pair_loss(model: DescriptorModel, pair: TrainingPair, loss: str, point_weigh
     descriptors = model(torch.cat(features), geometry)
     n_source = pair.source.n_vertices
     descriptors_s, descriptors_t = descriptors[:n_source], descriptors[n_source:]
-    fmap = descriptor_fmap(model, descriptors_t, descriptors_s, pair.target, pair.source)   # C_ts (k_s, k_t)
+    fmap = descriptor_fmap(model, descriptors_t, descriptors_s, pair.target, pair.source)  # C_ts (k_s, k_t)
     k = model.spec.n_fmap
-    truth_fmap = torch.as_tensor(fmap_from_pointmap(pair.truth, pair.target.basis, pair.source.basis, k, k),
-                                 dtype=fmap.dtype)
+    truth_fmap = torch.as_tensor(
+        fmap_from_pointmap(pair.truth, pair.target.basis, pair.source.basis, k, k), dtype=fmap.dtype
+    )
     value = ((fmap - truth_fmap) ** 2).sum()
     if loss == "fmap+point":
         vectors_s, _, _ = pair.source.basis_tensors(k)
         vectors_t, _, _ = pair.target.basis_tensors(k)
-        distances = torch.cdist(vectors_s @ fmap, vectors_t) ** 2                         # (N_s, N_t)
+        distances = torch.cdist(vectors_s @ fmap, vectors_t) ** 2  # (N_s, N_t)
         temperature = distances.min(dim=1).values.mean().detach().clamp_min(1e-12)
         soft_map = torch.softmax(-distances / temperature, dim=1)
         positions = torch.as_tensor(pair.target.surface.vertices, dtype=torch.float32)
@@ -176,17 +203,25 @@ def validation_error(model: DescriptorModel, pairs: list[TrainingPair]) -> float
     return float(np.mean(errors))
 
 
-def make_pairs(forms: list[LocatedForm], shapes: list[MatchShape], body_vertices: dict, faces: np.ndarray,
-               index_pairs) -> list[TrainingPair]:
+def make_pairs(
+    forms: list[LocatedForm], shapes: list[MatchShape], body_vertices: dict, faces: np.ndarray, index_pairs
+) -> list[TrainingPair]:
     """Training pairs of the given (source, target) positions in ``forms``."""
-    return [TrainingPair(shapes[a], shapes[b], ground_truth_map(forms[a], forms[b], body_vertices[forms[b].body], faces))
-            for a, b in index_pairs]
+    return [
+        TrainingPair(shapes[a], shapes[b], ground_truth_map(forms[a], forms[b], body_vertices[forms[b].body], faces))
+        for a, b in index_pairs
+    ]
 
 
 def _commit() -> str:
     try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
-                              cwd=Path(__file__).resolve().parent).stdout.strip()
+        return subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=Path(__file__).resolve().parent,
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
@@ -221,11 +256,17 @@ def train(config: dict, run_dir: str | Path, command: str = "") -> dict:
     model = DescriptorModel(spec)
     optimiser = torch.optim.Adam(model.parameters(), lr=float(settings["lr"]))
     steps = int(settings["steps"])
-    schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, lambda step: 0.5 * (1 + np.cos(np.pi * min(step, steps) / steps)))
-    val_pairs = make_pairs(val_forms, val_shapes, val_vertices, faces,
-                           [(i, (i + 1) % n_val) for i in range(n_val)])
-    provenance = {"command": command, "commit": _commit(), "config": plain(config),
-                  "torch": str(torch.__version__), "threads": torch.get_num_threads()}
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimiser, lambda step: 0.5 * (1 + np.cos(np.pi * min(step, steps) / steps))
+    )
+    val_pairs = make_pairs(val_forms, val_shapes, val_vertices, faces, [(i, (i + 1) % n_val) for i in range(n_val)])
+    provenance = {
+        "command": command,
+        "commit": _commit(),
+        "config": plain(config),
+        "torch": str(torch.__version__),
+        "threads": torch.get_num_threads(),
+    }
     best, history, window = float("inf"), [], []
     deadline = started + 60 * float(settings.get("max_minutes", 1e9))
     train_started = time.perf_counter()
@@ -252,12 +293,18 @@ def train(config: dict, run_dir: str | Path, command: str = "") -> dict:
                 save_matching_model(model, run_dir / "best.pt", {**provenance, "step": step, "val_error": error})
             save_matching_model(model, run_dir / "last.pt", {**provenance, "step": step, "val_error": error})
             write_json(run_dir / "history.json", {"history": history})
-            log(f"step {step}: loss {history[-1]['loss']:.4f}, validation error {error:.3f}"
-                f"{' (best)' if improved else ''}, {elapsed / step:.2f} s/step")
+            log(
+                f"step {step}: loss {history[-1]['loss']:.4f}, validation error {error:.3f}"
+                f"{' (best)' if improved else ''}, {elapsed / step:.2f} s/step"
+            )
         if last:
             break
-    summary = {"best_val_error": best, "steps": history[-1]["step"], "train_seconds": time.perf_counter() - train_started,
-               "total_seconds": time.perf_counter() - started}
+    summary = {
+        "best_val_error": best,
+        "steps": history[-1]["step"],
+        "train_seconds": time.perf_counter() - train_started,
+        "total_seconds": time.perf_counter() - started,
+    }
     write_json(run_dir / "history.json", {"history": history, "summary": summary})
     log(f"done: {json.dumps(summary)}")
     return summary
