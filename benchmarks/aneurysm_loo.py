@@ -87,8 +87,9 @@ def membrane_baseline(data: Path, cases: list[str], cache_dir: str) -> dict:
     scores = {}
     for case in cases:
         others = [name for name in surfaces if name != case]
-        slope, offset = np.polyfit(np.concatenate([log_stress[n] for n in others]),
-                                   np.concatenate([log_target[n] for n in others]), 1)
+        slope, offset = np.polyfit(
+            np.concatenate([log_stress[n] for n in others]), np.concatenate([log_target[n] for n in others]), 1
+        )
         prediction = np.exp(offset + slope * log_stress[case])
         scores[case] = _as_paper_units(regression_scores(prediction, np.exp(log_target[case])))
     return scores
@@ -103,8 +104,10 @@ def train_fold(config: dict, run_dir: Path, retrain: bool) -> dict | None:
         stored = resolve_config(load_config(run_dir / "config.yaml"))
         differences = recipe_differences(stored, resolve_config(config))
         if differences:
-            print(f"{run_dir} was trained with another recipe; use --retrain or another --runs folder:\n  "
-                  + "\n  ".join(differences))
+            print(
+                f"{run_dir} was trained with another recipe; use --retrain or another --runs folder:\n  "
+                + "\n  ".join(differences)
+            )
             return None
     metrics_path = run_dir / "metrics.json"
     if metrics_path.exists() and not retrain:
@@ -120,9 +123,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cases", nargs="+", default=list(PAPER))
     parser.add_argument("--runs", default=str(ROOT / "runs" / "aneurysm_loo"))
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides")
-    parser.add_argument("--seeds", type=int, default=1,
-                        help="train each fold with train.seed = 0 .. SEEDS-1 (run folders CASE, CASE-seed1, ...) "
-                             "and score the ensemble of the seeds (default 1: one model)")
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        help="train each fold with train.seed = 0 .. SEEDS-1 (run folders CASE, CASE-seed1, ...) "
+        "and score the ensemble of the seeds (default 1: one model)",
+    )
     parser.add_argument("--retrain", action="store_true", help="train folds that already have metrics")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "aneurysm_loo.json"))
     args = parser.parse_args(argv)
@@ -175,8 +182,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'mean':<11}" + "".join(f"{mean[c]:>8.2f} ({paper_mean[c]:>5.2f})" for c in COLUMNS))
     what = f"ensembles of {args.seeds} seeds" if args.seeds > 1 else "one model per fold"
     print(f"ours ({what}; train s summed over the seeds) and the paper's ZerNet in brackets; MAPE, RRMSE, HR in %")
-    print(f"better than the paper on every column: "
-          f"{sum(r['better_than_paper'] for r in results.values())} of {len(results)} cases")
+    print(
+        f"better than the paper on every column: "
+        f"{sum(r['better_than_paper'] for r in results.values())} of {len(results)} cases"
+    )
 
     print("\nthe physics prior alone (membrane stress, power law fitted on the other cases; no network):")
     baseline = membrane_baseline(Path(args.data), list(results), base.get("cache_dir") or ".zernet-cache")
@@ -186,8 +195,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'mean':<11}" + "".join(f"{baseline_mean[c]:>16.2f}" for c in COLUMNS))
 
     out = Path(args.out)
-    table = {"config": base, "seeds": args.seeds, "cases": results, "mean": mean, "paper_mean": paper_mean,
-             "membrane_baseline": {"cases": baseline, "mean": baseline_mean}}
+    table = {
+        "config": base,
+        "seeds": args.seeds,
+        "cases": results,
+        "mean": mean,
+        "paper_mean": paper_mean,
+        "membrane_baseline": {"cases": baseline, "mean": baseline_mean},
+    }
     atomic_write_bytes(out, json.dumps(table, indent=2, default=str).encode())
     print(f"wrote {out}")
     return 0

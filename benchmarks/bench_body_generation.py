@@ -31,16 +31,20 @@ from zernet.operators import PatchConfig, build_patch_operator
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_body_generation.json"
 DEMO_PATCH = {"area": 1000.0, "config": dict(r0=4.0, n_samples=1600, patch_size=50, n_max=5)}
-FAUST_PATCH = {"area": 15000.0, "config": dict(r0=5.5, n_samples=12000, patch_size=50, n_max=5, inner_radius=1.375,
-                                               subtract_center=True)}
+FAUST_PATCH = {
+    "area": 15000.0,
+    "config": dict(r0=5.5, n_samples=12000, patch_size=50, n_max=5, inner_radius=1.375, subtract_center=True),
+}
 TOPOLOGIES = ("coarse-369", "coarse-615", "coarse-1229", "faust")
 
 
 def _settings(topology: str) -> list[tuple[str, float, PatchConfig]]:
     """(label, area, patch config) of the preprocessing runs of one topology."""
     if topology == "faust":
-        return [(f"FAUST settings, {backend}", FAUST_PATCH["area"], PatchConfig(**FAUST_PATCH["config"], backend=backend))
-                for backend in ("fast", "front")]
+        return [
+            (f"FAUST settings, {backend}", FAUST_PATCH["area"], PatchConfig(**FAUST_PATCH["config"], backend=backend))
+            for backend in ("fast", "front")
+        ]
     return [("demo settings, fast", DEMO_PATCH["area"], PatchConfig(**DEMO_PATCH["config"]))]
 
 
@@ -67,9 +71,14 @@ def measure(topology: str, n_bodies: int, workdir: Path) -> dict:
             build_patch_operator(surface, config, cache_dir=None)
             seconds.append(time.perf_counter() - started)
         preprocessing[label] = statistics.median(seconds)
-    return {"n_vertices": topology_data.n_vertices, "model_build_seconds": model_seconds,
-            "topology_seconds": topology_seconds, "body_seconds": statistics.median(per_body),
-            "preprocess_seconds": preprocessing, "bodies": n_bodies}
+    return {
+        "n_vertices": topology_data.n_vertices,
+        "model_build_seconds": model_seconds,
+        "topology_seconds": topology_seconds,
+        "body_seconds": statistics.median(per_body),
+        "preprocess_seconds": preprocessing,
+        "bodies": n_bodies,
+    }
 
 
 def main(argv=None) -> int:
@@ -84,14 +93,19 @@ def main(argv=None) -> int:
         for topology in args.topologies.split(","):
             results[topology] = measure(topology, args.bodies, Path(workdir))
             r = results[topology]
-            print(f"{topology}: {r['n_vertices']} vertices, model {r['model_build_seconds']:.1f} s, topology "
-                  f"{r['topology_seconds']:.2f} s, per body {r['body_seconds']:.3f} s, preprocessing per body "
-                  + ", ".join(f"{k} {v:.2f} s" for k, v in r["preprocess_seconds"].items()), flush=True)
+            print(
+                f"{topology}: {r['n_vertices']} vertices, model {r['model_build_seconds']:.1f} s, topology "
+                f"{r['topology_seconds']:.2f} s, per body {r['body_seconds']:.3f} s, preprocessing per body "
+                + ", ".join(f"{k} {v:.2f} s" for k, v in r["preprocess_seconds"].items()),
+                flush=True,
+            )
     print("\n| topology | vertices | anny model build, this process (s) | per body (s) | preprocessing per body (s) |")
     print("|---|---:|---:|---:|---|")
     for topology, r in results.items():
         pre = "; ".join(f"{k}: {v:.2f}" for k, v in r["preprocess_seconds"].items())
-        print(f"| {topology} | {r['n_vertices']:,} | {r['model_build_seconds']:.1f} | {r['body_seconds']:.3f} | {pre} |")
+        print(
+            f"| {topology} | {r['n_vertices']:,} | {r['model_build_seconds']:.1f} | {r['body_seconds']:.3f} | {pre} |"
+        )
     atomic_write_bytes(RESULTS, json.dumps({"threads": args.threads, "results": results}, indent=1).encode())
     print(f"wrote {RESULTS}")
     return 0

@@ -71,9 +71,20 @@ def main() -> None:
     times = alternate({"denormals kept": lambda: timed(False), "flushed to zero": lambda: timed(True)}, args.rounds)
     medians, ratio = print_medians(
         f"{len(shapes)} training shapes of {args.run} (weights after epoch {epoch}), 1 thread, {args.rounds} rounds",
-        "denormals", times, faster="flushed to zero")
-    result = {"run": str(args.run), "epoch": epoch, "shapes": len(shapes), "threads": 1, "rounds": args.rounds,
-              "seconds_per_step": times, "median_seconds_per_step": medians, "speedup": ratio}
+        "denormals",
+        times,
+        faster="flushed to zero",
+    )
+    result = {
+        "run": str(args.run),
+        "epoch": epoch,
+        "shapes": len(shapes),
+        "threads": 1,
+        "rounds": args.rounds,
+        "seconds_per_step": times,
+        "median_seconds_per_step": medians,
+        "speedup": ratio,
+    }
     args.output.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(args.output, json.dumps(result, indent=2).encode())
 

@@ -62,8 +62,9 @@ from zernet.training.batch import Batch
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_directional.json"
 WIDTHS = (64, 128, 256, 512)
-PATCH = PatchConfig(r0=5.5, n_samples=12000, patch_size=50, n_max=5, inner_radius=1.375, subtract_center=True,
-                    backend="front")
+PATCH = PatchConfig(
+    r0=5.5, n_samples=12000, patch_size=50, n_max=5, inner_radius=1.375, subtract_center=True, backend="front"
+)
 MODELS = {
     "single": ("zernet", {"angular_resolution": 16, "pooling": "max"}),
     "directional": ("zernet-directional", {"angular_resolution": 4, "pooling": "continuous", "final_order": 1}),
@@ -120,8 +121,13 @@ def time_models(operator, names: list[str], threads: int, steps: int) -> dict:
     out = {}
     for name in names:
         wall, cpu = np.asarray(times[name]).T
-        out[name] = {"first_step_s": runs[name][3][0][0], "median_s": float(np.median(wall)),
-                     "median_cpu_s": float(np.median(cpu)), "steps_s": wall.tolist(), "steps_cpu_s": cpu.tolist()}
+        out[name] = {
+            "first_step_s": runs[name][3][0][0],
+            "median_s": float(np.median(wall)),
+            "median_cpu_s": float(np.median(cpu)),
+            "steps_s": wall.tolist(),
+            "steps_cpu_s": cpu.tolist(),
+        }
     if "single" in out:
         for name in names:
             out[name]["ratio_to_single"] = out[name]["median_s"] / out["single"]["median_s"]
@@ -138,11 +144,22 @@ def streamed_dataset(surface: Surface, cache_dir: Path):
     """The body as a one-shape correspondence data set that reads its record back from the cache on every
     access, as a data set above ``IN_MEMORY_VERTEX_LIMIT`` does. ``cache_dir`` is the patch operator's, so
     the operator built by :func:`main` is the one read back."""
-    source = ShapeSource(surface.name, functools.partial(_body_and_labels, surface),
-                         key=f"bench_directional:{surface.geometry_hash()}")
-    return build_dataset([source], PATCH, cache_dir, target_area=None, task="classification",
-                         num_classes=surface.n_vertices, split_names={"train": [surface.name]}, workers=0,
-                         progress=False, in_memory=False, correspondence=True)
+    source = ShapeSource(
+        surface.name, functools.partial(_body_and_labels, surface), key=f"bench_directional:{surface.geometry_hash()}"
+    )
+    return build_dataset(
+        [source],
+        PATCH,
+        cache_dir,
+        target_area=None,
+        task="classification",
+        num_classes=surface.n_vertices,
+        split_names={"train": [surface.name]},
+        workers=0,
+        progress=False,
+        in_memory=False,
+        correspondence=True,
+    )
 
 
 def _streamed_step(dataset, model, order, optimizer) -> tuple:
@@ -177,11 +194,16 @@ def time_streamed(dataset, names: list[str], threads: int, steps: int) -> dict:
     out = {}
     for name in names:
         wall, cpu, prepared, prepared_cpu = np.asarray(times[name]).T
-        out[name] = {"median_s": float(np.median(wall)), "median_cpu_s": float(np.median(cpu)),
-                     "median_preparation_s": float(np.median(prepared)),
-                     "median_preparation_cpu_s": float(np.median(prepared_cpu)),
-                     "steps_s": wall.tolist(), "steps_cpu_s": cpu.tolist(),
-                     "preparation_s": prepared.tolist(), "preparation_cpu_s": prepared_cpu.tolist()}
+        out[name] = {
+            "median_s": float(np.median(wall)),
+            "median_cpu_s": float(np.median(cpu)),
+            "median_preparation_s": float(np.median(prepared)),
+            "median_preparation_cpu_s": float(np.median(prepared_cpu)),
+            "steps_s": wall.tolist(),
+            "steps_cpu_s": cpu.tolist(),
+            "preparation_s": prepared.tolist(),
+            "preparation_cpu_s": prepared_cpu.tolist(),
+        }
     if "single" in out:
         for name in names:
             out[name]["ratio_to_single"] = out[name]["median_s"] / out["single"]["median_s"]
@@ -210,8 +232,10 @@ def surface_preparation(operator) -> dict:
     start = time.perf_counter()
     directional = build_directional_operator(operator, 1)
     out["directional_pairs_angles_from_cache"] = time.perf_counter() - start
-    for name, plan in (("directional_matrices_order1", directional_plan(5, 1, out_order=1)),
-                       ("directional_matrices_full", directional_plan(5, 1, out_order=6))):
+    for name, plan in (
+        ("directional_matrices_order1", directional_plan(5, 1, out_order=1)),
+        ("directional_matrices_full", directional_plan(5, 1, out_order=6)),
+    ):
         start = time.perf_counter()
         directional.torch_matrices(plan.inputs, torch.float32, "cpu")
         out[name] = time.perf_counter() - start
@@ -234,19 +258,30 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads[0])
     preparation = surface_preparation(operator)
     directional = build_directional_operator(operator, 1)
-    results = {"surface": description, "n_vertices": operator.n_vertices, "nnz": operator.nnz,
-               "pairs": int(len(directional.pairs)), "patch_operator_s": operator_s,
-               "preparation_s": preparation, "widths": list(WIDTHS), "steps": args.steps,
-               "models": {name: {"name": MODELS[name][0], **MODELS[name][1]} for name in args.models},
-               "threads": {}, "torch": torch.__version__, "machine": platform.platform()}
+    results = {
+        "surface": description,
+        "n_vertices": operator.n_vertices,
+        "nnz": operator.nnz,
+        "pairs": int(len(directional.pairs)),
+        "patch_operator_s": operator_s,
+        "preparation_s": preparation,
+        "widths": list(WIDTHS),
+        "steps": args.steps,
+        "models": {name: {"name": MODELS[name][0], **MODELS[name][1]} for name in args.models},
+        "threads": {},
+        "torch": torch.__version__,
+        "machine": platform.platform(),
+    }
     dataset = streamed_dataset(surface, Path(args.cache_dir) / "operators")
     results["streamed"] = {}
     for threads in args.threads:
         results["threads"][str(threads)] = time_models(operator, args.models, threads, args.steps)
         results["streamed"][str(threads)] = time_streamed(dataset, args.models, threads, args.steps)
 
-    print(f"surface: {description}; N = {operator.n_vertices}, nnz = {operator.nnz}, "
-          f"{len(directional.pairs)} vertex pairs")
+    print(
+        f"surface: {description}; N = {operator.n_vertices}, nnz = {operator.nnz}, "
+        f"{len(directional.pairs)} vertex pairs"
+    )
     print("per-surface preparation (s): " + ", ".join(f"{key} {value:.2f}" for key, value in preparation.items()))
     print("\n| threads | model | first step (s) | median step, wall (s) | ratio | median step, CPU (s) | CPU ratio |")
     print("|---|---|---|---|---|---|---|")
@@ -254,18 +289,24 @@ def main(argv=None) -> int:
         for name, row in by_model.items():
             ratio, cpu_ratio = row.get("ratio_to_single"), row.get("cpu_ratio_to_single")
             text = lambda value: f"{value:.2f}x" if value is not None else "-"  # noqa: E731
-            print(f"| {threads} | {name} | {row['first_step_s']:.2f} | {row['median_s']:.2f} | {text(ratio)} | "
-                  f"{row['median_cpu_s']:.2f} | {text(cpu_ratio)} |")
+            print(
+                f"| {threads} | {name} | {row['first_step_s']:.2f} | {row['median_s']:.2f} | {text(ratio)} | "
+                f"{row['median_cpu_s']:.2f} | {text(cpu_ratio)} |"
+            )
     print("\nstreamed (record read back from the cache on every step):")
-    print("\n| threads | model | median preparation, wall (s) | median preparation, CPU (s) | median step + "
-          "preparation, wall (s) | ratio | median step + preparation, CPU (s) | CPU ratio |")
+    print(
+        "\n| threads | model | median preparation, wall (s) | median preparation, CPU (s) | median step + "
+        "preparation, wall (s) | ratio | median step + preparation, CPU (s) | CPU ratio |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for threads, by_model in results["streamed"].items():
         for name, row in by_model.items():
             ratio, cpu_ratio = row.get("ratio_to_single"), row.get("cpu_ratio_to_single")
             text = lambda value: f"{value:.2f}x" if value is not None else "-"  # noqa: E731
-            print(f"| {threads} | {name} | {row['median_preparation_s']:.2f} | {row['median_preparation_cpu_s']:.2f} | "
-                  f"{row['median_s']:.2f} | {text(ratio)} | {row['median_cpu_s']:.2f} | {text(cpu_ratio)} |")
+            print(
+                f"| {threads} | {name} | {row['median_preparation_s']:.2f} | {row['median_preparation_cpu_s']:.2f} | "
+                f"{row['median_s']:.2f} | {text(ratio)} | {row['median_cpu_s']:.2f} | {text(cpu_ratio)} |"
+            )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=2) + "\n")

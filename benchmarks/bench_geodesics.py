@@ -83,8 +83,15 @@ def exact_polar(exact, frames, r0) -> PolarCoordinates:
     """The exact pairs within ``r0`` as polar coordinates (only the reference's centres have patches)."""
     pairs = np.array([(i, j, d, a) for (i, j), (d, a) in exact.items() if d <= r0 and np.isfinite(a)]).reshape(-1, 4)
     pairs = pairs[np.lexsort((pairs[:, 2], pairs[:, 0]))]
-    return PolarCoordinates(pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64), pairs[:, 2], pairs[:, 3],
-                            frames, r0=r0, backend="exact")
+    return PolarCoordinates(
+        pairs[:, 0].astype(np.int64),
+        pairs[:, 1].astype(np.int64),
+        pairs[:, 2],
+        pairs[:, 3],
+        frames,
+        r0=r0,
+        backend="exact",
+    )
 
 
 def score(polar, exact, centres, r0, regions=None) -> dict:
@@ -92,8 +99,10 @@ def score(polar, exact, centres, r0, regions=None) -> dict:
     region name of every vertex) also the angle p95 of the centres in each region."""
     chosen = set(int(c) for c in centres)
     pick = np.isin(polar.center, centres)
-    kept = {(int(i), int(j)): (r, t) for i, j, r, t in
-            zip(polar.center[pick], polar.sample[pick], polar.radius[pick], polar.angle[pick])}
+    kept = {
+        (int(i), int(j)): (r, t)
+        for i, j, r, t in zip(polar.center[pick], polar.sample[pick], polar.radius[pick], polar.angle[pick])
+    }
     far = sum(1 for key in kept if exact.get(key, (np.inf,))[0] > 1.1 * r0)
     true = [key for key, (d, _) in exact.items() if d < 0.95 * r0 and key[0] in chosen]
     dropped = sum(1 for key in true if key not in kept)
@@ -115,18 +124,22 @@ def score(polar, exact, centres, r0, regions=None) -> dict:
             in_region = [key for key in kept if str(regions[key[0]]) == name]
             beyond = sum(1 for key in in_region if exact.get(key, (np.inf,))[0] > 1.1 * r0)
             far_by_region[name] = 100.0 * beyond / max(1, len(in_region))
-    return {"kept_beyond_1.1r0_percent": 100.0 * far / max(1, len(kept)),
-            "kept_beyond_1.1r0_percent_by_region": far_by_region,
-            "true_dropped_percent": 100.0 * dropped / max(1, len(true)),
-            "radius_median_percent_r0": 100.0 * float(np.median(radius_error)),
-            "radius_p95_percent_r0": 100.0 * float(np.percentile(radius_error, 95)),
-            "angle_p95_rad": float(np.percentile(angle_error, 95)) if angle_error else None,
-            "angle_p95_rad_by_region": {name: float(np.percentile(e, 95)) for name, e in sorted(region_errors.items())}}
+    return {
+        "kept_beyond_1.1r0_percent": 100.0 * far / max(1, len(kept)),
+        "kept_beyond_1.1r0_percent_by_region": far_by_region,
+        "true_dropped_percent": 100.0 * dropped / max(1, len(true)),
+        "radius_median_percent_r0": 100.0 * float(np.median(radius_error)),
+        "radius_p95_percent_r0": 100.0 * float(np.percentile(radius_error, 95)),
+        "angle_p95_rad": float(np.percentile(angle_error, 95)) if angle_error else None,
+        "angle_p95_rad_by_region": {name: float(np.percentile(e, 95)) for name, e in sorted(region_errors.items())},
+    }
 
 
 def interior_vertices(surface: Surface, r0: float) -> np.ndarray:
     """Vertices farther than ``r0`` (Euclidean) from every boundary vertex (all of them on a closed mesh)."""
-    edges = np.sort(np.concatenate([surface.faces[:, [0, 1]], surface.faces[:, [1, 2]], surface.faces[:, [2, 0]]]), axis=1)
+    edges = np.sort(
+        np.concatenate([surface.faces[:, [0, 1]], surface.faces[:, [1, 2]], surface.faces[:, [2, 0]]]), axis=1
+    )
     unique, counts = np.unique(edges, axis=0, return_counts=True)
     boundary = np.unique(unique[counts == 1])
     if len(boundary) == 0:
@@ -150,10 +163,18 @@ def patch_fit(surface, polar, samples, config, seed, centres=None) -> dict:
     """The patch-fit columns (module docstring) on the coordinates ``polar``, scored on the interior
     vertices; with ``centres`` also under ``"on_centres"``, scored on the interior ones among them (the same
     operators, so a backend's fit compares with the exact coordinates' fit on the same vertices)."""
-    operator = assemble_operator(polar.center, polar.sample, polar.radius, polar.angle, polar.frames,
-                                 samples.interpolation, config)
-    high = assemble_operator(polar.center, polar.sample, polar.radius, polar.angle, polar.frames,
-                             samples.interpolation, PatchConfig(**{**config.to_dict(), "n_max": 8}))
+    operator = assemble_operator(
+        polar.center, polar.sample, polar.radius, polar.angle, polar.frames, samples.interpolation, config
+    )
+    high = assemble_operator(
+        polar.center,
+        polar.sample,
+        polar.radius,
+        polar.angle,
+        polar.frames,
+        samples.interpolation,
+        PatchConfig(**{**config.to_dict(), "n_max": 8}),
+    )
     direction = np.random.default_rng(seed).normal(size=3)
     field = surface.vertices @ (direction / np.linalg.norm(direction))
     at_samples = samples.interpolation @ field
@@ -166,12 +187,15 @@ def patch_fit(surface, polar, samples, config, seed, centres=None) -> dict:
         residual = fit_residuals(operator, at_samples, field, inside)
         residual_high = fit_residuals(high, at_samples, field, inside)
         counts = (operator.patch_sample_index[inside] >= 0).sum(axis=1)
-        return {"vertices_scored": int(len(inside)), "samples_per_patch_median": float(np.median(counts)),
-                "piston_error_p95_percent": 100.0 * float(np.percentile(piston_error, 95)),
-                "other_coefficients_p95_percent_of_piston": 100.0 * float(np.percentile(others, 95)),
-                "linear_residual_median_percent": 100.0 * float(np.median(residual)),
-                "linear_residual_p95_percent": 100.0 * float(np.percentile(residual, 95)),
-                "linear_residual_nmax8_median_percent": 100.0 * float(np.median(residual_high))}
+        return {
+            "vertices_scored": int(len(inside)),
+            "samples_per_patch_median": float(np.median(counts)),
+            "piston_error_p95_percent": 100.0 * float(np.percentile(piston_error, 95)),
+            "other_coefficients_p95_percent_of_piston": 100.0 * float(np.percentile(others, 95)),
+            "linear_residual_median_percent": 100.0 * float(np.median(residual)),
+            "linear_residual_p95_percent": 100.0 * float(np.percentile(residual, 95)),
+            "linear_residual_nmax8_median_percent": 100.0 * float(np.median(residual_high)),
+        }
 
     inside = interior_vertices(surface, config.r0)
     result = columns(inside)
@@ -204,10 +228,16 @@ def cloud_polar(surface, samples, r0):
     closest = nearest[np.arange(len(best)), best]
     corners = mesh.faces[face]
     barycentric = trimesh.triangles.points_to_barycentric(mesh.vertices[corners], closest)
-    interpolation = scipy.sparse.csr_matrix((barycentric.ravel(), corners.ravel(),
-                                             np.arange(0, 3 * len(face) + 1, 3)), shape=(len(face), mesh.n_vertices))
-    on_cloud = SurfaceSamples(points=closest, normals=mesh.face_normals()[face], face_index=face.astype(np.int64),
-                              barycentric=barycentric, interpolation=interpolation)
+    interpolation = scipy.sparse.csr_matrix(
+        (barycentric.ravel(), corners.ravel(), np.arange(0, 3 * len(face) + 1, 3)), shape=(len(face), mesh.n_vertices)
+    )
+    on_cloud = SurfaceSamples(
+        points=closest,
+        normals=mesh.face_normals()[face],
+        face_index=face.astype(np.int64),
+        barycentric=barycentric,
+        interpolation=interpolation,
+    )
     return compute_polar(mesh, on_cloud, r0, backend="front"), on_cloud
 
 
@@ -216,62 +246,97 @@ def measure(surface, r0, n_samples, n_centres, backends, seed, regions=None) -> 
     first, second = build_seconds(surface, config)  # first: before anything else in this process
     samples = sample_surface(surface, n_samples, seed=seed)
     frames = tangent_frames(surface)
-    centres = np.sort(np.random.default_rng(seed).choice(surface.n_vertices, min(n_centres, surface.n_vertices), replace=False))
+    centres = np.sort(
+        np.random.default_rng(seed).choice(surface.n_vertices, min(n_centres, surface.n_vertices), replace=False)
+    )
     started = time.perf_counter()
     exact = exact_reference(surface, samples, frames, centres, r0)
-    rows = {"surface": surface.name, "vertices": surface.n_vertices, "r0": r0, "samples": n_samples,
-            "centres": int(len(centres)), "reference_seconds": time.perf_counter() - started, "backends": {},
-            "build_first_seconds_per_1000_vertices": 1000.0 * first / surface.n_vertices,
-            "build_second_seconds_per_1000_vertices": 1000.0 * second / surface.n_vertices}
+    rows = {
+        "surface": surface.name,
+        "vertices": surface.n_vertices,
+        "r0": r0,
+        "samples": n_samples,
+        "centres": int(len(centres)),
+        "reference_seconds": time.perf_counter() - started,
+        "backends": {},
+        "build_first_seconds_per_1000_vertices": 1000.0 * first / surface.n_vertices,
+        "build_second_seconds_per_1000_vertices": 1000.0 * second / surface.n_vertices,
+    }
     for backend in backends:
         if backend == "cloud":
             polar, backend_samples = cloud_polar(surface, samples, r0)
             cloud_first, cloud_second = build_seconds(Surface(surface.vertices, None), config)
-            timing = {"build_first_seconds_per_1000_vertices": 1000.0 * cloud_first / surface.n_vertices,
-                      "build_second_seconds_per_1000_vertices": 1000.0 * cloud_second / surface.n_vertices}
+            timing = {
+                "build_first_seconds_per_1000_vertices": 1000.0 * cloud_first / surface.n_vertices,
+                "build_second_seconds_per_1000_vertices": 1000.0 * cloud_second / surface.n_vertices,
+            }
         else:
             polar, backend_samples, timing = compute_polar(surface, samples, r0, backend=backend), samples, {}
         backend_config = PatchConfig(**{**config.to_dict(), "backend": "front" if backend == "cloud" else backend})
-        rows["backends"][backend] = {"seconds_all_vertices": polar.seconds, **timing,
-                                     **score(polar, exact, centres, r0, regions),
-                                     **patch_fit(surface, polar, backend_samples, backend_config, seed, centres)}
+        rows["backends"][backend] = {
+            "seconds_all_vertices": polar.seconds,
+            **timing,
+            **score(polar, exact, centres, r0, regions),
+            **patch_fit(surface, polar, backend_samples, backend_config, seed, centres),
+        }
     # The fit on exact coordinates (only the reference's centres have patches): what the patch-fit targets
     # can reach with perfect geodesics.
-    rows["exact_fit_on_centres"] = patch_fit(surface, exact_polar(exact, frames, r0), samples, config, seed,
-                                             centres)["on_centres"]
+    rows["exact_fit_on_centres"] = patch_fit(surface, exact_polar(exact, frames, r0), samples, config, seed, centres)[
+        "on_centres"
+    ]
     return rows
 
 
 def print_rows(row) -> None:
-    print(f"\n{row['surface']}: {row['vertices']} vertices, r0 {row['r0']}, {row['samples']} samples, "
-          f"{row['centres']} centres (exact reference {row['reference_seconds']:.0f} s); operator build (default "
-          f"config) {row['build_first_seconds_per_1000_vertices']:.2f} s / 1000 vertices first, "
-          f"{row['build_second_seconds_per_1000_vertices']:.2f} second")
-    print(f"{'backend':8} {'>1.1r0 %':>9} {'dropped %':>10} {'r med %':>8} {'r p95 %':>8} {'θ p95':>7} {'time s':>7}"
-          f" {'piston p95 %':>13} {'others p95 %':>13} {'lin med %':>10} {'lin p95 %':>10} {'lin n8 %':>9}")
+    print(
+        f"\n{row['surface']}: {row['vertices']} vertices, r0 {row['r0']}, {row['samples']} samples, "
+        f"{row['centres']} centres (exact reference {row['reference_seconds']:.0f} s); operator build (default "
+        f"config) {row['build_first_seconds_per_1000_vertices']:.2f} s / 1000 vertices first, "
+        f"{row['build_second_seconds_per_1000_vertices']:.2f} second"
+    )
+    print(
+        f"{'backend':8} {'>1.1r0 %':>9} {'dropped %':>10} {'r med %':>8} {'r p95 %':>8} {'θ p95':>7} {'time s':>7}"
+        f" {'piston p95 %':>13} {'others p95 %':>13} {'lin med %':>10} {'lin p95 %':>10} {'lin n8 %':>9}"
+    )
     for name, b in row["backends"].items():
         angle = "-" if b["angle_p95_rad"] is None else f"{b['angle_p95_rad']:.3f}"
-        print(f"{name:8} {b['kept_beyond_1.1r0_percent']:9.2f} {b['true_dropped_percent']:10.2f} "
-              f"{b['radius_median_percent_r0']:8.3f} {b['radius_p95_percent_r0']:8.2f} {angle:>7} "
-              f"{b['seconds_all_vertices']:7.2f} {b['piston_error_p95_percent']:13.4f} "
-              f"{b['other_coefficients_p95_percent_of_piston']:13.4f} {b['linear_residual_median_percent']:10.2f} "
-              f"{b['linear_residual_p95_percent']:10.2f} {b['linear_residual_nmax8_median_percent']:9.2f}")
+        print(
+            f"{name:8} {b['kept_beyond_1.1r0_percent']:9.2f} {b['true_dropped_percent']:10.2f} "
+            f"{b['radius_median_percent_r0']:8.3f} {b['radius_p95_percent_r0']:8.2f} {angle:>7} "
+            f"{b['seconds_all_vertices']:7.2f} {b['piston_error_p95_percent']:13.4f} "
+            f"{b['other_coefficients_p95_percent_of_piston']:13.4f} {b['linear_residual_median_percent']:10.2f} "
+            f"{b['linear_residual_p95_percent']:10.2f} {b['linear_residual_nmax8_median_percent']:9.2f}"
+        )
     for name, b in row["backends"].items():
         if "build_second_seconds_per_1000_vertices" in b:
-            print(f"operator build ({name}): {b['build_first_seconds_per_1000_vertices']:.2f} s / 1000 vertices first, "
-                  f"{b['build_second_seconds_per_1000_vertices']:.2f} second")
+            print(
+                f"operator build ({name}): {b['build_first_seconds_per_1000_vertices']:.2f} s / 1000 vertices first, "
+                f"{b['build_second_seconds_per_1000_vertices']:.2f} second"
+            )
     for name, b in row["backends"].items():
         if b["kept_beyond_1.1r0_percent_by_region"]:
-            print(f"kept beyond 1.1 r0 by region, % ({name}): " + ", ".join(
-                f"{region} {value:.2f}" for region, value in b["kept_beyond_1.1r0_percent_by_region"].items()))
+            print(
+                f"kept beyond 1.1 r0 by region, % ({name}): "
+                + ", ".join(
+                    f"{region} {value:.2f}" for region, value in b["kept_beyond_1.1r0_percent_by_region"].items()
+                )
+            )
     for name, b in row["backends"].items():
         if b["angle_p95_rad_by_region"]:
-            print(f"angle p95 by region ({name}): " + ", ".join(f"{region} {p95:.3f}" for region, p95 in b["angle_p95_rad_by_region"].items()))
+            print(
+                f"angle p95 by region ({name}): "
+                + ", ".join(f"{region} {p95:.3f}" for region, p95 in b["angle_p95_rad_by_region"].items())
+            )
     print(f"linear residual median on the {row['centres']} reference centres (interior ones), n_max 5 / 8:")
-    fits = {**{name: b["on_centres"] for name, b in row["backends"].items()}, "exact (MMP)": row["exact_fit_on_centres"]}
+    fits = {
+        **{name: b["on_centres"] for name, b in row["backends"].items()},
+        "exact (MMP)": row["exact_fit_on_centres"],
+    }
     for name, fit in fits.items():
-        print(f"  {name:12} {fit['linear_residual_median_percent']:6.2f} % / {fit['linear_residual_nmax8_median_percent']:6.2f} %"
-              f"  (piston p95 {fit['piston_error_p95_percent']:.2g} %)")
+        print(
+            f"  {name:12} {fit['linear_residual_median_percent']:6.2f} % / {fit['linear_residual_nmax8_median_percent']:6.2f} %"
+            f"  (piston p95 {fit['piston_error_p95_percent']:.2g} %)"
+        )
 
 
 def main() -> None:

@@ -71,18 +71,32 @@ def device_name(device: torch.device) -> str:
     return f"{platform.processor() or 'cpu'} ({torch.get_num_threads()} threads)"
 
 
-def run_config(data: Path | None, topology: str, n_train: int, n_val: int, n_test: int, cache_dir: Path,
-               device: str, threads: int) -> dict:
+def run_config(
+    data: Path | None, topology: str, n_train: int, n_val: int, n_test: int, cache_dir: Path, device: str, threads: int
+) -> dict:
     """The shipped correspondence recipe on ``n_train + n_val`` training and ``n_test`` test bodies: read from
     the files of ``data`` (FAUST layout, 6,890 vertices), or generated in the run (``topology``)."""
     config = load_config(ROOT / "configs" / "bodies_correspondence.yaml")
     if data is not None:
-        config["data"].update({"root": str(data / "correspondence"), "train_indices": f"0:{n_train + n_val}",
-                               "test_indices": f"{n_train + n_val}:{n_train + n_val + n_test}", "val_count": n_val})
+        config["data"].update(
+            {
+                "root": str(data / "correspondence"),
+                "train_indices": f"0:{n_train + n_val}",
+                "test_indices": f"{n_train + n_val}:{n_train + n_val + n_test}",
+                "val_count": n_val,
+            }
+        )
     else:
-        config["data"] = {"kind": "bodies", "task": "correspondence", "topology": topology, "seed": 0,
-                          "count": n_train + n_val + n_test, "n_test": n_test, "val_count": n_val,
-                          "features": "xyz"}
+        config["data"] = {
+            "kind": "bodies",
+            "task": "correspondence",
+            "topology": topology,
+            "seed": 0,
+            "count": n_train + n_val + n_test,
+            "n_test": n_test,
+            "val_count": n_val,
+            "features": "xyz",
+        }
     config["train"].update({"device": device, "threads": threads, "epochs": 1})
     config["eval"].update({"renders": 0, "plots": False, "refine_rings": [0, 1]})
     config["cache_dir"] = str(cache_dir)
@@ -142,28 +156,57 @@ def bench_level(level: str, config, dataset, spec, device, rounds: int) -> dict:
     for epoch in range(1, rounds + 1):
         synchronise(device)
         started = time.perf_counter()
-        train_one_epoch(model, model, optimizer, store, train, epoch, config.train, CORRESPONDENCE,
-                        DistributedContext(device=device), progress=False)
+        train_one_epoch(
+            model,
+            model,
+            optimizer,
+            store,
+            train,
+            epoch,
+            config.train,
+            CORRESPONDENCE,
+            DistributedContext(device=device),
+            progress=False,
+        )
         validate(model, store, val, device, CORRESPONDENCE)
         synchronise(device)
         epochs.append(time.perf_counter() - started)
-    return {"level": store.level, "reason": store.reason, "held_gb": store.held_bytes / 1e9, "setup_s": setup,
-            "phase_ms": {phase: 1e3 * value for phase, value in means.items()}, "step_ms": 1e3 * step,
-            "busy": (means["forward"] + means["backward"] + means["optimiser"]) / step,
-            "epoch_s": epochs, "epoch_median_s": statistics.median(epochs)}
+    return {
+        "level": store.level,
+        "reason": store.reason,
+        "held_gb": store.held_bytes / 1e9,
+        "setup_s": setup,
+        "phase_ms": {phase: 1e3 * value for phase, value in means.items()},
+        "step_ms": 1e3 * step,
+        "busy": (means["forward"] + means["backward"] + means["optimiser"]) / step,
+        "epoch_s": epochs,
+        "epoch_median_s": statistics.median(epochs),
+    }
 
 
-def epoch_seconds_of_run(checkout: Path, config: dict, run_dir: Path, epochs: int,
-                         threads: int) -> tuple[list[float], float]:
+def epoch_seconds_of_run(
+    checkout: Path, config: dict, run_dir: Path, epochs: int, threads: int
+) -> tuple[list[float], float]:
     """``zernet train`` by the code in ``checkout`` (its data set streamed, as a FAUST-size one is): the
     seconds of each epoch (from its last.pt) and of the whole command (start-up, holding the shapes, the
     final evaluation included)."""
     with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as handle:
         yaml.safe_dump(config, handle)
-    arguments = ["train", handle.name, "--run-dir", str(run_dir), "--overwrite", "--no-progress", "--set",
-                 f"train.epochs={epochs}", f"train.threads={threads}"]
-    code = ("import sys, zernet.data.preprocess as p; p.IN_MEMORY_VERTEX_LIMIT = 0; from zernet.cli import main; "
-            f"sys.exit(main({arguments!r}))")
+    arguments = [
+        "train",
+        handle.name,
+        "--run-dir",
+        str(run_dir),
+        "--overwrite",
+        "--no-progress",
+        "--set",
+        f"train.epochs={epochs}",
+        f"train.threads={threads}",
+    ]
+    code = (
+        "import sys, zernet.data.preprocess as p; p.IN_MEMORY_VERTEX_LIMIT = 0; from zernet.cli import main; "
+        f"sys.exit(main({arguments!r}))"
+    )
     command = [sys.executable, "-c", code]
     started = time.perf_counter()
     subprocess.run(command, cwd=checkout, check=True, stdout=subprocess.DEVNULL)
@@ -172,8 +215,7 @@ def epoch_seconds_of_run(checkout: Path, config: dict, run_dir: Path, epochs: in
     return [float(entry["seconds"]) for entry in state["history"]], wall
 
 
-def before_after(before: Path, after: Path, config: dict, work: Path, epochs: int, rounds: int,
-                 threads: int) -> dict:
+def before_after(before: Path, after: Path, config: dict, work: Path, epochs: int, rounds: int, threads: int) -> dict:
     """The CPU epoch of the same configuration by the code before and after issue 34, alternating."""
     sides = {"before": before, "after": after}
     seconds = {side: [] for side in sides}
@@ -188,41 +230,64 @@ def before_after(before: Path, after: Path, config: dict, work: Path, epochs: in
             seconds[side] += epochs_s
             walls[side].append(wall)
     medians = {side: statistics.median(values) for side, values in seconds.items()}
-    commit = lambda path: subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=path, text=True,  # noqa: E731
-                                         capture_output=True).stdout.strip()
-    return {"epoch_s": seconds, "median_epoch_s": medians, "after_over_before": medians["after"] / medians["before"],
-            "run_wall_s": walls, "median_run_wall_s": {side: statistics.median(v) for side, v in walls.items()},
-            "before_commit": commit(before), "after_commit": commit(after)}
+
+    def commit(path):
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=path, text=True, capture_output=True
+        ).stdout.strip()
+
+    return {
+        "epoch_s": seconds,
+        "median_epoch_s": medians,
+        "after_over_before": medians["after"] / medians["before"],
+        "run_wall_s": walls,
+        "median_run_wall_s": {side: statistics.median(v) for side, v in walls.items()},
+        "before_commit": commit(before),
+        "after_commit": commit(after),
+    }
 
 
 def markdown(result: dict) -> str:
-    lines = [f"# bench_gpu: {result['device_name']}", "",
-             f"{result['shapes']['train']} training + {result['shapes']['val']} validation shapes of "
-             f"{result['vertices']} vertices ({result['data']}), torch {result['torch']}, {result['threads']} CPU "
-             f"threads, command `{result['command']}`.", "",
-             "| level | held GB | set-up s | " + " | ".join(f"{p} ms" for p in PHASES) + " | step ms | busy | epoch s |",
-             "|---|---|---|" + "---|" * len(PHASES) + "---|---|---|"]
+    lines = [
+        f"# bench_gpu: {result['device_name']}",
+        "",
+        f"{result['shapes']['train']} training + {result['shapes']['val']} validation shapes of "
+        f"{result['vertices']} vertices ({result['data']}), torch {result['torch']}, {result['threads']} CPU "
+        f"threads, command `{result['command']}`.",
+        "",
+        "| level | held GB | set-up s | " + " | ".join(f"{p} ms" for p in PHASES) + " | step ms | busy | epoch s |",
+        "|---|---|---|" + "---|" * len(PHASES) + "---|---|---|",
+    ]
     for entry in result["levels"]:
-        lines.append(f"| {entry['level']} | {entry['held_gb']:.2f} | {entry['setup_s']:.1f} | "
-                     + " | ".join(f"{entry['phase_ms'][p]:.0f}" for p in PHASES)
-                     + f" | {entry['step_ms']:.0f} | {entry['busy']:.0%} | {entry['epoch_median_s']:.1f} |")
+        lines.append(
+            f"| {entry['level']} | {entry['held_gb']:.2f} | {entry['setup_s']:.1f} | "
+            + " | ".join(f"{entry['phase_ms'][p]:.0f}" for p in PHASES)
+            + f" | {entry['step_ms']:.0f} | {entry['busy']:.0%} | {entry['epoch_median_s']:.1f} |"
+        )
     ab = result.get("before_after")
     if ab:
-        lines += ["", f"CPU epoch, same configuration, `zernet train` alternating over rounds (before = "
-                      f"{ab['before_commit']}, after = {ab.get('after_commit')}): before {ab['median_epoch_s']['before']:.1f} s, after "
-                      f"{ab['median_epoch_s']['after']:.1f} s, after/before = {ab['after_over_before']:.2f} "
-                      f"(epochs: before {[round(s, 1) for s in ab['epoch_s']['before']]}, after "
-                      f"{[round(s, 1) for s in ab['epoch_s']['after']]}); whole `zernet train` command (start-up, "
-                      f"holding the shapes, final evaluation): before {ab['median_run_wall_s']['before']:.1f} s, "
-                      f"after {ab['median_run_wall_s']['after']:.1f} s."]
+        lines += [
+            "",
+            f"CPU epoch, same configuration, `zernet train` alternating over rounds (before = "
+            f"{ab['before_commit']}, after = {ab.get('after_commit')}): before {ab['median_epoch_s']['before']:.1f} s, after "
+            f"{ab['median_epoch_s']['after']:.1f} s, after/before = {ab['after_over_before']:.2f} "
+            f"(epochs: before {[round(s, 1) for s in ab['epoch_s']['before']]}, after "
+            f"{[round(s, 1) for s in ab['epoch_s']['after']]}); whole `zernet train` command (start-up, "
+            f"holding the shapes, final evaluation): before {ab['median_run_wall_s']['before']:.1f} s, "
+            f"after {ab['median_run_wall_s']['after']:.1f} s.",
+        ]
     return "\n".join(lines) + "\n"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=None,
-                        help="folder written by `zernet bodies` (FAUST-size); without it, bodies of --topology are "
-                             "generated in the run")
+    parser.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help="folder written by `zernet bodies` (FAUST-size); without it, bodies of --topology are "
+        "generated in the run",
+    )
     parser.add_argument("--topology", default="coarse-615", help="of the generated bodies without --data")
     parser.add_argument("--train", type=int, default=8)
     parser.add_argument("--val", type=int, default=2)
@@ -235,38 +300,64 @@ def main() -> None:
     parser.add_argument("--after", type=Path, default=ROOT, help="the checkout to compare it with (default: this one)")
     parser.add_argument("--ab-epochs", type=int, default=1)
     parser.add_argument("--ab-rounds", type=int, default=2)
-    parser.add_argument("--ab-work", type=Path, default=None,
-                        help="folder for the two sides' caches and runs (kept: a second call reuses the caches)")
+    parser.add_argument(
+        "--ab-work",
+        type=Path,
+        default=None,
+        help="folder for the two sides' caches and runs (kept: a second call reuses the caches)",
+    )
     parser.add_argument("--output", type=Path, default=RESULTS, help="path without suffix (.json and .md)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
-                          "cpu" if args.device == "auto" else args.device)
+    device = torch.device(
+        "cuda"
+        if args.device == "auto" and torch.cuda.is_available()
+        else "cpu"
+        if args.device == "auto"
+        else args.device
+    )
     raw = run_config(args.data, args.topology, args.train, args.val, 1, args.cache_dir, str(device), args.threads)
     config = parse_config(raw)
     preprocess.IN_MEMORY_VERTEX_LIMIT = 0  # streamed, as the recipe's 80 FAUST-size shapes are
     dataset = build_dataset(config, progress=False, workers=None)
     spec = model_spec(config.model, dataset.in_channels, dataset.num_classes, dataset.patch_configs)
-    result = {"device": str(device), "device_name": device_name(device), "torch": torch.__version__,
-              "threads": torch.get_num_threads(), "data": str(args.data or f"generated {args.topology} bodies"),
-              "vertices": dataset[0].n_vertices,
-              "shapes": {"train": len(dataset.splits["train"]), "val": len(dataset.splits["val"])},
-              "command": " ".join(["benchmarks/bench_gpu.py"] + sys.argv[1:]), "levels": []}
+    result = {
+        "device": str(device),
+        "device_name": device_name(device),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "data": str(args.data or f"generated {args.topology} bodies"),
+        "vertices": dataset[0].n_vertices,
+        "shapes": {"train": len(dataset.splits["train"]), "val": len(dataset.splits["val"])},
+        "command": " ".join(["benchmarks/bench_gpu.py"] + sys.argv[1:]),
+        "levels": [],
+    }
     for level in args.levels:
         entry = bench_level(level, config, dataset, spec, device, args.rounds)
-        print(f"{level:7s} step {entry['step_ms']:.0f} ms ("
-              + ", ".join(f"{p} {entry['phase_ms'][p]:.0f}" for p in PHASES)
-              + f"), busy {entry['busy']:.0%}, epoch {entry['epoch_median_s']:.1f} s, set-up {entry['setup_s']:.1f} s")
+        print(
+            f"{level:7s} step {entry['step_ms']:.0f} ms ("
+            + ", ".join(f"{p} {entry['phase_ms'][p]:.0f}" for p in PHASES)
+            + f"), busy {entry['busy']:.0%}, epoch {entry['epoch_median_s']:.1f} s, set-up {entry['setup_s']:.1f} s"
+        )
         result["levels"].append(entry)
     if args.before is not None:
         ab_config = dict(raw, train=dict(raw["train"], device="cpu"))
         with tempfile.TemporaryDirectory(prefix="bench_gpu_") as temporary:
             work = args.ab_work or Path(temporary)
-            result["before_after"] = before_after(args.before.resolve(), args.after.resolve(), ab_config, work,
-                                                  args.ab_epochs, args.ab_rounds, args.threads)
+            result["before_after"] = before_after(
+                args.before.resolve(),
+                args.after.resolve(),
+                ab_config,
+                work,
+                args.ab_epochs,
+                args.ab_rounds,
+                args.threads,
+            )
         ab = result["before_after"]
-        print(f"CPU epoch before {ab['median_epoch_s']['before']:.1f} s, after {ab['median_epoch_s']['after']:.1f} s: "
-              f"after/before {ab['after_over_before']:.2f}")
+        print(
+            f"CPU epoch before {ab['median_epoch_s']['before']:.1f} s, after {ab['median_epoch_s']['after']:.1f} s: "
+            f"after/before {ab['after_over_before']:.2f}"
+        )
     args.output.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(args.output.with_suffix(".json"), json.dumps(result, indent=1).encode())
     atomic_write_bytes(args.output.with_suffix(".md"), markdown(result).encode())

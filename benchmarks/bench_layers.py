@@ -204,8 +204,12 @@ def time_all(kind: str, configs: list[tuple[int, str]], repeats: int, real: bool
     n = op.n_vertices
     if kind == "layers":
         work = {c: layer_workload(op, *c) for c in configs}
-        closures = {(c, part, i): fn for c, w in work.items() for part in ("layer", "contraction", "pooled")
-                    for i, fn in enumerate(w[part])}
+        closures = {
+            (c, part, i): fn
+            for c, w in work.items()
+            for part in ("layer", "contraction", "pooled")
+            for i, fn in enumerate(w[part])
+        }
         closures.update({("mm", "mm", i): fn for i, fn in enumerate(torch_mm_workload(n))})
     else:
         closures = {(c, "step", 0): model_workload(op, *c) for c in configs}
@@ -266,8 +270,14 @@ def _child(args: list[str], real: bool) -> object:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="3 repetitions instead of 7, s in (1, 16) for the reference model")
-    parser.add_argument("--real", action="store_true", help="use the real PatchOperator of the mannequin body instead of the random operator")
+    parser.add_argument(
+        "--quick", action="store_true", help="3 repetitions instead of 7, s in (1, 16) for the reference model"
+    )
+    parser.add_argument(
+        "--real",
+        action="store_true",
+        help="use the real PatchOperator of the mannequin body instead of the random operator",
+    )
     parser.add_argument("--threads", type=int, default=None, help="torch threads per configuration (default: torch's)")
     parser.add_argument("--output", type=Path, default=RESULTS)
     parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
@@ -286,8 +296,12 @@ def main(argv=None) -> int:
     repeats = 3 if args.quick else 7
     layer_configs = [(s, impl) for s in ANGLES for impl in ("harmonic", "reference")]
     model_angles = (1, 4, 16) if args.quick else ANGLES
-    model_configs = [(s, impl) for s in model_angles for impl in ("harmonic", "reference", "harmonic-bf16")
-                     if not (impl == "reference" and args.quick and s != 4)]
+    model_configs = [
+        (s, impl)
+        for s in model_angles
+        for impl in ("harmonic", "reference", "harmonic-bf16")
+        if not (impl == "reference" and args.quick and s != 4)
+    ]
     encode = lambda configs: ",".join(f"{s}:{impl}" for s, impl in configs)  # noqa: E731
     rows = _child(["time", "layers", str(repeats), encode(layer_configs)], args.real)
     print("layers timed", file=sys.stderr)
@@ -300,13 +314,17 @@ def main(argv=None) -> int:
     def find(kind, s, impl):
         return next((r for r in rows if r["kind"] == kind and r["s"] == s and r["impl"] == impl), None)
 
-    print(f"\nZernike convolution, N = {rows[0]['n_vertices']}, k = {K}, forward+backward, median of {repeats} "
-          "rounds (configurations interleaved within each round)")
+    print(
+        f"\nZernike convolution, N = {rows[0]['n_vertices']}, k = {K}, forward+backward, median of {repeats} "
+        "rounds (configurations interleaved within each round)"
+    )
     print(f"load average at start of report: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores\n")
     print("three conv layers (3->64, 64->128, 128->256): whole layers incl. sparse decomposition; the dense")
     print("contraction alone; contraction + angular max pooling; peak = extra RSS")
-    print(f"{'s':>3} | {'harmonic layers':>15} {'contraction':>11} {'+pooling':>9} {'peak MB':>8} |"
-          f" {'rotated layers':>14} {'contraction':>11} {'+pooling':>9} {'peak MB':>8} | {'speed-up':>8}")
+    print(
+        f"{'s':>3} | {'harmonic layers':>15} {'contraction':>11} {'+pooling':>9} {'peak MB':>8} |"
+        f" {'rotated layers':>14} {'contraction':>11} {'+pooling':>9} {'peak MB':>8} | {'speed-up':>8}"
+    )
     h1 = find("layers", 1, "harmonic")
     for s in ANGLES:
         h, r = find("layers", s, "harmonic"), find("layers", s, "reference")
@@ -325,25 +343,34 @@ def main(argv=None) -> int:
         f" contraction + pooling {h16['pooled_total_s'] / h1['pooled_total_s']:.2f}x;"
         f" rotated kernels {r16['layers_total_s'] / r1['layers_total_s']:.1f}x"
     )
-    print("\ndense contraction FLOP rate (forward + backward, no pooling) vs torch.mm for the same sizes"
-          " (GFLOP/s, per layer; target >= 60 %)")
+    print(
+        "\ndense contraction FLOP rate (forward + backward, no pooling) vs torch.mm for the same sizes"
+        " (GFLOP/s, per layer; target >= 60 %)"
+    )
     for s in ANGLES:
         h = find("layers", s, "harmonic")
         pct = [100 * a / b for a, b in zip(h["contraction_gflops"], h["torch_mm_gflops"])]
         print(
-            f"s={s:2d}: layer " + " ".join(f"{g:6.1f}" for g in h["contraction_gflops"])
-            + " | torch.mm " + " ".join(f"{g:6.1f}" for g in h["torch_mm_gflops"])
-            + " | " + " ".join(f"{p:4.0f}%" for p in pct)
+            f"s={s:2d}: layer "
+            + " ".join(f"{g:6.1f}" for g in h["contraction_gflops"])
+            + " | torch.mm "
+            + " ".join(f"{g:6.1f}" for g in h["torch_mm_gflops"])
+            + " | "
+            + " ".join(f"{p:4.0f}%" for p in pct)
         )
     print(f"\nwhole single-scale model Conv64-Conv128-Conv256-Lin512-Lin{N_VERTICES}, one training step (Adam)")
-    print(f"(the 512->{rows[0]['n_vertices']} output layer alone: {find('model', model_angles[0], 'harmonic')['output_layer_gflop']:.0f} GFLOP per step)")
+    print(
+        f"(the 512->{rows[0]['n_vertices']} output layer alone: {find('model', model_angles[0], 'harmonic')['output_layer_gflop']:.0f} GFLOP per step)"
+    )
     for s in model_angles:
         for impl in ("harmonic", "reference", "harmonic-bf16"):
             r = find("model", s, impl)
             if r:
                 print(f"s={s:2d} {impl:13s}: {r['step_s']:.2f} s/step, peak +{r['peak_extra_mb']:.0f} MB")
-    print("(harmonic-bf16: linear layers in bfloat16 under torch.autocast, convolutions in float32 = "
-          "train.precision: bfloat16; accuracy: benchmarks/bench_precision.py)")
+    print(
+        "(harmonic-bf16: linear layers in bfloat16 under torch.autocast, convolutions in float32 = "
+        "train.precision: bfloat16; accuracy: benchmarks/bench_precision.py)"
+    )
     payload = {
         "n_vertices": rows[0]["n_vertices"],
         "k": K,
@@ -354,7 +381,9 @@ def main(argv=None) -> int:
         "machine": platform.processor() or platform.machine(),
         "rows": rows,
     }
-    payload["command"] = " ".join([Path(sys.executable).name, "benchmarks/bench_layers.py"] + list(argv or sys.argv[1:]))
+    payload["command"] = " ".join(
+        [Path(sys.executable).name, "benchmarks/bench_layers.py"] + list(argv or sys.argv[1:])
+    )
     from zernet.io_utils import atomic_write_bytes
 
     atomic_write_bytes(args.output, json.dumps(payload, indent=1).encode())

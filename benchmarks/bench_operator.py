@@ -58,7 +58,11 @@ def _capsule(radius: float, length: float, edge: float) -> tuple[np.ndarray, np.
     n_rings = max(3, int(round(total / (edge * 0.866))))
     s = np.linspace(0, total, n_rings + 2)[1:-1]  # arclength along the profile, poles excluded
     lower, upper = s < cap, s > cap + length
-    z = np.where(lower, -length / 2 - radius * np.cos(s / radius), np.where(upper, length / 2 + radius * np.cos((total - s) / radius), s - cap - length / 2))
+    z = np.where(
+        lower,
+        -length / 2 - radius * np.cos(s / radius),
+        np.where(upper, length / 2 + radius * np.cos((total - s) / radius), s - cap - length / 2),
+    )
     rho = np.where(lower, radius * np.sin(s / radius), np.where(upper, radius * np.sin((total - s) / radius), radius))
     phi = 2 * np.pi * (np.arange(around)[None, :] + 0.5 * (np.arange(n_rings)[:, None] % 2)) / around
     ring = np.stack([rho[:, None] * np.cos(phi), rho[:, None] * np.sin(phi), np.repeat(z[:, None], around, 1)], -1)
@@ -112,18 +116,32 @@ def _best_time(function, repeats: int) -> tuple[float, object]:
     return best, result
 
 
-def bench_surface(surface: Surface, config: PatchConfig, backends, n_centres: int, n_jobs: int, repeats: int, seed: int) -> dict:
+def bench_surface(
+    surface: Surface, config: PatchConfig, backends, n_centres: int, n_jobs: int, repeats: int, seed: int
+) -> dict:
     """Build time and accuracy against exact geodesics of each backend on one surface."""
     samples = sample_surface(surface, config.n_samples, seed=config.seed)
     frames = tangent_frames(surface)
-    centres = np.sort(np.random.default_rng(seed).choice(surface.n_vertices, min(n_centres, surface.n_vertices), replace=False))
+    centres = np.sort(
+        np.random.default_rng(seed).choice(surface.n_vertices, min(n_centres, surface.n_vertices), replace=False)
+    )
     started = time.perf_counter()
     exact = exact_reference(surface, samples, frames, centres, config.r0)
-    row = {"name": surface.name, "vertices": surface.n_vertices, "area": surface.area, "r0": config.r0,
-           "samples": config.n_samples, "centres": int(len(centres)), "reference_s": time.perf_counter() - started}
+    row = {
+        "name": surface.name,
+        "vertices": surface.n_vertices,
+        "area": surface.area,
+        "r0": config.r0,
+        "samples": config.n_samples,
+        "centres": int(len(centres)),
+        "reference_s": time.perf_counter() - started,
+    }
     for backend in backends:
         backend_config = PatchConfig(**{**config.to_dict(), "backend": backend})
-        build, _ = _best_time(lambda config=backend_config: build_patch_operator(surface, config, n_jobs=n_jobs), 1 if backend == "accurate" else repeats)
+        build, _ = _best_time(
+            lambda config=backend_config: build_patch_operator(surface, config, n_jobs=n_jobs),
+            1 if backend == "accurate" else repeats,
+        )
         polar = compute_polar(surface, samples, config.r0, backend=backend, n_jobs=n_jobs)
         row[backend] = {"operator_build_s": build, "polar_s": polar.seconds, **score(polar, exact, centres, config.r0)}
     return row
@@ -169,8 +187,10 @@ def bench_apply(surface: Surface, config: PatchConfig, d: int, repeats: int) -> 
 
 # ====================================================================== main
 def print_table(rows, backends) -> None:
-    header = (f"{'surface':<26}{'N':>6}{'r0':>5}  {'backend':<9}{'build s':>8}{'polar s':>8}{'>1.1r0 %':>9}"
-              f"{'drop %':>7}{'r med %':>8}{'r p95 %':>8}{'θ p95':>7}")
+    header = (
+        f"{'surface':<26}{'N':>6}{'r0':>5}  {'backend':<9}{'build s':>8}{'polar s':>8}{'>1.1r0 %':>9}"
+        f"{'drop %':>7}{'r med %':>8}{'r p95 %':>8}{'θ p95':>7}"
+    )
     print(header)
     print("-" * len(header))
     for row in rows:
@@ -178,8 +198,10 @@ def print_table(rows, backends) -> None:
             b = row[backend]
             label = f"{row['name'][:25]:<26}{row['vertices']:>6}{row['r0']:>5}" if i == 0 else " " * 37
             angle = "-" if b["angle_p95_rad"] is None else f"{b['angle_p95_rad']:.3f}"
-            print(f"{label}  {backend:<9}{b['operator_build_s']:>8.2f}{b['polar_s']:>8.2f}{b['kept_beyond_1.1r0_percent']:>9.2f}"
-                  f"{b['true_dropped_percent']:>7.2f}{b['radius_median_percent_r0']:>8.3f}{b['radius_p95_percent_r0']:>8.2f}{angle:>7}")
+            print(
+                f"{label}  {backend:<9}{b['operator_build_s']:>8.2f}{b['polar_s']:>8.2f}{b['kept_beyond_1.1r0_percent']:>9.2f}"
+                f"{b['true_dropped_percent']:>7.2f}{b['radius_median_percent_r0']:>8.3f}{b['radius_p95_percent_r0']:>8.2f}{angle:>7}"
+            )
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -203,8 +225,11 @@ def main(argv: list[str] | None = None) -> dict:
         chosen = files[:1] if args.quick else [files[0], files[len(files) // 2], files[-1]]
         for path in chosen:
             surface, _ = normalize_area(load_surface(path), 100.0)
-            rows.append(bench_surface(surface, PatchConfig(r0=0.6, n_samples=12000), args.backends, centres,
-                                      args.jobs, repeats, args.seed))
+            rows.append(
+                bench_surface(
+                    surface, PatchConfig(r0=0.6, n_samples=12000), args.backends, centres, args.jobs, repeats, args.seed
+                )
+            )
     apply = bench_apply(body, body_config, 128, 5 if args.quick else 10)
     print_table(rows, args.backends)
     print()
@@ -216,7 +241,12 @@ def main(argv: list[str] | None = None) -> dict:
     result = {
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "quick": args.quick,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__, "load_average": os.getloadavg()},
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "torch": torch.__version__,
+            "load_average": os.getloadavg(),
+        },
         "surfaces": rows,
         "apply": apply,
     }

@@ -50,8 +50,12 @@ LAYERS = {"paper (per-call fit)": "paper-zernet", "zernet (operator)": "zernet"}
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--run", type=Path, required=True,
-                        help="a finished run folder of the zernet (or paper-zernet) model, pooling max")
+    parser.add_argument(
+        "--run",
+        type=Path,
+        required=True,
+        help="a finished run folder of the zernet (or paper-zernet) model, pooling max",
+    )
     parser.add_argument("--shapes", type=int, default=4, help="training shapes per timed pass")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--threads", type=int, default=2)
@@ -75,12 +79,16 @@ def scores(checkpoint: dict, dataset, device: torch.device) -> dict:
     for label, name in LAYERS.items():
         model = model_from_checkpoint(with_layer(checkpoint, name), device).eval()
         with torch.no_grad():
-            metrics, _ = evaluate_members([(model, checkpoint)], dataset, test, device, progress=True, keep=0,
-                                          refine_rings=rings)
+            metrics, _ = evaluate_members(
+                [(model, checkpoint)], dataset, test, device, progress=True, keep=0, refine_rings=rings
+            )
             probabilities.append(predict_record([(model, checkpoint)], dataset[test[0]], device)[1])
         unrefined = metrics.get("unrefined_summary") or metrics["summary"]
-        result[label] = {"accuracy": metrics["summary"]["accuracy"], "unrefined_accuracy": unrefined["accuracy"],
-                         "within_0.01": metrics["summary"].get("within_0.01")}  # correspondence only
+        result[label] = {
+            "accuracy": metrics["summary"]["accuracy"],
+            "unrefined_accuracy": unrefined["accuracy"],
+            "within_0.01": metrics["summary"].get("within_0.01"),
+        }  # correspondence only
     result["max_probability_difference"] = float(abs(probabilities[0] - probabilities[1]).max())
     return result
 
@@ -93,21 +101,28 @@ def main(argv=None) -> None:
             raise SystemExit(f"{args.run}: no {name} here; --run must be a finished training run folder")
     config = read_config(args.run / "config.yaml")
     if config.model.name not in LAYERS.values() or config.model.options.get("pooling", "max") != "max":
-        raise SystemExit(f"{args.run}: a {config.model.name} model with pooling "
-                         f"{config.model.options.get('pooling')!r}; the paper's layer is zernet's with pooling max")
+        raise SystemExit(
+            f"{args.run}: a {config.model.name} model with pooling "
+            f"{config.model.options.get('pooling')!r}; the paper's layer is zernet's with pooling max"
+        )
     dataset = build_dataset(config, progress=False, workers=1)
     checkpoint = load_checkpoint(args.run / "best.pt")
     device = torch.device("cpu")
-    result = {"run": str(args.run), "threads": args.threads,
-              "patch_size": [scale.get("patch_size") for scale in config.patch.scales]}
+    result = {
+        "run": str(args.run),
+        "threads": args.threads,
+        "patch_size": [scale.get("patch_size") for scale in config.patch.scales],
+    }
     if not args.no_scores:
         result["scores"] = scores(checkpoint, dataset, device)
         for label in LAYERS:
             s = result["scores"][label]
             within = "" if s["within_0.01"] is None else f", within 1 % {s['within_0.01']:.4f}"
             print(f"{label:22} test accuracy {s['accuracy']:.4f} (unrefined {s['unrefined_accuracy']:.4f}){within}")
-        print(f"largest difference of a probability on {dataset.names[dataset.splits['test'][0]]}: "
-              f"{result['scores']['max_probability_difference']:.2e}")
+        print(
+            f"largest difference of a probability on {dataset.names[dataset.splits['test'][0]]}: "
+            f"{result['scores']['max_probability_difference']:.2e}"
+        )
 
     shapes = list(dataset.splits["train"])[: args.shapes]
     epoch = checkpoint["state"]["epoch"]
@@ -123,11 +138,22 @@ def main(argv=None) -> None:
     for label in LAYERS:  # warm-up: operator files, allocator, the paper's patch tensors
         timed(label)
     times = alternate({label: (lambda label=label: timed(label)) for label in LAYERS}, args.rounds)
-    medians, ratio = print_medians(f"{len(shapes)} training shapes of {args.run}, {args.threads} threads, "
-                                   f"{args.rounds} rounds", "layer", times, faster="zernet (operator)")
+    medians, ratio = print_medians(
+        f"{len(shapes)} training shapes of {args.run}, {args.threads} threads, {args.rounds} rounds",
+        "layer",
+        times,
+        faster="zernet (operator)",
+    )
     epoch_seconds = [h["seconds"] for h in checkpoint["state"]["history"]]
-    result.update({"shapes": len(shapes), "rounds": args.rounds, "seconds_per_step": times,
-                   "median_seconds_per_step": medians, "paper_step_over_zernet_step": ratio})
+    result.update(
+        {
+            "shapes": len(shapes),
+            "rounds": args.rounds,
+            "seconds_per_step": times,
+            "median_seconds_per_step": medians,
+            "paper_step_over_zernet_step": ratio,
+        }
+    )
     if epoch_seconds:
         mean = statistics.mean(epoch_seconds)
         result["run_epoch_seconds"] = epoch_seconds

@@ -48,8 +48,13 @@ def creatures(count: int, n_vertices: int) -> list[dict]:
     for seed in range(count):
         surface, _, _ = make_creature(1000 + seed, n_vertices=n_vertices, rotate=False)
         operator = build_patch_operator(surface, PATCH)
-        shapes.append({"surface": surface, "geometry": Geometry([operator]),
-                       "x": torch.from_numpy(compute_features(surface, "xyz+normals"))})
+        shapes.append(
+            {
+                "surface": surface,
+                "geometry": Geometry([operator]),
+                "x": torch.from_numpy(compute_features(surface, "xyz+normals")),
+            }
+        )
     features = torch.cat([s["x"] for s in shapes])
     mean, std = features.mean(0), features.std(0)
     for s in shapes:
@@ -83,9 +88,12 @@ def train_and_test(model, train, test, epochs: int, lr: float, precision: str, s
             vertices = shape["surface"].vertices
             hits.append(float((predicted == np.arange(len(predicted))).mean()))
             distances.append(float(np.linalg.norm(vertices[predicted] - vertices, axis=1).mean() / PATCH.r0))
-    return {"accuracy": float(np.mean(hits)), "mean_error_r0": float(np.mean(distances)),
-            "final_train_loss": float(np.mean(losses[-len(train):])),
-            "step_s_median": statistics.median(step_times)}
+    return {
+        "accuracy": float(np.mean(hits)),
+        "mean_error_r0": float(np.mean(distances)),
+        "final_train_loss": float(np.mean(losses[-len(train) :])),
+        "step_s_median": statistics.median(step_times),
+    }
 
 
 def main(argv=None) -> int:
@@ -107,16 +115,30 @@ def main(argv=None) -> int:
         for name in ("float32", "bfloat16"):
             row = train_and_test(copy.deepcopy(initial), train, test, args.epochs, args.lr, name, seed)
             rows[name].append(row)
-            print(f"seed {seed} {name:8s}: test accuracy {row['accuracy']:.3f}, mean error "
-                  f"{row['mean_error_r0']:.3f} r0, final train loss {row['final_train_loss']:.3f}, "
-                  f"step {row['step_s_median'] * 1e3:.0f} ms", flush=True)
+            print(
+                f"seed {seed} {name:8s}: test accuracy {row['accuracy']:.3f}, mean error "
+                f"{row['mean_error_r0']:.3f} r0, final train loss {row['final_train_loss']:.3f}, "
+                f"step {row['step_s_median'] * 1e3:.0f} ms",
+                flush=True,
+            )
     for name, runs in rows.items():
-        print(f"{name:8s}: accuracy over seeds " + " ".join(f"{r['accuracy']:.3f}" for r in runs)
-              + f", mean {np.mean([r['accuracy'] for r in runs]):.3f}")
-    payload = {"shapes": args.shapes, "test_shapes": 4, "vertices": args.vertices, "epochs": args.epochs,
-               "lr": args.lr, "seeds": args.seeds, "patch": dataclasses.asdict(PATCH), "rows": rows,
-               "load_average_1min": os.getloadavg()[0],
-               "command": " ".join(["python", "benchmarks/bench_precision.py"] + list(argv or sys.argv[1:]))}
+        print(
+            f"{name:8s}: accuracy over seeds "
+            + " ".join(f"{r['accuracy']:.3f}" for r in runs)
+            + f", mean {np.mean([r['accuracy'] for r in runs]):.3f}"
+        )
+    payload = {
+        "shapes": args.shapes,
+        "test_shapes": 4,
+        "vertices": args.vertices,
+        "epochs": args.epochs,
+        "lr": args.lr,
+        "seeds": args.seeds,
+        "patch": dataclasses.asdict(PATCH),
+        "rows": rows,
+        "load_average_1min": os.getloadavg()[0],
+        "command": " ".join(["python", "benchmarks/bench_precision.py"] + list(argv or sys.argv[1:])),
+    }
     atomic_write_bytes(args.output, json.dumps(payload, indent=1, default=str).encode())
     print(f"written {args.output}")
     return 0

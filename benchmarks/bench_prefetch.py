@@ -47,8 +47,12 @@ def sequential(function, items):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=ROOT / "data" / "bodies-faust-100",
-                        help="folder written by `zernet bodies` (FAUST-sized, 100 bodies)")
+    parser.add_argument(
+        "--data",
+        type=Path,
+        default=ROOT / "data" / "bodies-faust-100",
+        help="folder written by `zernet bodies` (FAUST-sized, 100 bodies)",
+    )
     parser.add_argument("--shapes", type=int, default=12, help="training shapes per timed pass")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--threads", type=int, default=2)
@@ -57,8 +61,13 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     config = load_config(ROOT / "configs" / "bodies_correspondence.yaml")
-    config["data"].update({"root": str(args.data / "correspondence"), "train_indices": list(range(80)),
-                           "test_indices": list(range(80, 100))})
+    config["data"].update(
+        {
+            "root": str(args.data / "correspondence"),
+            "train_indices": list(range(80)),
+            "test_indices": list(range(80, 100)),
+        }
+    )
     config["train"].update({"threads": args.threads, "device": "cpu"})
     config["cache_dir"] = str(ROOT / ".zernet-cache")
     config = parse_config(config)
@@ -82,18 +91,31 @@ def main() -> None:
         return ()  # the batch prepares no reordered matrices: the first forward builds them
 
     timed(shipped_reader, shipped_orders)  # warm-up: first products, allocator
-    times = alternate({
-        "sequential": lambda: timed(sequential, natural_order),
-        "prefetched, reordered in forward": lambda: timed(shipped_reader, natural_order),
-        "prefetched": lambda: timed(shipped_reader, shipped_orders),
-    }, args.rounds)
+    times = alternate(
+        {
+            "sequential": lambda: timed(sequential, natural_order),
+            "prefetched, reordered in forward": lambda: timed(shipped_reader, natural_order),
+            "prefetched": lambda: timed(shipped_reader, shipped_orders),
+        },
+        args.rounds,
+    )
     medians, ratio = print_medians(
         f"{len(shapes)} FAUST-sized training shapes (streamed), {args.threads} threads, {args.rounds} rounds",
-        "reading", times, faster="prefetched")
+        "reading",
+        times,
+        faster="prefetched",
+    )
     prepared = medians["prefetched, reordered in forward"] / medians["prefetched"]
     print(f"steps prefetched: {prepared:.2f}x as fast as with the reordering inside the forward pass")
-    result = {"shapes": len(shapes), "threads": args.threads, "rounds": args.rounds, "seconds_per_step": times,
-              "median_seconds_per_step": medians, "speedup": ratio, "speedup_prepared_orders": prepared}
+    result = {
+        "shapes": len(shapes),
+        "threads": args.threads,
+        "rounds": args.rounds,
+        "seconds_per_step": times,
+        "median_seconds_per_step": medians,
+        "speedup": ratio,
+        "speedup_prepared_orders": prepared,
+    }
     args.output.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(args.output, json.dumps(result, indent=2).encode())
 

@@ -43,8 +43,14 @@ from zernet.training import build_dataset, load_checkpoint, resolve_config  # no
 
 
 def creature_sources(n_shapes: int, n_vertices: int) -> list[ShapeSource]:
-    return [ShapeSource(f"creature_{i:03d}", partial(load_creature, i, n_vertices, True, "segmentation"),
-                        key=f"bench-{i}-{n_vertices}") for i in range(n_shapes)]
+    return [
+        ShapeSource(
+            f"creature_{i:03d}",
+            partial(load_creature, i, n_vertices, True, "segmentation"),
+            key=f"bench-{i}-{n_vertices}",
+        )
+        for i in range(n_shapes)
+    ]
 
 
 def _noop() -> int:
@@ -73,28 +79,56 @@ def bench_preprocess(sources, configs, workers: int) -> dict:
         seconds = time.perf_counter() - started
     if failures:
         raise RuntimeError(f"preprocessing failed: {failures}")
-    return {"workers": workers, "shapes": len(sources), "seconds": seconds,
-            "shapes_per_minute": 60.0 * len(sources) / seconds}
+    return {
+        "workers": workers,
+        "shapes": len(sources),
+        "seconds": seconds,
+        "shapes_per_minute": 60.0 * len(sources) / seconds,
+    }
 
 
 def bench_ddp(config: dict, n_train: int, ranks: int, folder: Path) -> dict:
     config_path = folder / f"ddp{ranks}.yaml"
     config_path.write_text(yaml.safe_dump(config))
     run_dir = folder / f"run{ranks}"
-    env = {k: v for k, v in os.environ.items() if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR",
-                                                              "MASTER_PORT")}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
+    }
     env.update(OMP_NUM_THREADS="1", PYTHONPATH=str(REPO) + os.pathsep + env.get("PYTHONPATH", ""))
-    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(ranks),
-               "-m", "zernet.cli", "train", str(config_path), "--run-dir", str(run_dir), "--no-progress",
-               "--workers", "0", "--overwrite"]
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node",
+        str(ranks),
+        "-m",
+        "zernet.cli",
+        "train",
+        str(config_path),
+        "--run-dir",
+        str(run_dir),
+        "--no-progress",
+        "--workers",
+        "0",
+        "--overwrite",
+    ]
     result = subprocess.run(command, env=env, capture_output=True, text=True)
     if result.returncode != 0:
         raise RuntimeError(f"torchrun with {ranks} ranks failed:\n{result.stdout[-2000:]}\n{result.stderr[-2000:]}")
     state = load_checkpoint(run_dir / "last.pt")["state"]
     steps = state["epoch"] * -(-n_train // ranks)
     seconds = state["train_seconds"]
-    return {"ranks": ranks, "epochs": state["epoch"], "steps_per_rank": steps, "seconds": seconds,
-            "steps_per_second": steps / seconds, "shapes_per_second": steps * ranks / seconds}
+    return {
+        "ranks": ranks,
+        "epochs": state["epoch"],
+        "steps_per_rank": steps,
+        "seconds": seconds,
+        "steps_per_second": steps / seconds,
+        "shapes_per_second": steps * ranks / seconds,
+    }
 
 
 def main(argv=None) -> int:
@@ -122,8 +156,15 @@ def main(argv=None) -> int:
 
     n_test = 1
     train_config = {
-        "data": {"kind": "synthetic", "task": "segmentation", "n_shapes": args.shapes, "n_vertices": args.vertices,
-                 "test_fraction": n_test / args.shapes, "val_count": 0, "seed": 0},
+        "data": {
+            "kind": "synthetic",
+            "task": "segmentation",
+            "n_shapes": args.shapes,
+            "n_vertices": args.vertices,
+            "test_fraction": n_test / args.shapes,
+            "val_count": 0,
+            "seed": 0,
+        },
         "patch": {"scales": [patch]},
         "model": {"name": "zernet", "widths": [16, 32, 32], "angular_resolution": 4, "dropout": 0.1},
         "train": {"epochs": args.epochs, "seed": 0, "threads": 1, "lr": 5e-3, "patience": None},
@@ -138,8 +179,11 @@ def main(argv=None) -> int:
         for ranks in args.ranks:
             row = bench_ddp(train_config, args.shapes - n_test, ranks, folder)
             training.append(row)
-            print(f"ddp ranks={ranks}: {row['steps_per_second']:.2f} steps/s per rank, "
-                  f"{row['shapes_per_second']:.2f} shapes/s", flush=True)
+            print(
+                f"ddp ranks={ranks}: {row['steps_per_second']:.2f} steps/s per rank, "
+                f"{row['shapes_per_second']:.2f} shapes/s",
+                flush=True,
+            )
 
     base_pre, base_train = preprocess[0], training[0]
     print()
@@ -148,19 +192,28 @@ def main(argv=None) -> int:
     print("| workers | seconds | shapes/min | speed-up |")
     print("|--------:|--------:|-----------:|---------:|")
     for row in preprocess:
-        print(f"| {row['workers']} | {row['seconds']:.1f} | {row['shapes_per_minute']:.1f} | "
-              f"{row['shapes_per_minute'] / base_pre['shapes_per_minute']:.2f}x |")
+        print(
+            f"| {row['workers']} | {row['seconds']:.1f} | {row['shapes_per_minute']:.1f} | "
+            f"{row['shapes_per_minute'] / base_pre['shapes_per_minute']:.2f}x |"
+        )
     print()
     print(f"DDP training (gloo, CPU, 1 thread per rank): {args.shapes - n_test} training shapes, {args.epochs} epochs")
     print("| ranks | steps/rank | seconds | steps/s (per rank) | shapes/s | speed-up |")
     print("|------:|-----------:|--------:|-------------------:|---------:|---------:|")
     for row in training:
-        print(f"| {row['ranks']} | {row['steps_per_rank']} | {row['seconds']:.2f} | {row['steps_per_second']:.2f} | "
-              f"{row['shapes_per_second']:.2f} | {row['shapes_per_second'] / base_train['shapes_per_second']:.2f}x |")
+        print(
+            f"| {row['ranks']} | {row['steps_per_rank']} | {row['seconds']:.2f} | {row['steps_per_second']:.2f} | "
+            f"{row['shapes_per_second']:.2f} | {row['shapes_per_second'] / base_train['shapes_per_second']:.2f}x |"
+        )
 
     report = {
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "torch": torch.__version__, "load_average": list(os.getloadavg())},
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+            "load_average": list(os.getloadavg()),
+        },
         "settings": {"shapes": args.shapes, "vertices": args.vertices, "patch": patch, "epochs": args.epochs},
         "worker_startup_seconds": startup,
         "preprocess": preprocess,

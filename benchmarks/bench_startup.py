@@ -52,11 +52,14 @@ def main() -> None:
     wall = {name: statistics.median(values) for name, values in walls.items()}
     cpu = {name: statistics.median(values) for name, values in cpus.items()}
     for name in COMMANDS:
-        print(f"{name:24s} wall {wall[name]:5.2f} s ({wall[name] / wall['import torch']:4.2f}x)   "
-              f"cpu {cpu[name]:5.2f} s ({cpu[name] / cpu['import torch']:4.2f}x)   medians of {args.repeats}")
+        print(
+            f"{name:24s} wall {wall[name]:5.2f} s ({wall[name] / wall['import torch']:4.2f}x)   "
+            f"cpu {cpu[name]:5.2f} s ({cpu[name] / cpu['import torch']:4.2f}x)   medians of {args.repeats}"
+        )
     if args.out:
-        Path(args.out).write_text(json.dumps({"median_wall_s": wall, "median_cpu_s": cpu, "wall_s": walls,
-                                              "cpu_s": cpus}, indent=1) + "\n")
+        Path(args.out).write_text(
+            json.dumps({"median_wall_s": wall, "median_cpu_s": cpu, "wall_s": walls, "cpu_s": cpus}, indent=1) + "\n"
+        )
 
 
 if __name__ == "__main__":

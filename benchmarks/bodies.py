@@ -67,8 +67,10 @@ from zernet.training.predict import model_from_checkpoint, predict_record  # noq
 
 MODELS = ("zernet", "zernet-multiscale", "zernet-directional", "paper-zernet", "feastnet")
 TASKS = ("correspondence", "segmentation")
-TASK_CONFIGS = {"correspondence": "configs/bodies_correspondence.yaml",
-                "segmentation": "configs/bodies_segmentation.yaml"}
+TASK_CONFIGS = {
+    "correspondence": "configs/bodies_correspondence.yaml",
+    "segmentation": "configs/bodies_segmentation.yaml",
+}
 #: Options only the zernet families take (FeaStNet is given the rest of the model section).
 ZERNET_ONLY = ("angular_resolution", "pooling", "n_scales", "wiring", "nonlinearity", "norm", "input_skip", "n_max")
 
@@ -84,19 +86,44 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--val-count", type=int, default=6, help="validation bodies carved from the training ones")
     p.add_argument("--seed", type=int, default=0, help="seed of the bodies, the split and the training")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads per training (default 1)")
-    p.add_argument("--target", type=float, nargs=2, default=(0.97, 0.97), metavar=("CORR", "SEG"),
-                   help="test accuracy targets for correspondence and segmentation (default 0.97 0.97)")
-    p.add_argument("--refine-rings", type=int, nargs="+", default=[0, 1, 2, 3], metavar="N",
-                   help="correspondence refinement radii to choose among on validation (default 0 1 2 3)")
-    p.add_argument("--set", dest="overrides", nargs="+", default=[], metavar="KEY=VALUE",
-                   help="overrides applied to every run's configuration (e.g. train.lr=1e-3)")
+    p.add_argument(
+        "--target",
+        type=float,
+        nargs=2,
+        default=(0.97, 0.97),
+        metavar=("CORR", "SEG"),
+        help="test accuracy targets for correspondence and segmentation (default 0.97 0.97)",
+    )
+    p.add_argument(
+        "--refine-rings",
+        type=int,
+        nargs="+",
+        default=[0, 1, 2, 3],
+        metavar="N",
+        help="correspondence refinement radii to choose among on validation (default 0 1 2 3)",
+    )
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="overrides applied to every run's configuration (e.g. train.lr=1e-3)",
+    )
     p.add_argument("--data", type=Path, default=None, help="bodies folder (default data/bodies-TOPOLOGY-COUNT)")
     p.add_argument("--runs", type=Path, default=ROOT / "runs" / "bench_bodies", help="run folders")
-    p.add_argument("--keep", action="store_true",
-                   help="reuse the results in STEM.json of (task, model) pairs whose configuration is unchanged, "
-                        "and continue an interrupted pair from its last trained epoch (models can be added)")
-    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "bodies",
-                   help="output stem: writes STEM.md, STEM.json and STEM.png")
+    p.add_argument(
+        "--keep",
+        action="store_true",
+        help="reuse the results in STEM.json of (task, model) pairs whose configuration is unchanged, "
+        "and continue an interrupted pair from its last trained epoch (models can be added)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=ROOT / "benchmarks" / "results" / "bodies",
+        help="output stem: writes STEM.md, STEM.json and STEM.png",
+    )
     return p.parse_args(argv)
 
 
@@ -106,8 +133,15 @@ def ensure_bodies(args) -> Path:
     stamp = root / "benchmark-bodies.json"
     wanted = {"topology": args.topology, "count": args.count, "n_test": args.n_test, "seed": args.seed}
     if not stamp.is_file() or json.loads(stamp.read_text()) != wanted:
-        write_bodies(root, count=args.count, seed=args.seed, topology=args.topology, n_test=args.n_test,
-                     cache_dir=ROOT / ".zernet-cache", progress=True)
+        write_bodies(
+            root,
+            count=args.count,
+            seed=args.seed,
+            topology=args.topology,
+            n_test=args.n_test,
+            cache_dir=ROOT / ".zernet-cache",
+            progress=True,
+        )
         write_json(stamp, wanted)
     return root
 
@@ -142,8 +176,16 @@ def run_config(task: str, model: str, bodies: Path, args) -> dict:
     config["model"]["widths"] = widths
     config["model"]["dropout"] = config["model"].get("dropout", 0.25)
     # Trained one epoch at a time (run_one): the cosine schedule, if any, spans the whole budget.
-    config["train"].update({"epochs": args.epochs, "lr_schedule_epochs": args.epochs, "patience": None,
-                            "seed": args.seed, "threads": args.threads, "device": "cpu"})
+    config["train"].update(
+        {
+            "epochs": args.epochs,
+            "lr_schedule_epochs": args.epochs,
+            "patience": None,
+            "seed": args.seed,
+            "threads": args.threads,
+            "device": "cpu",
+        }
+    )
     config["eval"] = {"renders": 0, "plots": False}  # refinement is chosen once, for the selected model
     config["cache_dir"] = str(ROOT / ".zernet-cache")
     return apply_overrides(config, args.overrides)
@@ -155,8 +197,9 @@ def selected_scores(run_dir: Path, dataset, indices, refine_rings) -> dict:
     checkpoint = load_checkpoint(run_dir / "best.pt")
     members = [(model_from_checkpoint(checkpoint, torch.device("cpu")), checkpoint)]
     rings, choice = select_refine_rings(members, dataset, refine_rings, torch.device("cpu"), progress=False)
-    metrics, _ = evaluate_members(members, dataset, indices, torch.device("cpu"), progress=False, keep=0,
-                                  refine_rings=rings)
+    metrics, _ = evaluate_members(
+        members, dataset, indices, torch.device("cpu"), progress=False, keep=0, refine_rings=rings
+    )
     metrics["refine_choice"] = choice
     return metrics
 
@@ -206,25 +249,38 @@ def run_one(task: str, model: str, bodies: Path, args) -> dict:
     selected = selected_scores(run_dir, dataset, test, args.refine_rings)
     unrefined = selected.get("unrefined_summary", selected["summary"])
     if abs(unrefined["accuracy"] - test_curve[state["best_epoch"] - 1]) > 1e-9:
-        print(f"  warning: the selected model scores {unrefined['accuracy']:.4f}, its epoch's curve point "
-              f"{test_curve[state['best_epoch'] - 1]:.4f}", flush=True)
+        print(
+            f"  warning: the selected model scores {unrefined['accuracy']:.4f}, its epoch's curve point "
+            f"{test_curve[state['best_epoch'] - 1]:.4f}",
+            flush=True,
+        )
     history = state["history"]
     seconds = [float(h["seconds"]) for h in history]
     target = args.target[0] if task == "correspondence" else args.target[1]
     reached = next((i for i, acc in enumerate(test_curve) if acc >= target), None)
     return {
-        "task": task, "model": model, "config": config.to_dict(),
-        "n_train": len(dataset.splits["train"]), "n_val": len(dataset.splits.get("val", [])), "n_test": len(test),
-        "n_vertices": int(dataset[test[0]].n_vertices), "parameters": _parameters(run_dir),
-        "test_curve": test_curve, "val_curve": [h.get("val_accuracy") for h in history],
+        "task": task,
+        "model": model,
+        "config": config.to_dict(),
+        "n_train": len(dataset.splits["train"]),
+        "n_val": len(dataset.splits.get("val", [])),
+        "n_test": len(test),
+        "n_vertices": int(dataset[test[0]].n_vertices),
+        "parameters": _parameters(run_dir),
+        "test_curve": test_curve,
+        "val_curve": [h.get("val_accuracy") for h in history],
         "train_curve": [h.get("train_accuracy") for h in history],
-        "seconds_per_epoch": float(np.mean(seconds)), "train_seconds": float(np.sum(seconds)),
-        "best_epoch": state["best_epoch"], "selected": unrefined,
-        "refine_rings": selected.get("refine_rings", 0), "refine_choice": selected.get("refine_choice"),
+        "seconds_per_epoch": float(np.mean(seconds)),
+        "train_seconds": float(np.sum(seconds)),
+        "best_epoch": state["best_epoch"],
+        "selected": unrefined,
+        "refine_rings": selected.get("refine_rings", 0),
+        "refine_choice": selected.get("refine_choice"),
         "refined": selected["summary"] if selected.get("refine_rings") else None,
-        "error_curve": selected.get("error_curve"), "target": target,
+        "error_curve": selected.get("error_curve"),
+        "target": target,
         "epochs_to_target": None if reached is None else reached + 1,
-        "seconds_to_target": None if reached is None else float(np.sum(seconds[:reached + 1])),
+        "seconds_to_target": None if reached is None else float(np.sum(seconds[: reached + 1])),
     }
 
 
@@ -238,11 +294,16 @@ def _pct(value) -> str:
 
 def markdown(results: list[dict], args) -> str:
     first = results[0]
-    lines = ["# Generated bodies: zernet variants, the paper's formulation and FeaStNet", "",
-             f"`{' '.join(['benchmarks/bodies.py'] + sys.argv[1:])}`", "",
-             f"Bodies: topology {args.topology} ({first['n_vertices']} vertices), {first['n_train']} train / "
-             f"{first['n_val']} validation / {first['n_test']} test, seed {args.seed}; {args.epochs} epochs each, "
-             f"{args.threads} thread(s); model selected on validation. Overrides: {args.overrides or 'none'}.", ""]
+    lines = [
+        "# Generated bodies: zernet variants, the paper's formulation and FeaStNet",
+        "",
+        f"`{' '.join(['benchmarks/bodies.py'] + sys.argv[1:])}`",
+        "",
+        f"Bodies: topology {args.topology} ({first['n_vertices']} vertices), {first['n_train']} train / "
+        f"{first['n_val']} validation / {first['n_test']} test, seed {args.seed}; {args.epochs} epochs each, "
+        f"{args.threads} thread(s); model selected on validation. Overrides: {args.overrides or 'none'}.",
+        "",
+    ]
     for task in TASKS:
         rows = [r for r in results if r["task"] == task]
         if not rows:
@@ -250,26 +311,43 @@ def markdown(results: list[dict], args) -> str:
         lr = rows[0]["config"]["train"]["lr"]
         lines += [f"## {task} (lr {lr}, target {_pct(rows[0]['target'])} % on test)", ""]
         if task == "correspondence":
-            lines += ["| model | params | exact % | <=1 % diam | <=2.5 % | <=5 % | refined: rings, exact %, <=1 % | "
-                      "best epoch | s/epoch | epochs (s) to target |", "|---|---|---|---|---|---|---|---|---|---|"]
+            lines += [
+                "| model | params | exact % | <=1 % diam | <=2.5 % | <=5 % | refined: rings, exact %, <=1 % | "
+                "best epoch | s/epoch | epochs (s) to target |",
+                "|---|---|---|---|---|---|---|---|---|---|",
+            ]
             for r in rows:
                 s, refined = r["selected"], r.get("refined")
-                refined_text = "none chosen" if not refined else (
-                    f"{r['refine_rings']}, {_pct(refined['accuracy'])}, {_pct(refined['within_0.01'])}")
-                lines.append(f"| {r['model']} | {r['parameters']:,} | {_pct(s['accuracy'])} | {_pct(s['within_0.01'])} "
-                             f"| {_pct(s['within_0.025'])} | {_pct(s['within_0.05'])} | {refined_text} | "
-                             f"{r['best_epoch']} | {r['seconds_per_epoch']:.1f} | {_to_target(r)} |")
+                refined_text = (
+                    "none chosen"
+                    if not refined
+                    else (f"{r['refine_rings']}, {_pct(refined['accuracy'])}, {_pct(refined['within_0.01'])}")
+                )
+                lines.append(
+                    f"| {r['model']} | {r['parameters']:,} | {_pct(s['accuracy'])} | {_pct(s['within_0.01'])} "
+                    f"| {_pct(s['within_0.025'])} | {_pct(s['within_0.05'])} | {refined_text} | "
+                    f"{r['best_epoch']} | {r['seconds_per_epoch']:.1f} | {_to_target(r)} |"
+                )
         else:
-            lines += ["| model | params | accuracy % | mean IoU | per-part IoU | best epoch | s/epoch | "
-                      "epochs (s) to target |", "|---|---|---|---|---|---|---|---|"]
+            lines += [
+                "| model | params | accuracy % | mean IoU | per-part IoU | best epoch | s/epoch | "
+                "epochs (s) to target |",
+                "|---|---|---|---|---|---|---|---|",
+            ]
             for r in rows:
                 s = r["selected"]
                 ious = " ".join(f"{v:.2f}" for v in s["per_class_iou"])
-                lines.append(f"| {r['model']} | {r['parameters']:,} | {_pct(s['accuracy'])} | {s['mean_iou']:.3f} | "
-                             f"{ious} | {r['best_epoch']} | {r['seconds_per_epoch']:.1f} | {_to_target(r)} |")
-        lines += ["", "Test accuracy of every epoch's model (%):", "",
-                  "| model | " + " | ".join(str(e) for e in range(1, len(rows[0]["test_curve"]) + 1)) + " |",
-                  "|---|" + "---|" * len(rows[0]["test_curve"])]
+                lines.append(
+                    f"| {r['model']} | {r['parameters']:,} | {_pct(s['accuracy'])} | {s['mean_iou']:.3f} | "
+                    f"{ious} | {r['best_epoch']} | {r['seconds_per_epoch']:.1f} | {_to_target(r)} |"
+                )
+        lines += [
+            "",
+            "Test accuracy of every epoch's model (%):",
+            "",
+            "| model | " + " | ".join(str(e) for e in range(1, len(rows[0]["test_curve"]) + 1)) + " |",
+            "|---|" + "---|" * len(rows[0]["test_curve"]),
+        ]
         for r in rows:
             lines.append(f"| {r['model']} | " + " | ".join(f"{100 * a:.1f}" for a in r["test_curve"]) + " |")
         lines.append("")
@@ -288,7 +366,7 @@ def plot(results: list[dict], path: Path) -> None:
     for ax, task in zip(axes[0], tasks):
         for r in (r for r in results if r["task"] == task):
             epochs = np.arange(1, len(r["test_curve"]) + 1)
-            line, = ax.plot(epochs, 100 * np.asarray(r["test_curve"]), label=f"{r['model']} (test)")
+            (line,) = ax.plot(epochs, 100 * np.asarray(r["test_curve"]), label=f"{r['model']} (test)")
             ax.plot(epochs, 100 * np.asarray(r["val_curve"], dtype=float), linestyle=":", color=line.get_color())
         ax.set(xlabel="epoch", ylabel="accuracy (%)", title=f"{task}: test (solid), validation (dotted)")
         ax.grid(True, alpha=0.3)
@@ -298,8 +376,13 @@ def plot(results: list[dict], path: Path) -> None:
         for r in corr:
             curve = r["error_curve"]
             ax.plot(100 * np.asarray(curve["radii"]), 100 * np.asarray(curve["fractions"]), label=r["model"])
-        ax.set(xlabel="geodesic error (% of diameter)", ylabel="% correspondences", xlim=(0, 10), ylim=(0, 100),
-               title="correspondence: error curve (selected, refined)")
+        ax.set(
+            xlabel="geodesic error (% of diameter)",
+            ylabel="% correspondences",
+            xlim=(0, 10),
+            ylim=(0, 100),
+            title="correspondence: error curve (selected, refined)",
+        )
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
@@ -329,7 +412,7 @@ def _same(stored: dict, config: dict) -> bool:
 def _relative(value):
     """``value`` with paths inside the repository written relative to it (results name no local folders)."""
     if isinstance(value, str):
-        return value[len(str(ROOT)) + 1:] if value.startswith(str(ROOT) + "/") else value
+        return value[len(str(ROOT)) + 1 :] if value.startswith(str(ROOT) + "/") else value
     if isinstance(value, dict):
         return {k: _relative(v) for k, v in value.items()}
     if isinstance(value, list):
@@ -350,8 +433,11 @@ def main(argv=None) -> int:
                 continue
             print(f"{task} / {model}", flush=True)
             results.append(run_one(task, model, bodies, args))
-            report = {"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-                      "results": results, "wall_seconds": time.perf_counter() - started}
+            report = {
+                "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+                "results": results,
+                "wall_seconds": time.perf_counter() - started,
+            }
             write_json(args.out.with_suffix(".json"), _relative(plain(report)))
             atomic_write_bytes(args.out.with_suffix(".md"), markdown(results, args).encode())
             plot(results, args.out.with_suffix(".png"))

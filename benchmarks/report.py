@@ -169,12 +169,20 @@ def measure_times(specs: list[dict], inputs: dict, rounds: int) -> dict:
         for label, (model, optimizer, _) in built.items():
             steps[label].append(_train_step(model, optimizer, x, target, geometry))
             inference[label].append(_inference(model, x, geometry))
-        print(f"  timing round {r + 1}/{rounds}: " + ", ".join(
-            f"{label} {steps[label][-1]:.2f}s" for label in built), flush=True)
-    return {label: {"step_seconds": statistics.median(steps[label]), "step_all": steps[label],
-                    "inference_seconds": statistics.median(inference[label]), "inference_all": inference[label],
-                    "parameters": built[label][2]}
-            for label in built}
+        print(
+            f"  timing round {r + 1}/{rounds}: " + ", ".join(f"{label} {steps[label][-1]:.2f}s" for label in built),
+            flush=True,
+        )
+    return {
+        label: {
+            "step_seconds": statistics.median(steps[label]),
+            "step_all": steps[label],
+            "inference_seconds": statistics.median(inference[label]),
+            "inference_all": inference[label],
+            "parameters": built[label][2],
+        }
+        for label in built
+    }
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -229,16 +237,33 @@ def probe_memory(spec_json: str, operator_path: str, edges_path: str, threads: i
     for _ in range(2):
         _train_step(model, optimizer, x, target, geometry)
     peak = _status_bytes("VmHWM") if scoped else _maxrss_bytes()
-    print(json.dumps({"peak_bytes": peak, "before_bytes": before, "model_bytes": peak - before,
-                      "scope": "model and training steps" if scoped else "whole process"}))
+    print(
+        json.dumps(
+            {
+                "peak_bytes": peak,
+                "before_bytes": before,
+                "model_bytes": peak - before,
+                "scope": "model and training steps" if scoped else "whole process",
+            }
+        )
+    )
 
 
 def measure_memory(specs: list[dict], inputs: dict, threads: int) -> dict:
     results = {}
     for spec in specs:
-        command = [sys.executable, str(Path(__file__).resolve()), "--probe-memory", json.dumps(spec),
-                   "--operator", str(inputs["operator_path"]), "--edges", str(inputs["edges_path"]),
-                   "--threads", str(threads)]
+        command = [
+            sys.executable,
+            str(Path(__file__).resolve()),
+            "--probe-memory",
+            json.dumps(spec),
+            "--operator",
+            str(inputs["operator_path"]),
+            "--edges",
+            str(inputs["edges_path"]),
+            "--threads",
+            str(threads),
+        ]
         done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT)
         if done.returncode != 0:
             results[spec["label"]] = {"error": done.stderr.strip().splitlines()[-1] if done.stderr else "failed"}
@@ -255,9 +280,12 @@ def measure_memory(specs: list[dict], inputs: dict, threads: int) -> dict:
 
 def _recipe_task(recipe: dict, task: str, epochs: int) -> dict:
     """A training configuration with a shipped recipe's data (``task`` set), patch, widths, dropout, lr."""
-    return {"data": {**recipe["data"], "task": task}, "patch": recipe["patch"],
-            "model": {"widths": recipe["model"]["widths"], "dropout": recipe["model"]["dropout"]},
-            "train": {"epochs": epochs, "lr": recipe["train"]["lr"]}}
+    return {
+        "data": {**recipe["data"], "task": task},
+        "patch": recipe["patch"],
+        "model": {"widths": recipe["model"]["widths"], "dropout": recipe["model"]["dropout"]},
+        "train": {"epochs": epochs, "lr": recipe["train"]["lr"]},
+    }
 
 
 def training_tasks(args) -> list[dict]:
@@ -270,17 +298,32 @@ def training_tasks(args) -> list[dict]:
     """
     creatures = yaml.safe_load((ROOT / "configs" / "creatures.yaml").read_text())
     tasks = []
-    for name, slug, metric, higher in (("segmentation", "synthetic-segmentation", "accuracy", True),
-                                       ("regression", "synthetic-curvature", "MAPE", False)):
+    for name, slug, metric, higher in (
+        ("segmentation", "synthetic-segmentation", "accuracy", True),
+        ("regression", "synthetic-curvature", "MAPE", False),
+    ):
         label = "synthetic segmentation" if name == "segmentation" else "synthetic curvature regression"
-        tasks.append({"task": label, "slug": slug, "metric": metric, "higher": higher,
-                      "config": _recipe_task(creatures, name, args.epochs)})
+        tasks.append(
+            {
+                "task": label,
+                "slug": slug,
+                "metric": metric,
+                "higher": higher,
+                "config": _recipe_task(creatures, name, args.epochs),
+            }
+        )
     if args.bodies_epochs and importlib.util.find_spec("anny") is not None:
         bodies = yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())
         for name in ("segmentation", "correspondence"):
-            tasks.append({"task": f"bodies {name} ({bodies['data']['count']} {bodies['data']['topology']} bodies)",
-                          "slug": f"bodies-{name}", "metric": "accuracy", "higher": True,
-                          "config": _recipe_task(bodies, name, args.bodies_epochs)})
+            tasks.append(
+                {
+                    "task": f"bodies {name} ({bodies['data']['count']} {bodies['data']['topology']} bodies)",
+                    "slug": f"bodies-{name}",
+                    "metric": "accuracy",
+                    "higher": True,
+                    "config": _recipe_task(bodies, name, args.bodies_epochs),
+                }
+            )
     elif args.bodies_epochs:
         print("  bodies runs skipped: the bodies extra (anny) is not installed", flush=True)
     return tasks + aneurysm_tasks(args)
@@ -306,14 +349,22 @@ def aneurysm_tasks(args) -> list[dict]:
             # zernet's function (see training_models) at several times the cost per epoch.
             recipe = {k: v for k, v in base["model"].items() if k != "angular_resolution"}
             recipe["angular_resolution"] = base["model"].get("angular_resolution", args.train_s)
-            tasks.append({"task": f"aneurysm leave-one-out {case}", "slug": f"aneurysm-{case}", "metric": "MAPE",
-                          "higher": False, "config": config, "skip_models": ["paper-zernet"],
-                          "model_overrides": {"zernet": recipe},
-                          # The recipe's L2 term (Adam, coupled weight decay 1e-3) beside the L1 loss's small
-                          # gradients drives FeaStNet's weights to zero: it predicts a constant (train loss flat
-                          # at 0.77 for 12 epochs; with no decay its validation MAPE is 0.19 after 3 epochs).
-                          # FeaStNet keeps its own setting of no weight decay.
-                          "train_overrides": {"feastnet": {"weight_decay": 0.0}}})
+            tasks.append(
+                {
+                    "task": f"aneurysm leave-one-out {case}",
+                    "slug": f"aneurysm-{case}",
+                    "metric": "MAPE",
+                    "higher": False,
+                    "config": config,
+                    "skip_models": ["paper-zernet"],
+                    "model_overrides": {"zernet": recipe},
+                    # The recipe's L2 term (Adam, coupled weight decay 1e-3) beside the L1 loss's small
+                    # gradients drives FeaStNet's weights to zero: it predicts a constant (train loss flat
+                    # at 0.77 for 12 epochs; with no decay its validation MAPE is 0.19 after 3 epochs).
+                    # FeaStNet keeps its own setting of no weight decay.
+                    "train_overrides": {"feastnet": {"weight_decay": 0.0}},
+                }
+            )
     return tasks
 
 
@@ -355,34 +406,51 @@ def run_training(tasks: list[dict], models: list[dict], out: Path, threads: int,
                 "history": history,
             }
             summary = metrics.get("summary", {})
-            print(f"    {task['metric']} {summary.get(task['metric'])}, train {metrics.get('train_seconds'):.1f}s",
-                  flush=True)
+            print(
+                f"    {task['metric']} {summary.get(task['metric'])}, train {metrics.get('train_seconds'):.1f}s",
+                flush=True,
+            )
     return results
 
 
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true",
-                        help="fewer models and rounds, 2-epoch training (bodies too), one aneurysm case with 1 epoch")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="fewer models and rounds, 2-epoch training (bodies too), one aneurysm case with 1 epoch",
+    )
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"), help="output folder")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     parser.add_argument("--rounds", type=int, default=None, help="timing rounds (default 5, quick 2)")
     parser.add_argument("--epochs", type=int, default=None, help="synthetic training epochs (default 15, quick 2)")
-    parser.add_argument("--bodies-epochs", type=int, default=None,
-                        help="epochs of the bodies segmentation and correspondence runs (default 12, quick 2; "
-                             "0: none)")
-    parser.add_argument("--aneurysm-root", default="data/aneurysm",
-                        help="folder of the aneurysm .mat files (skipped when missing)")
-    parser.add_argument("--aneurysm-cases", default=None,
-                        help="comma-separated held-out cases (default TP_Ia105I,TP_Ia166I; quick TP_Ia105I; "
-                             "empty string: none)")
+    parser.add_argument(
+        "--bodies-epochs",
+        type=int,
+        default=None,
+        help="epochs of the bodies segmentation and correspondence runs (default 12, quick 2; 0: none)",
+    )
+    parser.add_argument(
+        "--aneurysm-root", default="data/aneurysm", help="folder of the aneurysm .mat files (skipped when missing)"
+    )
+    parser.add_argument(
+        "--aneurysm-cases",
+        default=None,
+        help="comma-separated held-out cases (default TP_Ia105I,TP_Ia166I; quick TP_Ia105I; empty string: none)",
+    )
     parser.add_argument("--aneurysm-epochs", type=int, default=None, help="aneurysm epochs (default 10, quick 1)")
-    parser.add_argument("--train-s", type=int, default=4,
-                        help="angular resolution s of zernet and paper-zernet in the training runs (default 4)")
+    parser.add_argument(
+        "--train-s",
+        type=int,
+        default=4,
+        help="angular resolution s of zernet and paper-zernet in the training runs (default 4)",
+    )
     parser.add_argument("--skip", default="", help="comma-separated parts to skip: timing,memory,training")
-    parser.add_argument("--cache-dir", default=str(ROOT / ".zernet-cache"), help="patch-operator cache of the data sets")
+    parser.add_argument(
+        "--cache-dir", default=str(ROOT / ".zernet-cache"), help="patch-operator cache of the data sets"
+    )
     parser.add_argument("--probe-memory", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--operator", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--edges", default=None, help=argparse.SUPPRESS)

@@ -72,14 +72,25 @@ def training_models(angular_resolution: int) -> list[dict]:
 
 def environment(threads: int) -> dict:
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=ROOT).stdout.strip() or "unknown"
+        commit = (
+            subprocess.run(
+                ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
+            ).stdout.strip()
+            or "unknown"
+        )
     except OSError:
         commit = "unknown"
-    return {"date": datetime.datetime.now().isoformat(timespec="seconds"), "commit": commit,
-            "torch": torch.__version__, "torch_geometric": torch_geometric.__version__, "threads": threads,
-            "machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),
-            "load_average_start": load_average()}
+    return {
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "commit": commit,
+        "torch": torch.__version__,
+        "torch_geometric": torch_geometric.__version__,
+        "threads": threads,
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "load_average_start": load_average(),
+    }
 
 
 def load_average() -> list[float] | None:
@@ -106,7 +117,6 @@ def aneurysm_recipe_summary() -> str:
     model = yaml.safe_load((ROOT / "configs" / "aneurysm_regression.yaml").read_text())["model"]
     options = ", ".join(f"{key} {value}" for key, value in model.items() if key != "name")
     return f"{model['name']}, {options}"
-
 
 
 def _fmt(value, digits=3) -> str:
@@ -152,8 +162,12 @@ def plot_memory(memory: dict, path: Path) -> None:
     y = np.arange(len(labels))
     fig, ax = plt.subplots(figsize=(8, 0.5 * len(labels) + 1.5))
     ax.barh(y - 0.2, [memory[label]["peak_bytes"] / 2**20 for label in labels], height=0.4, label="peak RSS")
-    ax.barh(y + 0.2, [memory[label]["model_bytes"] / 2**20 for label in labels], height=0.4,
-            label="added by the model and its training step")
+    ax.barh(
+        y + 0.2,
+        [memory[label]["model_bytes"] / 2**20 for label in labels],
+        height=0.4,
+        label="added by the model and its training step",
+    )
     ax.set_yticks(y, labels)
     ax.invert_yaxis()
     ax.set_xlabel("MiB")
@@ -190,7 +204,8 @@ def plot_training(task: dict, runs: dict, path: Path) -> None:
 def _header_lines(results: dict) -> list[str]:
     env = results["environment"]
     return [
-        "# zernet vs the paper's formulation vs FeaStNet", "",
+        "# zernet vs the paper's formulation vs FeaStNet",
+        "",
         f"Generated {env['date']} by `{results['command']}` "
         f"(commit `{env['commit']}`), torch {env['torch']}, torch_geometric {env['torch_geometric']}, "
         f"{env['threads']} CPU thread(s) on {env['machine']} ({env['cpus']} logical CPUs), float32.",
@@ -234,8 +249,10 @@ def _times_lines(times: dict, rounds: int) -> list[str]:
     for label, t in times.items():
         ratio_s = t["step_seconds"] / base["step_seconds"] if base else None
         ratio_i = t["inference_seconds"] / base["inference_seconds"] if base else None
-        lines.append(f"| {label} | {t['parameters']:,} | {t['step_seconds']:.3f} | {_fmt(ratio_s, 2)} | "
-                     f"{t['inference_seconds']:.3f} | {_fmt(ratio_i, 2)} |")
+        lines.append(
+            f"| {label} | {t['parameters']:,} | {t['step_seconds']:.3f} | {_fmt(ratio_s, 2)} | "
+            f"{t['inference_seconds']:.3f} | {_fmt(ratio_i, 2)} |"
+        )
     return lines + ["", "![step and inference times](report-times.png)", ""]
 
 
@@ -285,10 +302,13 @@ def _task_lines(task: dict, runs: dict) -> list[str]:
     metric = task["metric"]
     base = runs.get(BASELINE, {}).get("summary", {}).get(metric)
     base_time = runs.get(BASELINE, {}).get("train_seconds")
-    lines = [f"### {task['task']}", "",
-             f"| model | test {metric} ({'higher' if task['higher'] else 'lower'} is better) | "
-             f"× FeaStNet | epochs | best epoch | training seconds | × FeaStNet |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        f"### {task['task']}",
+        "",
+        f"| model | test {metric} ({'higher' if task['higher'] else 'lower'} is better) | "
+        f"× FeaStNet | epochs | best epoch | training seconds | × FeaStNet |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
     for label, run in runs.items():
         if "error" in run:
             lines.append(f"| {label} | failed: {run['error']} | | | | | |")
@@ -296,8 +316,10 @@ def _task_lines(task: dict, runs: dict) -> list[str]:
         value = run["summary"].get(metric)
         ratio = value / base if (value is not None and base) else None
         ratio_t = run["train_seconds"] / base_time if base_time else None
-        lines.append(f"| {label} | {_fmt(value, 4)} | {_fmt(ratio, 2)} | {run['epochs']} | "
-                     f"{run['best_epoch']} | {_fmt(run['train_seconds'], 1)} | {_fmt(ratio_t, 2)} |")
+        lines.append(
+            f"| {label} | {_fmt(value, 4)} | {_fmt(ratio, 2)} | {run['epochs']} | "
+            f"{run['best_epoch']} | {_fmt(run['train_seconds'], 1)} | {_fmt(ratio_t, 2)} |"
+        )
     baseline = next((run.get("baseline") for run in runs.values() if run.get("baseline")), None)
     if baseline:
         lines.append("")
@@ -334,8 +356,10 @@ def check_targets(results: dict) -> list[str]:
     if "zernet s=4" in times and BASELINE in times:
         ratio = times["zernet s=4"]["step_seconds"] / times[BASELINE]["step_seconds"]
         verdict = "met" if ratio <= 0.8 else "NOT met"
-        lines.append(f"zernet s=4 training step = {ratio:.2f} × FeaStNet's at widths {'-'.join(map(str, WIDTHS))} "
-                     f"(target <= 0.80): **{verdict}**.")
+        lines.append(
+            f"zernet s=4 training step = {ratio:.2f} × FeaStNet's at widths {'-'.join(map(str, WIDTHS))} "
+            f"(target <= 0.80): **{verdict}**."
+        )
     for task in results.get("tasks", []):
         runs = results.get("training", {}).get(task["slug"], {})
         ours = runs.get("zernet", {}).get("summary", {}).get(task["metric"])
@@ -343,7 +367,8 @@ def check_targets(results: dict) -> list[str]:
         if ours is None or theirs is None:
             continue
         better = ours > theirs if task["higher"] else ours < theirs
-        lines.append(f"{task['task']}: zernet {task['metric']} {ours:.4f} vs FeaStNet {theirs:.4f} at equal epochs: "
-                     f"**{'zernet better' if better else 'zernet NOT better'}**.")
+        lines.append(
+            f"{task['task']}: zernet {task['metric']} {ours:.4f} vs FeaStNet {theirs:.4f} at equal epochs: "
+            f"**{'zernet better' if better else 'zernet NOT better'}**."
+        )
     return lines
-

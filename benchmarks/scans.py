@@ -64,8 +64,12 @@ ZERNET_ONLY = ("angular_resolution", "pooling")
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--bodies", type=Path, default=ROOT / "data" / "scans",
-                        help="folder written by 'zernet bodies OUT --forms all' (made if missing)")
+    parser.add_argument(
+        "--bodies",
+        type=Path,
+        default=ROOT / "data" / "scans",
+        help="folder written by 'zernet bodies OUT --forms all' (made if missing)",
+    )
     parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "scans", help="one run folder per model")
     parser.add_argument("--models", nargs="+", default=["zernet"], choices=MODELS)
     parser.add_argument("--forms", nargs="+", default=list(FORMS), choices=FORMS)
@@ -80,8 +84,24 @@ def ensure_bodies(bodies: Path) -> None:
     """Generate the bodies and their forms unless they are there."""
     if (bodies / "forms").is_dir() and (bodies / "segmentation").is_dir():
         return
-    subprocess.run([sys.executable, "-m", "zernet.cli", "bodies", str(bodies), "--count", "100", "--n-test", "20",
-                    "--seed", "0", "--forms", "all"], check=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "zernet.cli",
+            "bodies",
+            str(bodies),
+            "--count",
+            "100",
+            "--n-test",
+            "20",
+            "--seed",
+            "0",
+            "--forms",
+            "all",
+        ],
+        check=True,
+    )
 
 
 def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
@@ -105,8 +125,22 @@ def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
     path = run_dir.parent / f"{model}.yaml"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(config))
-    subprocess.run([sys.executable, "-m", "zernet.cli", "train", str(path), "--run-dir", str(run_dir), "--no-progress",
-                    "--workers", "1", *extra], check=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "zernet.cli",
+            "train",
+            str(path),
+            "--run-dir",
+            str(run_dir),
+            "--no-progress",
+            "--workers",
+            "1",
+            *extra,
+        ],
+        check=True,
+    )
     return run_dir
 
 
@@ -115,17 +149,42 @@ def mixed_training_folder(bodies: Path) -> Path:
     (:data:`MIXED_FORMS`) of the first :data:`MIXED_BODIES` training bodies (generated if missing)."""
     forms = bodies / "train-forms"
     if not (forms / "forms" / MIXED_FORMS[0] / "meshes" / "train").is_dir():
-        subprocess.run([sys.executable, "-m", "zernet.cli", "bodies", str(forms), "--count", "100", "--n-test", "20",
-                        "--seed", "0", "--forms", ",".join(MIXED_FORMS), "--forms-split", "all"], check=True)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "zernet.cli",
+                "bodies",
+                str(forms),
+                "--count",
+                "100",
+                "--n-test",
+                "20",
+                "--seed",
+                "0",
+                "--forms",
+                ",".join(MIXED_FORMS),
+                "--forms-split",
+                "all",
+            ],
+            check=True,
+        )
     mixed = bodies / "mixed"
-    links = [(bodies / "segmentation" / kind / split / f"{path.stem}{suffix}", mixed / kind / split / f"{path.stem}{suffix}")
-             for split in ("train", "test") for path in sorted((bodies / "segmentation" / "meshes" / split).glob("*.ply"))
-             for kind, suffix in (("meshes", ".ply"), ("labels", ".txt"))]
+    links = [
+        (bodies / "segmentation" / kind / split / f"{path.stem}{suffix}", mixed / kind / split / f"{path.stem}{suffix}")
+        for split in ("train", "test")
+        for path in sorted((bodies / "segmentation" / "meshes" / split).glob("*.ply"))
+        for kind, suffix in (("meshes", ".ply"), ("labels", ".txt"))
+    ]
     for form in MIXED_FORMS:
         for path in sorted((forms / "forms" / form / "meshes" / "train").glob("*.ply"))[:MIXED_BODIES]:
             for kind, suffix in (("meshes", ".ply"), ("labels", ".txt")):
-                links.append((forms / "forms" / form / kind / "train" / f"{path.stem}{suffix}",
-                              mixed / kind / "train" / f"{path.stem}_{form}{suffix}"))
+                links.append(
+                    (
+                        forms / "forms" / form / kind / "train" / f"{path.stem}{suffix}",
+                        mixed / kind / "train" / f"{path.stem}_{form}{suffix}",
+                    )
+                )
     for source, link in links:
         link.parent.mkdir(parents=True, exist_ok=True)
         if not link.exists():
@@ -166,31 +225,55 @@ def score_form(run_dir: Path, files, scale: float | None, picture: Path | None) 
         per_shape.append(float((prediction == truth).mean()))
         if number == 0 and picture is not None:
             surface = read_surface(mesh)
-            render_comparison(surface, prediction, truth, prediction != truth, picture, class_names=HUMAN_PART_NAMES,
-                              title=f"{mesh.parent.parent.parent.name}: {mesh.stem}, "
-                                    f"{100 * per_shape[-1]:.1f} % of {len(truth)} vertices")
-    return {"accuracy": correct / total if total else None, "shapes": len(per_shape), "vertices": total,
-            "per_shape_min": min(per_shape) if per_shape else None, "refused": refused,
-            "seconds_per_shape_median": float(np.median(seconds)) if seconds else None}
+            render_comparison(
+                surface,
+                prediction,
+                truth,
+                prediction != truth,
+                picture,
+                class_names=HUMAN_PART_NAMES,
+                title=f"{mesh.parent.parent.parent.name}: {mesh.stem}, "
+                f"{100 * per_shape[-1]:.1f} % of {len(truth)} vertices",
+            )
+    return {
+        "accuracy": correct / total if total else None,
+        "shapes": len(per_shape),
+        "vertices": total,
+        "per_shape_min": min(per_shape) if per_shape else None,
+        "refused": refused,
+        "seconds_per_shape_median": float(np.median(seconds)) if seconds else None,
+    }
 
 
 def markdown(results: dict, args, scale: float) -> str:
-    lines = ["# Scans as users bring them: segmentation on every form of 20 held-out generated bodies", "",
-             "Models trained on the original (clean, shared-topology) training bodies only; test split: 20 bodies "
-             "never seen in training, each in every form (`zernet bodies ... --forms all`). Accuracy pooled over "
-             "the vertices (points) of the form, against the ground truth carried from the original body; "
-             "*drop*: points below the original form; *refused*: shapes that raised.",
-             f"Partial scans scaled by the training bodies' median factor {scale:.2f} (`predict(scale=...)`).", "",
-             "| model | form | accuracy | drop | worst shape | refused | s / shape |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Scans as users bring them: segmentation on every form of 20 held-out generated bodies",
+        "",
+        "Models trained on the original (clean, shared-topology) training bodies only; test split: 20 bodies "
+        "never seen in training, each in every form (`zernet bodies ... --forms all`). Accuracy pooled over "
+        "the vertices (points) of the form, against the ground truth carried from the original body; "
+        "*drop*: points below the original form; *refused*: shapes that raised.",
+        f"Partial scans scaled by the training bodies' median factor {scale:.2f} (`predict(scale=...)`).",
+        "",
+        "| model | form | accuracy | drop | worst shape | refused | s / shape |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for model, forms in results.items():
         original = forms.get("original", {}).get("accuracy")
         for form, row in forms.items():
             accuracy, worst, seconds = row["accuracy"], row["per_shape_min"], row["seconds_per_shape_median"]
-            drop = "" if accuracy is None or original is None or form == "original" else f"{100 * (original - accuracy):.1f}"
-            cells = ["-" if accuracy is None else f"{100 * accuracy:.1f} %", drop,
-                     "-" if worst is None else f"{100 * worst:.1f} %",
-                     f"{len(row['refused'])} / {row['shapes'] + len(row['refused'])}",
-                     "-" if seconds is None else f"{seconds:.1f}"]
+            drop = (
+                ""
+                if accuracy is None or original is None or form == "original"
+                else f"{100 * (original - accuracy):.1f}"
+            )
+            cells = [
+                "-" if accuracy is None else f"{100 * accuracy:.1f} %",
+                drop,
+                "-" if worst is None else f"{100 * worst:.1f} %",
+                f"{len(row['refused'])} / {row['shapes'] + len(row['refused'])}",
+                "-" if seconds is None else f"{seconds:.1f}",
+            ]
             lines.append(f"| {model} | {form} | " + " | ".join(cells) + " |")
     lines += ["", "Command: `" + " ".join(["python benchmarks/scans.py", *sys.argv[1:]]) + "`", ""]
     return "\n".join(lines)

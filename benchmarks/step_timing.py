@@ -18,12 +18,14 @@ from zernet.training.epoch import Objective, train_one_epoch
 CORRESPONDENCE = Objective("classification", "cross_entropy", None, None)
 
 
-def seconds_per_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, dataset, shapes: Sequence[int],
-                     epoch: int, train) -> float:
+def seconds_per_step(
+    model: torch.nn.Module, optimizer: torch.optim.Optimizer, dataset, shapes: Sequence[int], epoch: int, train
+) -> float:
     """Wall seconds per optimiser step of one ``train_one_epoch`` pass over ``shapes`` (one process)."""
     started = time.perf_counter()
-    train_one_epoch(model, model, optimizer, dataset, shapes, epoch, train, CORRESPONDENCE, DistributedContext(),
-                    progress=False)
+    train_one_epoch(
+        model, model, optimizer, dataset, shapes, epoch, train, CORRESPONDENCE, DistributedContext(), progress=False
+    )
     return (time.perf_counter() - started) / len(shapes)
 
 

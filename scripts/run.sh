@@ -3,6 +3,7 @@
 # then runs `demo`, `test`, or any zernet subcommand.
 #   bash scripts/run.sh demo     train + evaluate on the built-in data, print metrics and pictures
 #   bash scripts/run.sh test     run the test suite
+#   bash scripts/run.sh lint     ruff check and ruff format --check (configured in pyproject.toml)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV=.venv
@@ -24,5 +25,6 @@ cmd="${1:-demo}"
 shift || true
 case "$cmd" in
     test) exec "$PY" -m pytest "$@" ;;
+    lint) "$VENV/bin/ruff" check . && exec "$VENV/bin/ruff" format --check . ;;
     *) exec "$VENV/bin/zernet" "$cmd" "$@" ;;
 esac

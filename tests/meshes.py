@@ -13,8 +13,9 @@ import trimesh
 from zernet.geometry import Surface
 
 
-def icosphere(subdivisions: int = 2, radius: float = 1.0, noise: float = 0.0, seed: int = 0,
-              name: str = "sphere") -> Surface:
+def icosphere(
+    subdivisions: int = 2, radius: float = 1.0, noise: float = 0.0, seed: int = 0, name: str = "sphere"
+) -> Surface:
     """trimesh's icosphere with outward normals; ``noise`` > 0 scales each vertex radially by
     ``1 + noise * N(0, 1)`` (seeded), which removes exact distance ties between vertices."""
     mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
@@ -59,8 +60,9 @@ def cylinder_mesh(radius: float, height: float, around: int, along: int):
     return vertices, faces
 
 
-def open_cylinder(radius: float = 1.5, height: float = 6.0, around: int = 64, along: int = 25,
-                  name: str = "cylinder") -> Surface:
+def open_cylinder(
+    radius: float = 1.5, height: float = 6.0, around: int = 64, along: int = 25, name: str = "cylinder"
+) -> Surface:
     """:func:`cylinder_mesh` as a surface oriented with outward normals."""
     vertices, faces = cylinder_mesh(radius, height, around, along)
     surface = Surface(vertices, faces, name=name)

@@ -35,8 +35,7 @@ def test_every_subcommand_has_help(command, capsys):
 
 
 def test_entry_point_help_runs_as_a_program():
-    result = subprocess.run([sys.executable, "-m", "zernet.cli", "--help"], capture_output=True, text=True,
-                            timeout=60)
+    result = subprocess.run([sys.executable, "-m", "zernet.cli", "--help"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0
     for command in SUBCOMMANDS:
         assert command in result.stdout
@@ -123,10 +122,30 @@ def test_demo_runs_end_to_end_on_a_few_tiny_bodies(tmp_path, capsys):
     """The demo's own configuration (bodies kind, segmentation), shrunk to 5 coarse bodies and one epoch."""
     pytest.importorskip("anny")
     run_dir = tmp_path / "demo"
-    assert main(["demo", "--run-dir", str(run_dir), "--no-progress", "--workers", "0", "--set",
-                 "data.count=5", "data.n_test=2", "data.val_count=1", "data.topology=coarse-369",
-                 "patch.scales.0.n_samples=600", "patch.scales.0.patch_size=20", "patch.scales.0.r0=8",
-                 "train.epochs=1", "eval.renders=1", f"cache_dir={tmp_path / 'cache'}"]) == 0
+    assert (
+        main(
+            [
+                "demo",
+                "--run-dir",
+                str(run_dir),
+                "--no-progress",
+                "--workers",
+                "0",
+                "--set",
+                "data.count=5",
+                "data.n_test=2",
+                "data.val_count=1",
+                "data.topology=coarse-369",
+                "patch.scales.0.n_samples=600",
+                "patch.scales.0.patch_size=20",
+                "patch.scales.0.r0=8",
+                "train.epochs=1",
+                "eval.renders=1",
+                f"cache_dir={tmp_path / 'cache'}",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "test metrics (2 shapes" in out and "majority_class_accuracy" in out
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -144,8 +163,25 @@ def test_shipped_configs_are_valid():
 def test_bodies_command_writes_the_loader_layouts(tmp_path, capsys):
     pytest.importorskip("anny")
     out = tmp_path / "bodies"
-    assert main(["bodies", str(out), "--count", "4", "--n-test", "1", "--topology", "coarse-369",
-                 "--poses", "rest", "--cache-dir", str(tmp_path / "cache")]) == 0
+    assert (
+        main(
+            [
+                "bodies",
+                str(out),
+                "--count",
+                "4",
+                "--n-test",
+                "1",
+                "--topology",
+                "coarse-369",
+                "--poses",
+                "rest",
+                "--cache-dir",
+                str(tmp_path / "cache"),
+            ]
+        )
+        == 0
+    )
     assert len(list((out / "segmentation" / "meshes" / "train").glob("*.ply"))) == 3
     assert len(list((out / "segmentation" / "labels" / "test").glob("*.txt"))) == 1
     assert len(list((out / "correspondence" / "training" / "registrations").glob("tr_reg_*.ply"))) == 4
@@ -155,8 +191,12 @@ def test_bodies_command_writes_the_loader_layouts(tmp_path, capsys):
 
 
 def test_bad_shape_and_repair_options_are_offered_where_they_apply(capsys):
-    for command, option in (("preprocess", "--skip-bad"), ("train", "--skip-bad"), ("evaluate", "--skip-bad"),
-                            ("predict", "--backend")):
+    for command, option in (
+        ("preprocess", "--skip-bad"),
+        ("train", "--skip-bad"),
+        ("evaluate", "--skip-bad"),
+        ("predict", "--backend"),
+    ):
         with pytest.raises(SystemExit):
             main([command, "--help"])
         assert option in capsys.readouterr().out, (command, option)

@@ -67,8 +67,10 @@ def test_transform_operators_equal_build_patch_operator(tmp_path):
     _same_matrix(plain.matrix, build_patch_operator(_as_read(surface), CONFIGS[0]).matrix.astype(np.float32))
     scaled = ZernetOperators(CONFIGS[0], area=20.0, features="xyz+normals")(_data(surface))
     normalised, _ = normalize_area(_as_read(surface), 20.0)
-    _same_matrix(geometry_from_pyg(scaled).operators[0].matrix,
-                 build_patch_operator(normalised, CONFIGS[0]).matrix.astype(np.float32))
+    _same_matrix(
+        geometry_from_pyg(scaled).operators[0].matrix,
+        build_patch_operator(normalised, CONFIGS[0]).matrix.astype(np.float32),
+    )
     assert scaled.x.shape == (surface.n_vertices, 6) and torch.equal(scaled.pos, _data(surface).pos)
 
 
@@ -119,8 +121,10 @@ def test_batch_of_two_gives_the_shapes_one_by_one(two_shapes, name):
         together = model(batch.x.double(), geometry_from_pyg(batch, order))
         alone = [model(d.x.double(), geometry_from_pyg(d, order)) for d in items]
         # zernet's own geometry of the same surfaces (operators from the same cache) answers the same
-        native = Geometry([build_patch_operator(_as_read(surfaces[0]), c, cache) for c in CONFIGS],
-                          geometry_from_pyg(items[0]).edge_index).with_directional(order)
+        native = Geometry(
+            [build_patch_operator(_as_read(surfaces[0]), c, cache) for c in CONFIGS],
+            geometry_from_pyg(items[0]).edge_index,
+        ).with_directional(order)
         first = model(items[0].x.double(), native)
     assert together.shape == (batch.num_nodes, 5)
     torch.testing.assert_close(together, torch.cat(alone), rtol=0, atol=1e-10)

@@ -12,8 +12,9 @@ HEAVY = ("torch_geometric", "matplotlib", "torch._dynamo", "anny")
 
 
 def test_cli_import_leaves_heavy_optional_libraries_out():
-    code = ("import sys, zernet.cli, zernet.training, zernet.nn; "
-            f"print(','.join(m for m in {HEAVY!r} if m in sys.modules))")
+    code = (
+        f"import sys, zernet.cli, zernet.training, zernet.nn; print(','.join(m for m in {HEAVY!r} if m in sys.modules))"
+    )
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == "", f"imported at start-up: {loaded}"
 

@@ -236,7 +236,7 @@ class DistributedContext:
         indices = list(indices)
         if not self.distributed:
             return compute(indices)
-        part = indices[self.rank::self.world_size]
+        part = indices[self.rank :: self.world_size]
         local = (len(part), compute(part) if part else {})
         gathered: list = [None] * self.world_size
         dist.all_gather_object(gathered, local)
@@ -284,14 +284,17 @@ def setup(device: torch.device | str = "cpu") -> DistributedContext:
         device = torch.device("cuda", local_rank % max(torch.cuda.device_count(), 1))
         torch.cuda.set_device(device)
     if initialized:
-        return DistributedContext(dist.get_rank(), dist.get_world_size(), local_rank, device,
-                                  dist.get_backend(), owns_group=False)
+        return DistributedContext(
+            dist.get_rank(), dist.get_world_size(), local_rank, device, dist.get_backend(), owns_group=False
+        )
 
     missing = [name for name in ("RANK", "MASTER_ADDR", "MASTER_PORT") if not os.environ.get(name)]
     if missing:
-        raise RuntimeError(f"WORLD_SIZE={os.environ['WORLD_SIZE']} but {', '.join(missing)} not set: start "
-                           "distributed training with torchrun (e.g. torchrun --standalone --nproc_per_node 2 "
-                           "-m zernet.cli train CONFIG)")
+        raise RuntimeError(
+            f"WORLD_SIZE={os.environ['WORLD_SIZE']} but {', '.join(missing)} not set: start "
+            "distributed training with torchrun (e.g. torchrun --standalone --nproc_per_node 2 "
+            "-m zernet.cli train CONFIG)"
+        )
     backend = backend_for(device)
     minutes = float(os.environ.get(ENV_TIMEOUT) or _DEFAULT_TIMEOUT_MINUTES)
     dist.init_process_group(backend, init_method="env://", timeout=datetime.timedelta(minutes=minutes))

@@ -75,9 +75,11 @@ def confusion_matrix(pred, target, num_classes: int) -> np.ndarray:
     for what, values in (("target", target), ("prediction", pred)):
         if values.size and (values.min() < 0 or values.max() >= num_classes):
             raise ValueError(f"{what} labels must lie in [0, {num_classes}), got [{values.min()}, {values.max()}]")
-    return np.bincount(target * num_classes + pred, minlength=num_classes * num_classes).reshape(
-        num_classes, num_classes
-    ).astype(np.int64)
+    return (
+        np.bincount(target * num_classes + pred, minlength=num_classes * num_classes)
+        .reshape(num_classes, num_classes)
+        .astype(np.int64)
+    )
 
 
 def segmentation_scores(pred=None, target=None, num_classes: int | None = None, confusion=None) -> dict:

@@ -111,8 +111,9 @@ class PairOperator:
     def __init__(self, index: Tensor, value: Tensor, n_vertices: int, frames: Tensor | None = None):
         n_vertices = int(n_vertices)
         if index.dim() != 2 or index.shape[0] != 2 or value.dim() != 2 or value.shape[0] != index.shape[1]:
-            raise ValueError(f"PairOperator needs index (2, P) and value (P, k), got {tuple(index.shape)} and "
-                             f"{tuple(value.shape)}")
+            raise ValueError(
+                f"PairOperator needs index (2, P) and value (P, k), got {tuple(index.shape)} and {tuple(value.shape)}"
+            )
         index = index.long()
         if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n_vertices):
             raise ValueError(f"PairOperator: pair indices must lie in [0, {n_vertices})")
@@ -175,19 +176,34 @@ class PairOperator:
         p, q = index[0], index[1]
         per_basis = torch.zeros(n + 1, dtype=index_dtype, device=device)
         per_basis[1:] = torch.cumsum(torch.bincount(p, minlength=n), 0)
-        crow = torch.cat([per_basis[:1], (per_basis[1:].unsqueeze(0) + n_pairs * torch.arange(
-            k, dtype=index_dtype, device=device).unsqueeze(1)).reshape(-1)])
+        crow = torch.cat(
+            [
+                per_basis[:1],
+                (
+                    per_basis[1:].unsqueeze(0)
+                    + n_pairs * torch.arange(k, dtype=index_dtype, device=device).unsqueeze(1)
+                ).reshape(-1),
+            ]
+        )
         by_column = torch.argsort(q * n + p)  # Aᵀ: row q holds its pairs by p, each with its k columns in order
         t_crow = torch.zeros(n + 1, dtype=index_dtype, device=device)
         t_crow[1:] = torch.cumsum(torch.bincount(q, minlength=n) * k, 0)
-        t_columns = (p[by_column].to(index_dtype).unsqueeze(1) * k
-                     + torch.arange(k, dtype=index_dtype, device=device).unsqueeze(0)).reshape(-1)
+        t_columns = (
+            p[by_column].to(index_dtype).unsqueeze(1) * k
+            + torch.arange(k, dtype=index_dtype, device=device).unsqueeze(0)
+        ).reshape(-1)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-            by_basis = torch.sparse_csr_tensor(crow, q.to(index_dtype).repeat(k), value.t()[bases].reshape(-1),
-                                               size=(n * k, n), check_invariants=False)
-            transpose = torch.sparse_csr_tensor(t_crow, t_columns, value[by_column.unsqueeze(1), bases].reshape(-1),
-                                                size=(n, n * k), check_invariants=False)
+            by_basis = torch.sparse_csr_tensor(
+                crow, q.to(index_dtype).repeat(k), value.t()[bases].reshape(-1), size=(n * k, n), check_invariants=False
+            )
+            transpose = torch.sparse_csr_tensor(
+                t_crow,
+                t_columns,
+                value[by_column.unsqueeze(1), bases].reshape(-1),
+                size=(n, n * k),
+                check_invariants=False,
+            )
         self._tensors[key] = (by_basis, transpose)
         return by_basis, transpose
 
@@ -256,14 +272,24 @@ class PairOperator:
             self._host["frames"] = self.frames_tensor.detach().cpu().numpy().astype(np.float64)
         return self._host["frames"]
 
-    _PATCH_DATA = ("patch_sample_index", "patch_radius", "patch_angle", "patch_basis", "interpolation", "lam",
-                   "config", "ridge_weights")
+    _PATCH_DATA = (
+        "patch_sample_index",
+        "patch_radius",
+        "patch_angle",
+        "patch_basis",
+        "interpolation",
+        "lam",
+        "config",
+        "ridge_weights",
+    )
 
     def __getattr__(self, name):
         if name in PairOperator._PATCH_DATA:
-            raise AttributeError(f"PairOperator has no {name!r}: a PyG Data carries the patch operator's matrix and "
-                                 "frames only, not its patch samples (the paper-zernet model re-fits from them: "
-                                 "train it with zernet's own data pipeline)")
+            raise AttributeError(
+                f"PairOperator has no {name!r}: a PyG Data carries the patch operator's matrix and "
+                "frames only, not its patch samples (the paper-zernet model re-fits from them: "
+                "train it with zernet's own data pipeline)"
+            )
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
 
@@ -290,8 +316,13 @@ class ZernetOperators(BaseTransform):
     Attaches the tensors listed in :mod:`zernet.pyg` for every scale.
     """
 
-    def __init__(self, patch_configs, cache_dir: str | os.PathLike | None = None, area: float | None = None,
-                 features: str | None = "xyz"):
+    def __init__(
+        self,
+        patch_configs,
+        cache_dir: str | os.PathLike | None = None,
+        area: float | None = None,
+        features: str | None = "xyz",
+    ):
         self.patch_configs = as_patch_configs(patch_configs)
         self.cache_dir = None if cache_dir is None else str(cache_dir)
         self.area = None if area is None else float(area)
@@ -308,8 +339,9 @@ class ZernetOperators(BaseTransform):
             None if normal is None else normal.detach().cpu().double().numpy(),
             name="<pyg Data>",
         )
-        record = prepare_record(surface, self.patch_configs, self.cache_dir, self.area,
-                                feature_kind=self.features or "ones", name="pyg")
+        record = prepare_record(
+            surface, self.patch_configs, self.cache_dir, self.area, feature_kind=self.features or "ones", name="pyg"
+        )
         n = surface.n_vertices
         if record.surface.n_vertices != n:  # cannot happen without repair; guards the alignment with pos
             raise ValueError(f"zernet's preprocessing changed the vertex count ({n} -> {record.surface.n_vertices})")
@@ -354,8 +386,10 @@ def geometry_from_pyg(data, directional_order: int | None = None) -> Geometry:
     if edge_index is None and face is not None:
         edge_index = face_edges(face)
     if not operators and edge_index is None:
-        raise ValueError("this Data has neither zernet's patch operators nor edges: add ZernetOperators(...) as "
-                         "its data set's pre_transform")
+        raise ValueError(
+            "this Data has neither zernet's patch operators nor edges: add ZernetOperators(...) as "
+            "its data set's pre_transform"
+        )
     batch = getattr(data, "batch", None)
     return Geometry(operators, edge_index, batch).with_directional(directional_order)
 

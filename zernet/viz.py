@@ -31,8 +31,14 @@ from matplotlib import colors as mcolors  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
-__all__ = ["VIEWS", "render_surface", "render_side_by_side", "render_comparison", "plot_error_curve",
-           "plot_training_curves"]
+__all__ = [
+    "VIEWS",
+    "render_surface",
+    "render_side_by_side",
+    "render_comparison",
+    "plot_error_curve",
+    "plot_training_curves",
+]
 
 #: Named views: (elevation, azimuth) in degrees of matplotlib's camera, in plot coordinates (see _to_plot).
 VIEWS = {
@@ -135,8 +141,9 @@ def _draw(ax, surface, values, norm, cmap, view: str, up: str, point_size: float
         ax.add_collection3d(collection)
     else:
         size = point_size if point_size is not None else max(0.5, 4000.0 / len(points))
-        ax.scatter(points[:, 0], points[:, 1], points[:, 2], c=cmap(norm(values)), s=size, depthshade=False,
-                   linewidths=0)
+        ax.scatter(
+            points[:, 0], points[:, 1], points[:, 2], c=cmap(norm(values)), s=size, depthshade=False, linewidths=0
+        )
     centre = (points.max(axis=0) + points.min(axis=0)) / 2
     half = (points.max(axis=0) - points.min(axis=0)).max() / 2 * 1.02
     ax.set_xlim(centre[0] - half, centre[0] + half)
@@ -169,8 +176,10 @@ def _check_values(surface, values, what: str) -> np.ndarray:
         values = values[:, 0]
     n = len(surface.vertices)
     if values.shape != (n,):
-        raise ValueError(f"{getattr(surface, 'name', '<array>')}: {what} has shape {values.shape}, expected ({n},) "
-                         "— one value per vertex")
+        raise ValueError(
+            f"{getattr(surface, 'name', '<array>')}: {what} has shape {values.shape}, expected ({n},) "
+            "— one value per vertex"
+        )
     return values
 
 
@@ -314,8 +323,9 @@ def render_comparison(
             if r == 0:
                 ax.set_title(view, fontsize=9, pad=0)
             axes.append(ax)
-        axes[0].text2D(-0.02, 0.5, row_name, transform=axes[0].transAxes, rotation=90, va="center",
-                       ha="right", fontsize=10)
+        axes[0].text2D(
+            -0.02, 0.5, row_name, transform=axes[0].transAxes, rotation=90, va="center", ha="right", fontsize=10
+        )
         _colorbar(fig, axes, row_norm, row_cmap, row_labels, None, row_names)
     if title:
         fig.suptitle(title, fontsize=11)
@@ -352,8 +362,12 @@ def plot_error_curve(
     return _save(fig, path)
 
 
-def plot_training_curves(history: Sequence[Mapping[str, float]], path: str | os.PathLike, title: str | None = None,
-                         best_epoch: int | None = None) -> Path:
+def plot_training_curves(
+    history: Sequence[Mapping[str, float]],
+    path: str | os.PathLike,
+    title: str | None = None,
+    best_epoch: int | None = None,
+) -> Path:
     """PNG of a training history: losses (left, log scale when all positive) and other metrics (right).
 
     history: one dict per epoch, e.g. ``{"epoch": 3, "train_loss": .., "val_loss": .., "val_accuracy": ..}``.

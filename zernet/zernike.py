@@ -46,9 +46,7 @@ def n_max_for(k: int) -> int:
     """Radial degree ``n_max`` such that ``num_bases(n_max) == k``; ``k`` must be triangular."""
     n = int(round((math.sqrt(8 * k + 1) - 3) / 2))
     if n < 0 or num_bases(n) != k:
-        raise ValueError(
-            f"k={k} is not a complete set of Zernike degrees; use one of 1, 3, 6, 10, 15, 21, 28, 36, ..."
-        )
+        raise ValueError(f"k={k} is not a complete set of Zernike degrees; use one of 1, 3, 6, 10, 15, 21, 28, 36, ...")
     return n
 
 

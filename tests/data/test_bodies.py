@@ -116,8 +116,11 @@ def test_toward_rotations_move_the_far_end_toward_the_direction():
     """Analytic: a segment along +x (the left upper arm) raised by 30 degrees toward up (+z)."""
     bones = ["upperarm01.L", "lowerarm01.L", "upperarm01.R", "lowerarm01.R"]
     heads = np.array([[0.2, 0.0, 1.4], [0.5, 0.0, 1.4], [-0.2, 0.0, 1.4], [-0.5, 0.0, 1.4]])
-    deltas = bone_rotations(bones, heads, {"shoulder raise|upperarm01.L": 30.0, "shoulder raise|upperarm01.R": 30.0,
-                                           "hip spread|upperleg01.L": 0.0})
+    deltas = bone_rotations(
+        bones,
+        heads,
+        {"shoulder raise|upperarm01.L": 30.0, "shoulder raise|upperarm01.R": 30.0, "hip spread|upperleg01.L": 0.0},
+    )
     assert set(deltas) == {"upperarm01.L", "upperarm01.R"}
     for bone, sign in (("upperarm01.L", 1.0), ("upperarm01.R", -1.0)):
         turned = deltas[bone][:3, :3] @ np.array([sign, 0.0, 0.0])
@@ -145,8 +148,10 @@ def test_test_bodies_are_not_training_bodies(cache):
     for phenotype, pose in test:
         assert all(phenotype != p and pose != q for p, q in train)
     # Body i does not depend on how many bodies are asked for.
-    np.testing.assert_array_equal(generate_bodies(3, 0, COARSE, "varied", 1, cache)[1].vertices,
-                                  generate_bodies(6, 0, COARSE, "varied", 2, cache)[1].vertices)
+    np.testing.assert_array_equal(
+        generate_bodies(3, 0, COARSE, "varied", 1, cache)[1].vertices,
+        generate_bodies(6, 0, COARSE, "varied", 2, cache)[1].vertices,
+    )
 
 
 def test_missing_anny_names_the_extra(monkeypatch, tmp_path):
@@ -159,8 +164,23 @@ def test_missing_anny_names_the_extra(monkeypatch, tmp_path):
 
 def test_missing_anny_is_one_line_naming_the_extra_from_the_command(monkeypatch, tmp_path, capsys):
     monkeypatch.setitem(sys.modules, "anny", None)
-    assert main(["bodies", str(tmp_path / "out"), "--count", "2", "--n-test", "1", "--topology", COARSE,
-                 "--cache-dir", str(tmp_path / "cache")]) == 2
+    assert (
+        main(
+            [
+                "bodies",
+                str(tmp_path / "out"),
+                "--count",
+                "2",
+                "--n-test",
+                "1",
+                "--topology",
+                COARSE,
+                "--cache-dir",
+                str(tmp_path / "cache"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "pip install 'zernet[bodies]'" in err and "Traceback" not in err
 
@@ -192,8 +212,9 @@ def test_faust_topology_is_a_valid_faust_sized_surface(cache):
 
 
 def test_written_bodies_load_with_the_existing_loaders(cache, tmp_path):
-    layout = write_bodies(tmp_path / "bodies", count=6, seed=0, topology=COARSE, n_test=2, cache_dir=cache,
-                          progress=False)
+    layout = write_bodies(
+        tmp_path / "bodies", count=6, seed=0, topology=COARSE, n_test=2, cache_dir=cache, progress=False
+    )
     assert layout.readme.is_file() and layout.n_vertices == 369
     assert layout.class_names.read_text().split("\n")[:8] == list(HUMAN_PART_NAMES)
     body = generate_bodies(count=6, seed=0, topology=COARSE, n_test=2, cache_dir=cache)[4]
@@ -208,7 +229,8 @@ def test_written_bodies_load_with_the_existing_loaders(cache, tmp_path):
     index = segmentation.names.index("test/body_004")
     np.testing.assert_array_equal(segmentation[index].target, body.parts)
 
-    correspondence = load_faust(layout.registrations.parent.parent, n_vertices=369, train_indices=range(4),
-                                test_indices=[4, 5], options=options)
+    correspondence = load_faust(
+        layout.registrations.parent.parent, n_vertices=369, train_indices=range(4), test_indices=[4, 5], options=options
+    )
     assert correspondence.correspondence and correspondence.num_classes == 369
     np.testing.assert_array_equal(correspondence[5].target, np.arange(369))

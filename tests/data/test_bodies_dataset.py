@@ -21,8 +21,17 @@ PATCH = {"r0": 20.0, "n_samples": 800, "patch_size": 20, "n_max": 2}
 
 
 def _load(cache, **arguments):
-    settings = {"count": 5, "n_test": 2, "topology": COARSE, "val_count": 1, "area": 1000.0, "workers": 0,
-                "progress": False, "patch_configs": [PATCH], "cache_dir": cache}
+    settings = {
+        "count": 5,
+        "n_test": 2,
+        "topology": COARSE,
+        "val_count": 1,
+        "area": 1000.0,
+        "workers": 0,
+        "progress": False,
+        "patch_configs": [PATCH],
+        "cache_dir": cache,
+    }
     settings.update(arguments)
     return load_dataset("bodies", **settings)
 
@@ -78,10 +87,21 @@ def test_seeds_and_arguments(tmp_path):
 
 
 def test_a_run_configuration_reads_the_bodies_kind(tmp_path):
-    config = {"data": {"kind": "bodies", "task": "correspondence", "count": 4, "n_test": 1, "val_count": 1,
-                       "topology": COARSE, "poses": "mild", "seed": 3, "features": "xyz+normals"},
-              "patch": {"area": 1000, "scales": [PATCH]},
-              "cache_dir": str(tmp_path)}
+    config = {
+        "data": {
+            "kind": "bodies",
+            "task": "correspondence",
+            "count": 4,
+            "n_test": 1,
+            "val_count": 1,
+            "topology": COARSE,
+            "poses": "mild",
+            "seed": 3,
+            "features": "xyz+normals",
+        },
+        "patch": {"area": 1000, "scales": [PATCH]},
+        "cache_dir": str(tmp_path),
+    }
     dataset = build_dataset(config, progress=False, workers=0)
     assert dataset.correspondence and dataset.info["poses"] == "mild" and dataset.info["body_seed"] == 3
     assert dataset[0].features.shape == (369, 6)

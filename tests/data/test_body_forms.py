@@ -33,8 +33,9 @@ from zernet.data.segmentation import load_segmentation, read_labels
 from zernet.geometry import load_surface
 from zernet.operators import PatchConfig
 
-needs_pymeshlab = pytest.mark.skipif(importlib.util.find_spec("pymeshlab") is None,
-                                     reason="needs pymeshlab (the bodies extra)")
+needs_pymeshlab = pytest.mark.skipif(
+    importlib.util.find_spec("pymeshlab") is None, reason="needs pymeshlab (the bodies extra)"
+)
 
 
 def _ellipsoid(subdivisions: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -130,8 +131,10 @@ def test_noisy_cloud_noise_density_and_clean_ground_truth():
     assert details["contrast"] == 3.0
 
     def field(points):
-        return np.cos(2 * np.pi * (points @ details["field_directions"].T) / details["field_wavelengths"]
-                      + details["field_phases"]).sum(axis=1)
+        return np.cos(
+            2 * np.pi * (points @ details["field_directions"].T) / details["field_wavelengths"]
+            + details["field_phases"]
+        ).sum(axis=1)
 
     uniform = cloud_form(vertices, faces, labels, np.random.default_rng(4), n_points=20000)
     assert field(clean.vertices).mean() > field(uniform.vertices).mean() + 0.1 * field(uniform.vertices).std()
@@ -229,8 +232,10 @@ def test_resolve_forms():
 
 def test_write_forms_layout_reads_with_the_segmentation_loader(tmp_path):
     vertices, faces, labels = _ellipsoid(2)
-    bodies = [Body(f"body_{i:03d}", split, vertices * (1 + 0.1 * i), faces, labels)
-              for i, split in enumerate(["train", "train", "test"])]
+    bodies = [
+        Body(f"body_{i:03d}", split, vertices * (1 + 0.1 * i), faces, labels)
+        for i, split in enumerate(["train", "train", "test"])
+    ]
     layout = write_forms(tmp_path, bodies, ["cloud", "partial"], seed=0, split="test")
     assert layout.root == tmp_path / "forms" and layout.details.is_file()
     assert not (layout.meshes("cloud") / "train").exists()  # test bodies only
@@ -240,14 +245,22 @@ def test_write_forms_layout_reads_with_the_segmentation_loader(tmp_path):
     assert layout.summary["partial"]["body_002"]["n_faces"] > 0
     again = write_forms(tmp_path / "again", bodies, ["cloud"], seed=0, split="all")
     assert (again.meshes("cloud") / "train" / "body_001.ply").is_file()
-    assert (again.meshes("cloud") / "test" / "body_002.ply").read_bytes() == \
-        (layout.meshes("cloud") / "test" / "body_002.ply").read_bytes()
+    assert (again.meshes("cloud") / "test" / "body_002.ply").read_bytes() == (
+        layout.meshes("cloud") / "test" / "body_002.ply"
+    ).read_bytes()
 
-    options = LoaderOptions(patch_configs=[PatchConfig(r0=0.5, n_samples=600, patch_size=16, n_max=2)],
-                            cache_dir=tmp_path / "cache", workers=0, progress=False, n_val=0)
+    options = LoaderOptions(
+        patch_configs=[PatchConfig(r0=0.5, n_samples=600, patch_size=16, n_max=2)],
+        cache_dir=tmp_path / "cache",
+        workers=0,
+        progress=False,
+        n_val=0,
+    )
     for form in ("cloud", "partial"):
         data = load_segmentation(layout.meshes(form), layout.labels(form), area=None, options=options)
-        assert data.info["class_names"][0] == "head" and [data.names[i] for i in data.splits["test"]] == ["test/body_002"]
+        assert data.info["class_names"][0] == "head" and [data.names[i] for i in data.splits["test"]] == [
+            "test/body_002"
+        ]
         np.testing.assert_array_equal(data[0].target, read_labels(layout.labels(form) / "test" / "body_002.txt"))
 
 
@@ -255,8 +268,25 @@ def test_cli_bodies_forms(tmp_path):
     if importlib.util.find_spec("anny") is None:
         pytest.skip("needs the bodies extra (anny)")
     out = tmp_path / "bodies"
-    assert main(["bodies", str(out), "--count", "3", "--n-test", "1", "--topology", "coarse-369",
-                 "--forms", "cloud,decimated", "--cache-dir", str(tmp_path / "cache")]) == 0
+    assert (
+        main(
+            [
+                "bodies",
+                str(out),
+                "--count",
+                "3",
+                "--n-test",
+                "1",
+                "--topology",
+                "coarse-369",
+                "--forms",
+                "cloud,decimated",
+                "--cache-dir",
+                str(tmp_path / "cache"),
+            ]
+        )
+        == 0
+    )
     for form in ("cloud", "decimated"):
         assert (out / "forms" / form / "meshes" / "test" / "body_002.ply").is_file()
         assert (out / "forms" / form / "labels" / "class_names.txt").is_file()
@@ -265,5 +295,22 @@ def test_cli_bodies_forms(tmp_path):
     assert "forms/<form>/correspondence" in readme and "non-manifold edges" in readme
     with pytest.raises(SystemExit):
         main(["bodies", str(out), "--forms-split", "some"])
-    assert main(["bodies", str(out), "--count", "3", "--n-test", "1", "--topology", "coarse-369",
-                 "--forms", "scan", "--cache-dir", str(tmp_path / "cache")]) == 2
+    assert (
+        main(
+            [
+                "bodies",
+                str(out),
+                "--count",
+                "3",
+                "--n-test",
+                "1",
+                "--topology",
+                "coarse-369",
+                "--forms",
+                "scan",
+                "--cache-dir",
+                str(tmp_path / "cache"),
+            ]
+        )
+        == 2
+    )

@@ -89,7 +89,11 @@ def test_curvature_descriptors_on_sphere_and_channel_count():
     np.testing.assert_allclose(features[:, 1:], np.broadcast_to(expected[1:], (len(features), 3)), rtol=0.03)
     operator = build_patch_operator(surface, CONFIG)
     full = compute_features(surface, "shape+curvature", [operator])
-    assert full.shape[1] == feature_channels("shape+curvature", CONFIG.n_max) == feature_channels("shape", CONFIG.n_max) + 2
+    assert (
+        full.shape[1]
+        == feature_channels("shape+curvature", CONFIG.n_max)
+        == feature_channels("shape", CONFIG.n_max) + 2
+    )
     np.testing.assert_array_equal(full[:, :-2], compute_features(surface, "shape", [operator]))
 
 
@@ -99,7 +103,9 @@ def test_curvature_descriptors_invariant_under_rigid_motion_and_reindexing():
     rotation = Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix()
     permutation = np.random.default_rng(0).permutation(surface.n_vertices)
     inverse = np.argsort(permutation)
-    moved = Surface((surface.vertices @ rotation.T + [5.0, -2.0, 1.0])[permutation], inverse[surface.faces], name="moved")
+    moved = Surface(
+        (surface.vertices @ rotation.T + [5.0, -2.0, 1.0])[permutation], inverse[surface.faces], name="moved"
+    )
     a = curvature_descriptors(surface, [0.43, 1.07])
     b = curvature_descriptors(moved, [0.43, 1.07])
     np.testing.assert_allclose(b, a[permutation], atol=1e-5)

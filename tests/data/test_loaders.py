@@ -106,27 +106,52 @@ def test_synthetic_dataset_records_splits_subset_and_cache(tmp_path, monkeypatch
     np.testing.assert_array_equal(again[2].target, dataset[2].target)
     monkeypatch.undo()
 
-    regression = load_dataset("synthetic-curvature", patch_configs=SYNTHETIC_CONFIGS, cache_dir=tmp_path,
-                              workers=0, progress=False, n_shapes=3, n_vertices=300, val_count=1)
+    regression = load_dataset(
+        "synthetic-curvature",
+        patch_configs=SYNTHETIC_CONFIGS,
+        cache_dir=tmp_path,
+        workers=0,
+        progress=False,
+        n_shapes=3,
+        n_vertices=300,
+        val_count=1,
+    )
     assert regression.task == "regression" and regression[0].target.dtype == np.float32
     with pytest.raises(TypeError, match="unknown option"):
         load_dataset("synthetic", cache_dir=tmp_path, n_shape=3)
 
 
 def test_load_dataset_with_options_matches_the_keyword_interface(tmp_path):
-    keywords = dict(patch_configs=list(SYNTHETIC_CONFIGS), cache_dir=tmp_path, workers=0, progress=False, seed=2,
-                    val_count=1, feature_kind="xyz+normals")
+    keywords = dict(
+        patch_configs=list(SYNTHETIC_CONFIGS),
+        cache_dir=tmp_path,
+        workers=0,
+        progress=False,
+        seed=2,
+        val_count=1,
+        feature_kind="xyz+normals",
+    )
     by_keywords = load_dataset("synthetic-parts", n_shapes=4, n_vertices=300, **keywords)
-    options = LoaderOptions(patch_configs=SYNTHETIC_CONFIGS, cache_dir=tmp_path, workers=0, progress=False, seed=2,
-                            n_val=1, feature_kind="xyz+normals")
+    options = LoaderOptions(
+        patch_configs=SYNTHETIC_CONFIGS,
+        cache_dir=tmp_path,
+        workers=0,
+        progress=False,
+        seed=2,
+        n_val=1,
+        feature_kind="xyz+normals",
+    )
     by_options = load_dataset("synthetic-parts", options=options, n_shapes=4, n_vertices=300)
     assert by_options.splits == by_keywords.splits and by_options.in_channels == 6
     np.testing.assert_array_equal(by_options[1].features, by_keywords[1].features)
     # Shared options go inside options when it is given; unknown arguments are named with what the kind takes.
     with pytest.raises(TypeError, match="workers: give shared options inside options"):
         load_dataset("synthetic", options=options, workers=2)
-    with pytest.raises(TypeError, match=r"unknown option\(s\) bogus for data kind 'faust' \(it takes: area, "
-                                        r"n_vertices, root, test_indices, train_indices; and the shared options"):
+    with pytest.raises(
+        TypeError,
+        match=r"unknown option\(s\) bogus for data kind 'faust' \(it takes: area, "
+        r"n_vertices, root, test_indices, train_indices; and the shared options",
+    ):
         load_dataset("faust", options=options, root=tmp_path, bogus=1)
     with pytest.raises(TypeError, match="fixes the task"):
         load_dataset("synthetic-curvature", options=options, task="segmentation")
@@ -157,9 +182,11 @@ def test_shape_cache_paths_are_unchanged():
         return ShapeSource(f"creature_{seed:03d}", partial(load_creature, seed, 300, True, task), key, exponent)
 
     assert shape_cache_path(Path("c"), source(0, "segmentation", 0.0), 1000.0, config, False) == Path(
-        "c/shapes/creature_000-5cacefd9896c97d341da.npz")
+        "c/shapes/creature_000-5cacefd9896c97d341da.npz"
+    )
     assert shape_cache_path(Path("c"), source(1, "regression", -0.5), 1000.0, config, False) == Path(
-        "c/shapes/creature_001-5547069ddacd24b03c8e.npz")
+        "c/shapes/creature_001-5547069ddacd24b03c8e.npz"
+    )
     assert shape_cache_path(Path("c"), ShapeSource("x", load_creature), 1000.0, config, False) is None
 
 
@@ -173,13 +200,25 @@ def _broken_source():
 
 
 def test_failures_are_reported_by_name_and_others_go_on(tmp_path):
-    sources = [ShapeSource("a", partial(_sphere_source, 0)), ShapeSource("bad", _broken_source),
-               ShapeSource("b", partial(_sphere_source, 1))]
-    common = dict(patch_configs=CONFIGS, cache_dir=tmp_path, target_area=AREA, task="classification",
-                  num_classes=2, split_names={"train": ["a", "bad"], "test": ["b"]}, workers=0, progress=False)
+    sources = [
+        ShapeSource("a", partial(_sphere_source, 0)),
+        ShapeSource("bad", _broken_source),
+        ShapeSource("b", partial(_sphere_source, 1)),
+    ]
+    common = dict(
+        patch_configs=CONFIGS,
+        cache_dir=tmp_path,
+        target_area=AREA,
+        task="classification",
+        num_classes=2,
+        split_names={"train": ["a", "bad"], "test": ["b"]},
+        workers=0,
+        progress=False,
+    )
     # By default a failing shape stops the build, after every shape was tried, naming it and its reason.
-    with pytest.raises(PreprocessError, match="1 of 3 shapes failed to load or preprocess:\n  bad: broken.ply: "
-                                              "vertex 3 is NaN") as caught:
+    with pytest.raises(
+        PreprocessError, match="1 of 3 shapes failed to load or preprocess:\n  bad: broken.ply: vertex 3 is NaN"
+    ) as caught:
         build_dataset(sources, **common)
     assert caught.value.failures == {"bad": "broken.ply: vertex 3 is NaN"} and caught.value.total == 3
     with pytest.warns(SkippedShapesWarning, match="bad: broken.ply: vertex 3 is NaN"):
@@ -191,8 +230,14 @@ def test_failures_are_reported_by_name_and_others_go_on(tmp_path):
 
 def test_parallel_workers_match_in_process(tmp_path):
     sources = [ShapeSource(f"s{i}", partial(_sphere_source, i), key=f"sphere-{i}") for i in range(3)]
-    common = dict(patch_configs=CONFIGS, target_area=AREA, task="classification", num_classes=2,
-                  split_names={"train": ["s0", "s1"], "test": ["s2"]}, progress=False)
+    common = dict(
+        patch_configs=CONFIGS,
+        target_area=AREA,
+        task="classification",
+        num_classes=2,
+        split_names={"train": ["s0", "s1"], "test": ["s2"]},
+        progress=False,
+    )
     parallel = build_dataset(sources, cache_dir=tmp_path / "p", workers=2, **common)
     serial = build_dataset(sources, cache_dir=tmp_path / "s", workers=0, **common)
     for a, b in zip(parallel, serial):
@@ -217,9 +262,13 @@ def fake_faust(tmp_path):
 
 def test_faust_layout_splits_and_targets(fake_faust):
     root, folder = fake_faust
-    kwargs = dict(area=AREA, train_indices=range(4), test_indices=[4, 5], n_vertices=None,
-                  options=LoaderOptions(patch_configs=CONFIGS, cache_dir=root / "cache", n_val=1, workers=0,
-                                        progress=False))
+    kwargs = dict(
+        area=AREA,
+        train_indices=range(4),
+        test_indices=[4, 5],
+        n_vertices=None,
+        options=LoaderOptions(patch_configs=CONFIGS, cache_dir=root / "cache", n_val=1, workers=0, progress=False),
+    )
     dataset = load_faust(root, **kwargs)
     assert dataset.correspondence and dataset.num_classes == 162 and len(dataset) == 6
     assert [dataset.names[i] for i in dataset.splits["test"]] == ["tr_reg_004", "tr_reg_005"]
@@ -247,8 +296,12 @@ def test_registration_ranges_follow_the_slice_convention_and_bad_ones_are_named(
 
 def test_faust_errors_name_the_problem(fake_faust, tmp_path):
     root, folder = fake_faust
-    kwargs = dict(area=AREA, train_indices=range(4), test_indices=[4, 5],
-                  options=LoaderOptions(patch_configs=CONFIGS, cache_dir=root / "cache", workers=0, progress=False))
+    kwargs = dict(
+        area=AREA,
+        train_indices=range(4),
+        test_indices=[4, 5],
+        options=LoaderOptions(patch_configs=CONFIGS, cache_dir=root / "cache", workers=0, progress=False),
+    )
     with pytest.raises(DatasetError, match="does not exist"):
         load_faust(tmp_path / "nowhere", **kwargs)
     (tmp_path / "empty").mkdir()
@@ -284,8 +337,9 @@ def test_segmentation_shared_one_based_face_labels(tmp_path):
     face_labels = np.where(vertices[faces].mean(axis=1)[:, 2] > 0, 2, 1)  # 1-based: upper half part 2
     np.savetxt(tmp_path / "faust_seg.txt", face_labels, fmt="%d")
     options = LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "cache", n_val=1, workers=0, progress=False)
-    dataset = load_segmentation(tmp_path / "meshes", tmp_path / "faust_seg.txt", area=AREA, num_classes=2,
-                                test=["body3"], options=options)
+    dataset = load_segmentation(
+        tmp_path / "meshes", tmp_path / "faust_seg.txt", area=AREA, num_classes=2, test=["body3"], options=options
+    )
     assert dataset.info["label_base"] == 1 and dataset.num_classes == 2
     target = dataset[dataset.index("body0")].target
     upper = vertices[:, 2] > 0.3
@@ -302,8 +356,9 @@ def test_class_names_come_from_the_data_never_from_the_class_count(tmp_path):
     options = LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", n_val=1, workers=0, progress=False)
 
     def names(**arguments):
-        return load_segmentation(tmp_path / "m", area=AREA, num_classes=8, test=["s2"], options=options,
-                                 **arguments).info["class_names"]
+        return load_segmentation(
+            tmp_path / "m", area=AREA, num_classes=8, test=["s2"], options=options, **arguments
+        ).info["class_names"]
 
     assert names() == [f"part {i}" for i in range(1, 9)]
     scan_order = ["head", "hand", "forearm", "upper arm", "torso", "thigh", "shin", "foot"]
@@ -329,8 +384,9 @@ def test_an_unreadable_label_file_fails_its_own_shape_like_any_bad_shape(tmp_pat
     with pytest.raises(PreprocessError, match=r"1 of 3 shapes.*\n  s1: .*s1.txt: line 21: 'torso' is not a number"):
         load_segmentation(tmp_path / "m", area=AREA, num_classes=2, test=["s2"], options=options)
     with pytest.warns(SkippedShapesWarning, match="s1.txt: line 21"):
-        dataset = load_segmentation(tmp_path / "m", area=AREA, num_classes=2, test=["s2"],
-                                    options=replace(options, on_error="skip"))
+        dataset = load_segmentation(
+            tmp_path / "m", area=AREA, num_classes=2, test=["s2"], options=replace(options, on_error="skip")
+        )
     assert dataset.names == ["s0", "s2"] and list(dataset.failures) == ["s1"]
 
 
@@ -339,9 +395,13 @@ def test_segmentation_label_count_mismatch_names_both_files(tmp_path):
     _write_ply(tmp_path / "m" / "a.ply", vertices, faces)
     np.savetxt(tmp_path / "m" / "a.txt", np.zeros(100), fmt="%d")
     with pytest.raises(PreprocessError, match=r"a\.txt: has 100 labels but .*a\.ply has 162 vertices and 320"):
-        load_segmentation(tmp_path / "m", area=AREA, num_classes=2, test=["a"],
-                          options=LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0,
-                                                progress=False))
+        load_segmentation(
+            tmp_path / "m",
+            area=AREA,
+            num_classes=2,
+            test=["a"],
+            options=LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0, progress=False),
+        )
 
 
 # -------------------------------------------------------------------------------------------- regression
@@ -352,8 +412,9 @@ def test_aneurysm_mat_layout_area_exponent_and_leave_one_out(tmp_path):
         scaled = Surface(vertices, faces)
         vertices = vertices * np.sqrt(100.0 / scaled.area)  # the files are at area 100
         stress = 0.1 + 0.01 * vertices[:, 2:3]
-        scipy.io.savemat(tmp_path / f"TP_Ia{i}I.mat", {"X": vertices, "F": (faces + 1).astype(np.uint16),
-                                                      "J2m": stress})
+        scipy.io.savemat(
+            tmp_path / f"TP_Ia{i}I.mat", {"X": vertices, "F": (faces + 1).astype(np.uint16), "J2m": stress}
+        )
         names.append(f"TP_Ia{i}I")
     common = dict(options=LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0, progress=False))
     dataset = load_aneurysm(tmp_path, **common)
@@ -375,10 +436,18 @@ def test_aneurysm_recipe_features_through_the_pipeline(tmp_path):
     for i in range(2):
         vertices, faces = _sphere(i, noise=0.0)
         vertices = vertices * np.sqrt(100.0 / Surface(vertices, faces).area)
-        scipy.io.savemat(tmp_path / f"TP_Ia{i}I.mat", {"X": vertices, "F": (faces + 1).astype(np.uint16),
-                                                      "J2m": np.full((len(vertices), 1), 0.1)})
-    options = LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0, progress=False,
-                            feature_kind="shape+curvature+membrane", n_val=0)
+        scipy.io.savemat(
+            tmp_path / f"TP_Ia{i}I.mat",
+            {"X": vertices, "F": (faces + 1).astype(np.uint16), "J2m": np.full((len(vertices), 1), 0.1)},
+        )
+    options = LoaderOptions(
+        patch_configs=CONFIGS,
+        cache_dir=tmp_path / "c",
+        workers=0,
+        progress=False,
+        feature_kind="shape+curvature+membrane",
+        n_val=0,
+    )
     dataset = load_aneurysm(tmp_path, test=["TP_Ia1I"], options=options)
     record = dataset[0]
     assert record.features.shape == (record.n_vertices, dataset.in_channels)
@@ -398,8 +467,9 @@ def test_generic_regression_and_value_count_mismatch(tmp_path):
     np.save(tmp_path / "a.npy", vertices[:, 0])
     _write_ply(tmp_path / "b.ply", vertices, faces)
     np.savetxt(tmp_path / "b.txt", vertices[:, 1])
-    common = dict(area=AREA, options=LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0,
-                                                   progress=False))
+    common = dict(
+        area=AREA, options=LoaderOptions(patch_configs=CONFIGS, cache_dir=tmp_path / "c", workers=0, progress=False)
+    )
     dataset = load_regression(tmp_path, test=["b"], **common)
     assert dataset.names == ["a", "b"] and dataset.splits["test"] == [1]
     np.savetxt(tmp_path / "b.txt", vertices[:10, 1])

@@ -74,17 +74,27 @@ def _off(vertices, faces) -> str:
 
 
 def _ply_ascii(vertices, faces) -> str:
-    header = ["ply", "format ascii 1.0", f"element vertex {len(vertices)}", "property float64 x",
-              "property float64 y", "property float64 z", f"element face {len(faces)}",
-              "property list uchar int vertex_indices", "end_header"]
+    header = [
+        "ply",
+        "format ascii 1.0",
+        f"element vertex {len(vertices)}",
+        "property float64 x",
+        "property float64 y",
+        "property float64 z",
+        f"element face {len(faces)}",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
     lines = [f"{x!r} {y!r} {z!r}" for x, y, z in vertices] + [f"3 {a} {b} {c}" for a, b, c in faces]
     return "\n".join(header + lines) + "\n"
 
 
 def _ply_binary(vertices, faces) -> bytes:
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {len(vertices)}\nproperty double x\nproperty double y\nproperty double z\n"
-              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n").encode()
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(vertices)}\nproperty double x\nproperty double y\nproperty double z\n"
+        f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+    ).encode()
     body = b"".join(struct.pack("<3d", *v) for v in vertices)
     body += b"".join(struct.pack("<B3i", 3, *f) for f in faces)
     return header + body
@@ -105,10 +115,12 @@ def meshes(draw):
 
 def _matches_file(vertices, faces):
     """A loaded surface must be exactly what was written (nothing dropped, clipped or renumbered)."""
+
     def check(surface):
         _valid_surface(surface)
         np.testing.assert_array_equal(surface.vertices, np.asarray(vertices, dtype=np.float64))
         np.testing.assert_array_equal(surface.faces, np.asarray(faces, dtype=np.int64).reshape(-1, 3))
+
     return check
 
 
@@ -127,10 +139,21 @@ def test_random_meshes_load_exactly_or_fail_clearly(tmp_path_factory, extension,
 
 @pytest.mark.parametrize("extension", [".obj", ".off", ".ply", ".stl", ".mat", ".npy", ".txt", ".xyz"])
 @SWEEP
-@given(data=st.one_of(st.binary(max_size=300), st.text(max_size=200).map(lambda t: t.encode("utf-8")),
-                      st.sampled_from([b"\xff\xfe\x00garbage", b"ply\nformat ascii 1.0\nend_header\n",
-                                       b"OFF\n3 1 0\n0 0 0\n1 0 0\n", b"v 1 2\nf 1 2 3\n",
-                                       "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n".encode("utf-16")])))
+@given(
+    data=st.one_of(
+        st.binary(max_size=300),
+        st.text(max_size=200).map(lambda t: t.encode("utf-8")),
+        st.sampled_from(
+            [
+                b"\xff\xfe\x00garbage",
+                b"ply\nformat ascii 1.0\nend_header\n",
+                b"OFF\n3 1 0\n0 0 0\n1 0 0\n",
+                b"v 1 2\nf 1 2 3\n",
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n".encode("utf-16"),
+            ]
+        ),
+    )
+)
 def test_garbage_bytes_fail_clearly_for_every_format(tmp_path_factory, extension, data):
     path = _unique_dir(tmp_path_factory) / f"garbage{extension}"
     path.write_bytes(data)
@@ -188,10 +211,15 @@ def test_non_manifold_and_empty_meshes_name_the_file(tmp_path):
 
 # ---------------------------------------------------------------------------------- .mat files
 @SWEEP
-@given(x=st.lists(st.tuples(coordinate, coordinate, coordinate), min_size=0, max_size=5),
-       f=st.lists(st.tuples(*[st.one_of(st.integers(-1, 7), st.sampled_from([1.5, float("nan"), 1e300]))] * 3),
-                  min_size=0, max_size=4),
-       field_length=st.integers(0, 6))
+@given(
+    x=st.lists(st.tuples(coordinate, coordinate, coordinate), min_size=0, max_size=5),
+    f=st.lists(
+        st.tuples(*[st.one_of(st.integers(-1, 7), st.sampled_from([1.5, float("nan"), 1e300]))] * 3),
+        min_size=0,
+        max_size=4,
+    ),
+    field_length=st.integers(0, 6),
+)
 def test_random_mat_files_load_exactly_or_fail_clearly(tmp_path_factory, x, f, field_length):
     path = _unique_dir(tmp_path_factory) / "shape.mat"
     content = {"X": np.asarray(x, dtype=np.float64).reshape(-1, 3), "J2m": np.arange(float(field_length))}
@@ -207,17 +235,22 @@ def test_random_mat_files_load_exactly_or_fail_clearly(tmp_path_factory, x, f, f
 
     _expect_clear_error_or(load_surface, path, check)
     if len(x) == field_length:
+
         def check_field(result):
             surface, target = result
             np.testing.assert_array_equal(target, content["J2m"])
+
         _expect_clear_error_or(lambda p: load_mat_field(str(p), "J2m"), path, check_field)
 
 
 # ------------------------------------------------------------------------- label and value files
 label_text = st.one_of(
-    st.lists(st.one_of(st.integers(-5, 10), st.sampled_from(["nan", "inf", "1e300", "2.5", "-0", "x", "",
-                                                               "9223372036854775808"])),
-             max_size=8).map(lambda items: "\n".join(map(str, items))),
+    st.lists(
+        st.one_of(
+            st.integers(-5, 10), st.sampled_from(["nan", "inf", "1e300", "2.5", "-0", "x", "", "9223372036854775808"])
+        ),
+        max_size=8,
+    ).map(lambda items: "\n".join(map(str, items))),
     st.text(max_size=50),
 )
 
@@ -237,8 +270,10 @@ def test_label_files_parse_exactly_or_fail_clearly(tmp_path_factory, text):
 
 
 @SWEEP
-@given(values=st.lists(st.one_of(st.floats(-1e3, 1e3), st.sampled_from(SPECIAL)), max_size=6),
-       kind=st.sampled_from(["txt", "npy", "npy-str", "npy-2d", "bytes"]))
+@given(
+    values=st.lists(st.one_of(st.floats(-1e3, 1e3), st.sampled_from(SPECIAL)), max_size=6),
+    kind=st.sampled_from(["txt", "npy", "npy-str", "npy-2d", "bytes"]),
+)
 def test_value_files_parse_exactly_or_fail_clearly(tmp_path_factory, values, kind):
     folder = _unique_dir(tmp_path_factory)
     if kind == "txt":
@@ -256,9 +291,11 @@ def test_value_files_parse_exactly_or_fail_clearly(tmp_path_factory, values, kin
             array = np.stack([array, array], axis=1) if len(array) else array.reshape(0, 2)
         np.save(path, array)
     for reader in (read_values, read_labels):
+
         def check(result):
             assert result.ndim == 1 and np.isfinite(result).all()
             assert np.abs(result).max(initial=0) < 1e150  # huge values would overflow the standardisation
+
         _expect_clear_error_or(reader, path, check)
 
 
@@ -278,8 +315,10 @@ def test_label_count_mismatch_names_both_files(tmp_path):
 # ------------------------------------------------------------------------ preprocessing odd meshes
 ODD = {
     "single triangle": ([(0, 0, 0), (1, 0, 0), (0, 1, 0)], [(0, 1, 2)]),
-    "two disjoint triangles": ([(0, 0, 0), (1, 0, 0), (0, 1, 0), (5, 5, 5), (6, 5, 5), (5, 6, 5)],
-                               [(0, 1, 2), (3, 4, 5)]),
+    "two disjoint triangles": (
+        [(0, 0, 0), (1, 0, 0), (0, 1, 0), (5, 5, 5), (6, 5, 5), (5, 6, 5)],
+        [(0, 1, 2), (3, 4, 5)],
+    ),
     "needle triangle": ([(0, 0, 0), (1, 0, 0), (0.5, 1e-7, 0)], [(0, 1, 2)]),
     "tetrahedron": _tetrahedron(),
     "point cloud of 3": ([(0, 0, 0), (1, 0, 0), (0, 1, 0)], None),
@@ -308,12 +347,19 @@ def test_operators_of_tiny_odd_meshes_are_finite_or_a_clear_error(name):
 def test_a_face_past_the_vertex_count_names_the_face_and_its_line(tmp_path, extension, face_line, first):
     vertices, faces = _tetrahedron()
     if extension == ".obj":
-        lines = ["# a tetrahedron", *(f"v {x} {y} {z}" for x, y, z in vertices),
-                 *(f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces)]
+        lines = [
+            "# a tetrahedron",
+            *(f"v {x} {y} {z}" for x, y, z in vertices),
+            *(f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces),
+        ]
         lines[1 + 4 + 2] = face_line  # face 2, on line 8
     else:
-        lines = ["OFF", f"{len(vertices)} {len(faces)} 0", *(f"{x} {y} {z}" for x, y, z in vertices),
-                 *(f"3 {a} {b} {c}" for a, b, c in faces)]
+        lines = [
+            "OFF",
+            f"{len(vertices)} {len(faces)} 0",
+            *(f"{x} {y} {z}" for x, y, z in vertices),
+            *(f"3 {a} {b} {c}" for a, b, c in faces),
+        ]
         lines[2 + 4 + 2] = face_line  # face 2, on line 9
     path = tmp_path / f"mesh{extension}"
     path.write_text("\n".join(lines) + "\n")
@@ -321,8 +367,9 @@ def test_a_face_past_the_vertex_count_names_the_face_and_its_line(tmp_path, exte
         load_surface(path)
     line = 8 if extension == ".obj" else 9
     vertex = face_line.split()[-1]
-    assert str(caught.value) == (f"{path}: face 2 (line {line}) refers to vertex {vertex}, but the file has 4 "
-                                 f"vertices ({first}-based indices)")
+    assert str(caught.value) == (
+        f"{path}: face 2 (line {line}) refers to vertex {vertex}, but the file has 4 vertices ({first}-based indices)"
+    )
 
 
 def test_a_binary_obj_is_unreadable_not_empty(tmp_path):

@@ -68,8 +68,9 @@ def test_cloud_geodesics_by_the_front_are_surface_distances():
     r0 = 0.6
     polar = compute_polar(mesh, samples, r0, backend="front")
     on_sphere = samples.points / np.linalg.norm(samples.points, axis=1, keepdims=True)
-    great_circle = np.arccos(np.clip(np.einsum("pi,pi->p", cloud.vertices[polar.center], on_sphere[polar.sample]),
-                                     -1, 1))
+    great_circle = np.arccos(
+        np.clip(np.einsum("pi,pi->p", cloud.vertices[polar.center], on_sphere[polar.sample]), -1, 1)
+    )
     error = np.abs(polar.radius - great_circle) / r0
     assert np.percentile(error, 95) < 0.03  # chords of a sphere this size would be 1.5 % short at r0: fine
     assert great_circle.max() < 1.1 * r0

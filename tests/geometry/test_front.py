@@ -27,8 +27,9 @@ def test_tight_fold_is_measured_along_the_surface():
     r0 = 2.0
     polar = compute_polar(surface, samples, r0, backend="front")
     s_sample = samples.interpolation @ arclength
-    unrolled = np.hypot(s_sample[polar.sample] - arclength[polar.center],
-                        samples.points[polar.sample, 1] - vertices[polar.center, 1])
+    unrolled = np.hypot(
+        s_sample[polar.sample] - arclength[polar.center], samples.points[polar.sample, 1] - vertices[polar.center, 1]
+    )
     # (The bend is only two faces wide, so its unrolled arclength is approximate; the exact comparison is
     # test_front_agrees_with_the_exact_reference_on_a_fold.)
     assert unrolled.max() < 1.05 * r0
@@ -38,8 +39,10 @@ def test_tight_fold_is_measured_along_the_surface():
     lower = np.flatnonzero((arclength > 2.5) & (arclength < 3.5) & (np.abs(vertices[:, 1] - 1.5) < 0.5))
     picked = np.isin(polar.center, lower)
     assert np.all(samples.points[polar.sample[picked], 2] < 1e-9)  # the lower sheet only (the bend is > r0 away)
-    truth = np.hypot(s_sample[None, :] - arclength[lower, None],
-                     samples.points[None, :, 1] - vertices[lower, None, 1]) <= 0.95 * r0
+    truth = (
+        np.hypot(s_sample[None, :] - arclength[lower, None], samples.points[None, :, 1] - vertices[lower, None, 1])
+        <= 0.95 * r0
+    )
     kept = np.zeros_like(truth)
     rows = np.searchsorted(lower, polar.center[picked])
     kept[rows, polar.sample[picked]] = True
@@ -91,9 +94,14 @@ def test_reindexing_and_rigid_motion_leave_the_coordinates_unchanged():
     inverse = np.argsort(perm)
     rotation = trimesh.transformations.random_rotation_matrix(np.random.default_rng(2).random(3))[:3, :3]
     moved = Surface(surface.vertices[perm] @ rotation.T + [1.0, -2.0, 0.5], inverse[surface.faces])
-    moved_samples = samples.__class__(**{**samples.__dict__, "points": samples.points @ rotation.T + [1.0, -2.0, 0.5],
-                                         "normals": samples.normals @ rotation.T,
-                                         "interpolation": samples.interpolation[:, inverse]})
+    moved_samples = samples.__class__(
+        **{
+            **samples.__dict__,
+            "points": samples.points @ rotation.T + [1.0, -2.0, 0.5],
+            "normals": samples.normals @ rotation.T,
+            "interpolation": samples.interpolation[:, inverse],
+        }
+    )
     moved_frames = frames[perm] @ rotation.T
     center, sample, radius, angle = front_polar(moved, moved_samples, moved_frames, 1.2)
     original = perm[center]
@@ -186,8 +194,20 @@ def test_fan_angles_scale_the_corner_angles_around_a_cone_apex():
         a = faces[fans.wedge_face[w], (fans.wedge_corner[w] + 1) % 3]
         edge = vertices[a] - vertices[0]
         expected = np.arctan2(edge @ frames[0, 1], edge @ frames[0, 0])
-        mapped = tangent_angle_of(0, fans.start_angle[w], vertices, faces, frames, fans.wedge_start, fans.wedge_face,
-                                  fans.wedge_corner, fans.start_angle, fans.scale, fans.corner, fans.reversed)
+        mapped = tangent_angle_of(
+            0,
+            fans.start_angle[w],
+            vertices,
+            faces,
+            frames,
+            fans.wedge_start,
+            fans.wedge_face,
+            fans.wedge_corner,
+            fans.start_angle,
+            fans.scale,
+            fans.corner,
+            fans.reversed,
+        )
         assert abs(wrap(mapped - expected)) < 1e-9
     steps = np.sort(wrap(fans.start_angle[wedges] - fans.start_angle[wedges[0]]) % (2 * np.pi))
     np.testing.assert_allclose(np.diff(steps), 2 * np.pi / around, atol=1e-9)  # equal corners, evenly spread
@@ -230,5 +250,7 @@ def test_a_flipped_face_falls_back_to_tangent_angles_and_plane_angles_stay_exact
     assert np.isin(faces[27], center).all()
     offset = samples.points[sample] - vertices[center]
     np.testing.assert_allclose(radius, np.linalg.norm(offset, axis=1), atol=1e-9)
-    expected = np.arctan2(np.einsum("pi,pi->p", offset, frames[center, 1]), np.einsum("pi,pi->p", offset, frames[center, 0]))
+    expected = np.arctan2(
+        np.einsum("pi,pi->p", offset, frames[center, 1]), np.einsum("pi,pi->p", offset, frames[center, 0])
+    )
     assert np.abs(wrap(angle - expected))[radius > 0.05].max() < 1e-6

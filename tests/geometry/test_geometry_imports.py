@@ -29,8 +29,11 @@ def test_no_geometry_module_imports_torch(path):
     assert not torch_imports, f"{path.name} imports {sorted(torch_imports)}"
 
 
-@pytest.mark.xfail(strict=True, reason="zernet.io_utils (atomic_write_bytes, used by the membrane cache) "
-                   "imports torch at module level for atomic_save_torch; drop this mark once it does not")
+@pytest.mark.xfail(
+    strict=True,
+    reason="zernet.io_utils (atomic_write_bytes, used by the membrane cache) "
+    "imports torch at module level for atomic_save_torch; drop this mark once it does not",
+)
 def test_geometry_imports_in_a_process_without_torch():
     # sys.modules["torch"] = None makes every `import torch` raise ImportError.
     code = "import sys; sys.modules['torch'] = None; import zernet.geometry"
@@ -42,7 +45,15 @@ def test_old_import_paths_are_gone():
     """The deprecated re-export modules of 0.1 were removed in 0.2 (CHANGELOG.md)."""
     import importlib
 
-    for name in ("zernet.surface", "zernet.polar", "zernet.membrane", "zernet.patches", "zernet.train",
-                 "zernet.nn.geometry", "zernet.nn.baselines", "zernet.data.base"):
+    for name in (
+        "zernet.surface",
+        "zernet.polar",
+        "zernet.membrane",
+        "zernet.patches",
+        "zernet.train",
+        "zernet.nn.geometry",
+        "zernet.nn.baselines",
+        "zernet.data.base",
+    ):
         with pytest.raises(ModuleNotFoundError):
             importlib.import_module(name)

@@ -65,7 +65,7 @@ def test_unused_vertex_and_a_second_closed_part_change_nothing():
     faces = np.concatenate([cylinder.faces, sphere.faces + cylinder.n_vertices])
     both = membrane_stress(Surface(vertices, faces, name="parts"), 0.02)
     np.testing.assert_allclose(both[: cylinder.n_vertices], alone, rtol=1e-6)
-    np.testing.assert_allclose(both[cylinder.n_vertices:-1], membrane_stress(sphere, 0.02), rtol=1e-6)
+    np.testing.assert_allclose(both[cylinder.n_vertices : -1], membrane_stress(sphere, 0.02), rtol=1e-6)
     assert both[-1] == 0.0
 
 
@@ -76,8 +76,11 @@ def test_errors_name_the_surface():
     with pytest.raises(SurfaceError, match="cloud.*triangle mesh"):
         membrane_stress(Surface(flat.vertices, name="cloud"))
     midpoint = (flat.vertices[0] + flat.vertices[1]) / 2  # a face through it and its edge has no area
-    degenerate = Surface(np.concatenate([flat.vertices, [midpoint]]),
-                         np.concatenate([flat.faces, [[0, 1, flat.n_vertices]]]), name="sliver")
+    degenerate = Surface(
+        np.concatenate([flat.vertices, [midpoint]]),
+        np.concatenate([flat.faces, [[0, 1, flat.n_vertices]]]),
+        name="sliver",
+    )
     with pytest.raises(SurfaceError, match=f"sliver: face {flat.n_faces} has zero area"):
         membrane_stress(degenerate, 0.02)
     with pytest.raises(ValueError, match="poisson_ratio"):

@@ -18,7 +18,9 @@ def hairpin_mesh(length=12.0, gap=1.0, width=4.0, spacing=0.5):
     S, Y = np.meshgrid(s_values, y_values)
     S, Y = S.ravel(), Y.ravel()
     angle = np.clip((S - length) / (gap / 2), 0, np.pi)
-    x = np.where(S < length, S, np.where(S > length + bend, length - (S - length - bend), length + gap / 2 * np.sin(angle)))
+    x = np.where(
+        S < length, S, np.where(S > length + bend, length - (S - length - bend), length + gap / 2 * np.sin(angle))
+    )
     z = np.where(S < length, 0.0, np.where(S > length + bend, gap, gap / 2 - gap / 2 * np.cos(angle)))
     vertices = np.stack([x, Y, z], axis=1)
     ns, ny = len(s_values), len(y_values)
@@ -99,7 +101,9 @@ def test_plane_radius_and_angle_exact(backend):
     offset = samples.points[polar.sample] - vertices[polar.center]
     frames = polar.frames[polar.center]
     expected_r = np.linalg.norm(offset, axis=1)
-    expected_theta = np.arctan2(np.einsum("pi,pi->p", offset, frames[:, 1]), np.einsum("pi,pi->p", offset, frames[:, 0]))
+    expected_theta = np.arctan2(
+        np.einsum("pi,pi->p", offset, frames[:, 1]), np.einsum("pi,pi->p", offset, frames[:, 0])
+    )
     if backend == "fast":  # exact up to rounding
         assert np.abs(polar.radius - expected_r).max() < 1e-9
         assert np.abs(wrap(polar.angle - expected_theta))[expected_r > 1e-6].max() < 1e-9
@@ -133,8 +137,7 @@ def test_plane_radius_and_angle_exact(backend):
 
 
 # ---------------------------------------------------------------------- sphere
-@pytest.mark.parametrize("backend, r0, tol", [("fast", 1.5, 0.002), ("accurate", 3.0, 0.01),
-                                               ("front", 3.0, 0.003)])
+@pytest.mark.parametrize("backend, r0, tol", [("fast", 1.5, 0.002), ("accurate", 3.0, 0.01), ("front", 3.0, 0.003)])
 def test_sphere_geodesic_radius(backend, r0, tol):
     radius = 10.0
     mesh = trimesh.creation.icosphere(3, radius=radius)
@@ -157,8 +160,9 @@ def cylinder_unrolled(vertices_p, points, radius):
     return radius * dphi, points[:, 2] - vertices_p[:, 2]
 
 
-@pytest.mark.parametrize("backend, tol_r, tol_theta", [("fast", 0.005, 0.01), ("accurate", 0.01, 0.03),
-                                                           ("front", 0.005, 0.01)])
+@pytest.mark.parametrize(
+    "backend, tol_r, tol_theta", [("fast", 0.005, 0.01), ("accurate", 0.01, 0.03), ("front", 0.005, 0.01)]
+)
 def test_cylinder_radius_and_angle(backend, tol_r, tol_theta):
     radius, r0 = 2.0, 1.8
     vertices, faces = cylinder_mesh(radius, 9.0, 40, 25)
@@ -173,7 +177,14 @@ def test_cylinder_radius_and_angle(backend, tol_r, tol_theta):
     assert np.percentile(np.abs(polar.radius[inner] - geodesic), 95) / r0 < tol_r
     # θ consistency: in the unrolled chart the geodesic direction is (u, v); e1 maps to (e1·t, e1·z).
     frames = polar.frames[center]
-    tangent = np.stack([-np.sin(np.arctan2(vertices[center, 1], vertices[center, 0])), np.cos(np.arctan2(vertices[center, 1], vertices[center, 0])), np.zeros(len(center))], axis=1)
+    tangent = np.stack(
+        [
+            -np.sin(np.arctan2(vertices[center, 1], vertices[center, 0])),
+            np.cos(np.arctan2(vertices[center, 1], vertices[center, 0])),
+            np.zeros(len(center)),
+        ],
+        axis=1,
+    )
     e1_angle = np.arctan2(frames[:, 0, 2], np.einsum("pi,pi->p", frames[:, 0], tangent))
     orientation = np.sign(np.einsum("pi,pi->p", frames[:, 2], vertices[center] * [1, 1, 0]))  # outward normal
     expected = orientation * (np.arctan2(v, u) - e1_angle)  # chart (t, z) vs. (e1, e2) handedness

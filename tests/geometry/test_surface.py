@@ -92,8 +92,10 @@ def test_mat_round_trip_one_based_faces_and_field(tmp_path):
     mesh = shuffled_mesh()
     stress = np.linspace(0.01, 0.3, len(mesh.vertices))[:, None]  # (V, 1) as in the authors' files
     path = tmp_path / "TP_Ia1I.mat"
-    scipy.io.savemat(path, {"X": mesh.vertices, "F": (mesh.faces + 1).astype(np.uint16), "J2m": stress,
-                            "note": np.array([[1.0, 2.0]])})
+    scipy.io.savemat(
+        path,
+        {"X": mesh.vertices, "F": (mesh.faces + 1).astype(np.uint16), "J2m": stress, "note": np.array([[1.0, 2.0]])},
+    )
     surface = load_surface(path)
     np.testing.assert_array_equal(surface.vertices, mesh.vertices)
     np.testing.assert_array_equal(surface.faces, mesh.faces)
@@ -163,8 +165,9 @@ def test_load_validates_and_repairs(tmp_path):
 
 # ---------------------------------------------------------------------------------------------- validation
 def mesh_error(vertices, faces, repair=False, **fields):
-    surface = Surface(np.asarray(vertices, dtype=float), None if faces is None else np.asarray(faces),
-                      fields=fields, name="bumpy.ply")
+    surface = Surface(
+        np.asarray(vertices, dtype=float), None if faces is None else np.asarray(faces), fields=fields, name="bumpy.ply"
+    )
     with pytest.raises(SurfaceError) as info:
         validate_surface(surface, repair=repair)
     message = str(info.value)
@@ -214,8 +217,11 @@ def test_non_manifold_edge_is_kept_with_a_warning(repair):
     vertices = np.vstack([TWO_TRIANGLES, [[0.5, 0.5, 1.0]]])
     # Edge (1, 2) is used by three faces.
     surface = Surface(vertices, np.array([[0, 1, 2], [1, 3, 2], [1, 2, 4]]), name="bumpy.ply")
-    with pytest.warns(SurfaceWarning, match=r"bumpy.ply: 1 non-manifold edges \(first: between vertices 1 and 2, "
-                                            r"shared by 3 faces \[0, 1, 2\]\)"):
+    with pytest.warns(
+        SurfaceWarning,
+        match=r"bumpy.ply: 1 non-manifold edges \(first: between vertices 1 and 2, "
+        r"shared by 3 faces \[0, 1, 2\]\)",
+    ):
         assert validate_surface(surface, repair=repair) is surface
 
 
@@ -347,8 +353,11 @@ def test_copy_and_with_fields():
 def test_normalize_area_exact_with_field_scaling():
     sphere = icosphere(2)
     n = sphere.n_vertices
-    sphere = Surface(sphere.vertices * 3.0 + [1.0, -2.0, 5.0], sphere.faces,
-                     fields={"J2m": np.linspace(0.1, 0.3, n), "label": np.arange(n)})
+    sphere = Surface(
+        sphere.vertices * 3.0 + [1.0, -2.0, 5.0],
+        sphere.faces,
+        fields={"J2m": np.linspace(0.1, 0.3, n), "label": np.arange(n)},
+    )
     area = sphere.area
     scaled, scale = normalize_area(sphere, 100.0, {"J2m": 0.5})
     assert scaled.area == pytest.approx(100.0, rel=1e-12)
@@ -401,8 +410,9 @@ def test_samples_lie_on_the_sphere_mesh():
     # Each sample is inside its face: non-negative barycentric weights reproducing the point.
     assert np.all(samples.barycentric >= 0)
     np.testing.assert_allclose(samples.barycentric.sum(axis=1), 1.0, atol=1e-15)
-    np.testing.assert_allclose(np.einsum("mc,mcd->md", samples.barycentric, corners[samples.face_index]),
-                               samples.points, atol=1e-15)
+    np.testing.assert_allclose(
+        np.einsum("mc,mcd->md", samples.barycentric, corners[samples.face_index]), samples.points, atol=1e-15
+    )
     np.testing.assert_allclose(samples.normals, sphere.face_normals()[samples.face_index])
 
 

@@ -26,8 +26,6 @@ K = num_bases(N_MAX)
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-
-
 _patch_like_operator = partial(patch_like_operator, K)
 
 
@@ -41,11 +39,17 @@ def _expected_inputs(n_max, in_order, out_order):
     """Input harmonics (j, r) whose orders |m_j| ± ℓ_r reach an output order <= out_order."""
     m = np.abs(orders(n_max))
     ell = np.concatenate([[0], np.repeat(np.arange(1, in_order + 1), 2)])
-    return {j * len(ell) + r for j in range(len(m)) for r in range(len(ell))
-            if min(m[j] + ell[r], abs(m[j] - ell[r])) <= out_order}
+    return {
+        j * len(ell) + r
+        for j in range(len(m))
+        for r in range(len(ell))
+        if min(m[j] + ell[r], abs(m[j] - ell[r])) <= out_order
+    }
 
 
-@pytest.mark.parametrize("in_order,out_order,samples", [(1, 1, None), (1, 2, None), (2, 5, None), (0, 3, None), (1, None, 5)])
+@pytest.mark.parametrize(
+    "in_order,out_order,samples", [(1, 1, None), (1, 2, None), (2, 5, None), (0, 3, None), (1, None, 5)]
+)
 def test_plan_contraction_equals_the_dense_coupling(in_order, out_order, samples):
     torch.manual_seed(0)
     plan = directional_plan(N_MAX, in_order, out_order=out_order, samples=samples)
@@ -93,7 +97,9 @@ def test_apply_harmonic_selects_the_transported_fit():
     # the per-order phase matrices describe the same map (α_a = C a - S b, α_b = S a + C b)
     c, s = (m.toarray().reshape(op.n_vertices, K, 2, op.n_vertices)[:, :, i] for m in dop.phases[1:2] for i in (0, 1))
     a, b = x[:, 3].detach().numpy(), x[:, 4].detach().numpy()
-    np.testing.assert_allclose(full[:, 3::5].detach().numpy(), np.einsum("pjq,qc->pjc", c, a) - np.einsum("pjq,qc->pjc", s, b), atol=1e-12)
+    np.testing.assert_allclose(
+        full[:, 3::5].detach().numpy(), np.einsum("pjq,qc->pjc", c, a) - np.einsum("pjq,qc->pjc", s, b), atol=1e-12
+    )
 
 
 def test_patch_pairs_fast_path_equals_the_sort():
@@ -104,7 +110,9 @@ def test_patch_pairs_fast_path_equals_the_sort():
     np.testing.assert_array_equal(pairs, expected)
     random = MatrixOperator.random(12, K, nnz_per_row=4, seed=1)  # rows of a vertex differ: the general path
     coo = random.matrix.tocoo()
-    np.testing.assert_array_equal(patch_pairs(random.matrix, K), np.unique(np.stack([coo.row // K, coo.col], axis=1), axis=0))
+    np.testing.assert_array_equal(
+        patch_pairs(random.matrix, K), np.unique(np.stack([coo.row // K, coo.col], axis=1), axis=0)
+    )
 
 
 def _gauge_transform(operator, delta):
@@ -158,7 +166,9 @@ def test_continuous_max_degree_one_is_closed_form():
     assert torch.all(value >= sampled - 1e-12) and torch.all(value - sampled < 1e-5)
     h.requires_grad_(True)
     assert torch.autograd.gradcheck(continuous_max, (h,))
-    assert torch.autograd.gradcheck(DirectionalPooling("continuous"), (h.detach().transpose(0, 1).clone().requires_grad_(True),))
+    assert torch.autograd.gradcheck(
+        DirectionalPooling("continuous"), (h.detach().transpose(0, 1).clone().requires_grad_(True),)
+    )
 
 
 def test_a_batch_reuses_the_surfaces_matrices_and_matches_a_direct_build():

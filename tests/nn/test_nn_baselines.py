@@ -153,9 +153,18 @@ def _toy_operator(n_vertices=7, n_samples=40, patch=9, n_max=2, ridge=0.01, subt
         matrix[p * k : (p + 1) * k] = np.linalg.solve(b.T @ b + ridge * np.eye(k), b.T @ s)
     precomputed = MatrixOperator(matrix, k)
     config = SimpleNamespace(ridge=ridge, subtract_center=subtract_center)
-    return SimpleNamespace(k=k, n_max=n_max, n_vertices=n_vertices, lam=ridge, patch_sample_index=index,
-                           patch_basis=basis, interpolation=interpolation, config=config,
-                           apply=precomputed.apply, matrix=precomputed.matrix)
+    return SimpleNamespace(
+        k=k,
+        n_max=n_max,
+        n_vertices=n_vertices,
+        lam=ridge,
+        patch_sample_index=index,
+        patch_basis=basis,
+        interpolation=interpolation,
+        config=config,
+        apply=precomputed.apply,
+        matrix=precomputed.matrix,
+    )
 
 
 @pytest.mark.parametrize("subtract_center", [False, True])
@@ -174,10 +183,12 @@ def test_paper_conv_is_max_over_rotated_kernel_copies():
     conv = PaperZernikeConv(3, 4, k=op.k, angular_resolution=5).double()
     x = torch.randn(op.n_vertices, 3, dtype=torch.float64)
     coeffs = conv.fit(x, op)
-    responses = torch.stack([
-        torch.einsum("nki,kio->no", coeffs, rotate_coefficients(conv.weight, 2 * math.pi * a / 5, dim=0))
-        for a in range(5)
-    ])
+    responses = torch.stack(
+        [
+            torch.einsum("nki,kio->no", coeffs, rotate_coefficients(conv.weight, 2 * math.pi * a / 5, dim=0))
+            for a in range(5)
+        ]
+    )
     torch.testing.assert_close(conv(x, op), responses.amax(0) + conv.bias)
 
 

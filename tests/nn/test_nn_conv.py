@@ -32,7 +32,9 @@ def setup(N=30, C_in=4, seed=0, dtype=torch.float32, k=21):
     return op, x
 
 
-@pytest.mark.parametrize("pooling,shape", [("max", (30, 6)), ("mean", (30, 6)), ("continuous", (30, 6)), ("none", (30, 8, 6))])
+@pytest.mark.parametrize(
+    "pooling,shape", [("max", (30, 6)), ("mean", (30, 6)), ("continuous", (30, 6)), ("none", (30, 8, 6))]
+)
 def test_shapes(pooling, shape):
     op, x = setup()
     conv = ZernikeConv(4, 6, angular_resolution=8, pooling=pooling)
@@ -169,7 +171,9 @@ def test_agrees_with_direct_convolution_on_a_flat_disk():
         integral = np.sum(w * f(X, Y) * g(Xr, Yr))
         assert out[a] == pytest.approx(integral, abs=1e-10)
     conv.angular_resolution = 1
-    assert conv(torch.ones(1, 1, dtype=torch.float64), op).item() == pytest.approx(np.sum(w * f(X, Y) * g(X, Y)), abs=1e-10)
+    assert conv(torch.ones(1, 1, dtype=torch.float64), op).item() == pytest.approx(
+        np.sum(w * f(X, Y) * g(X, Y)), abs=1e-10
+    )
 
 
 def test_determinism_state_dict_and_repr():
@@ -250,9 +254,13 @@ def test_operator_basis_order_is_the_order_the_forward_asks_for():
             return super().apply(x, basis_order=basis_order)
 
     recording = Recording(op.matrix, op.k)
-    for conv in (ZernikeConv(4, 3, angular_resolution=16), ZernikeConv(4, 3, angular_resolution=4, pooling="continuous"),
-                 ZernikeConv(4, 3, angular_resolution=1), ZernikeConv(4, 3, angular_resolution=8, pooling="mean"),
-                 RotatedKernelConv(4, 3, angular_resolution=8)):
+    for conv in (
+        ZernikeConv(4, 3, angular_resolution=16),
+        ZernikeConv(4, 3, angular_resolution=4, pooling="continuous"),
+        ZernikeConv(4, 3, angular_resolution=1),
+        ZernikeConv(4, 3, angular_resolution=8, pooling="mean"),
+        RotatedKernelConv(4, 3, angular_resolution=8),
+    ):
         asked.clear()
         conv(x, recording)
         assert asked == [conv.operator_basis_order()]
@@ -277,4 +285,3 @@ def test_coefficients_in_plan_order_equal_the_gathered_ones(s, pooling):
     torch.testing.assert_close(outs[0], outs[1])
     for a, b in zip(*grads):
         torch.testing.assert_close(a, b)
-

@@ -45,8 +45,6 @@ K = num_bases(N_MAX)
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-
-
 def _synthetic_operator(n=14, seed=0, density=0.35):
     """A patch operator with random sparse fit rows and random right-handed frames."""
     rng = np.random.default_rng(seed)
@@ -87,16 +85,20 @@ def test_fourier_samples_round_trip_and_rotation():
     torch.testing.assert_close(samples_to_fourier(samples, L, dim=1), c)
     # direct evaluation of h(ψ) = a0 + Σ a cos ℓψ + b sin ℓψ
     psi = 2 * math.pi * 4 / s
-    direct = c[:, 0] + sum(c[:, 2 * order - 1] * math.cos(order * psi) + c[:, 2 * order] * math.sin(order * psi)
-                         for order in range(1, L + 1))
+    direct = c[:, 0] + sum(
+        c[:, 2 * order - 1] * math.cos(order * psi) + c[:, 2 * order] * math.sin(order * psi)
+        for order in range(1, L + 1)
+    )
     torch.testing.assert_close(samples[:, 4], direct)
     # rotate_fourier(·, δ) gives h(ψ + δ); by 2π a / s it is a cyclic shift of the samples
     delta = 0.37
     rotated = fourier_to_samples(rotate_fourier(c, delta, dim=1), 1, dim=1)[:, 0]
     at_delta = fourier_to_samples(rotate_fourier(c, 0.0, dim=1), 1, dim=1)  # h(0)
     assert at_delta.shape == (5, 1, 2)
-    direct = c[:, 0] + sum(c[:, 2 * order - 1] * math.cos(order * delta) + c[:, 2 * order] * math.sin(order * delta)
-                         for order in range(1, L + 1))
+    direct = c[:, 0] + sum(
+        c[:, 2 * order - 1] * math.cos(order * delta) + c[:, 2 * order] * math.sin(order * delta)
+        for order in range(1, L + 1)
+    )
     torch.testing.assert_close(rotated, direct)
     shifted = fourier_to_samples(rotate_fourier(c, 2 * math.pi * 2 / s, dim=1), s, dim=1)
     torch.testing.assert_close(shifted, torch.roll(samples, -2, dims=1))
@@ -338,7 +340,10 @@ def _model_invariance(nonlinearity, pooling, delta, s=4, seed=12, norm=None):
                 act.norm_bias.uniform_(-0.5, 0.5)
     x = torch.randn(16, 3)  # scalar input features are gauge-invariant
     order = model.directional_order
-    y, y_turned = model(x, Geometry([op]).with_directional(order)), model(x, Geometry([op_turned]).with_directional(order))
+    y, y_turned = (
+        model(x, Geometry([op]).with_directional(order)),
+        model(x, Geometry([op_turned]).with_directional(order)),
+    )
     return y, y_turned
 
 
@@ -373,7 +378,9 @@ def test_layer_norm_is_the_layer_norm_of_the_sampled_channels_and_commutes_with_
     expected = normalised.view(n, samples, c) * norm.weight + norm.bias
     torch.testing.assert_close(fourier_to_samples(y, samples, dim=1), expected, rtol=0, atol=1e-12)
     delta = torch.from_numpy(np.random.default_rng(18).uniform(-np.pi, np.pi, (n, 1)))
-    torch.testing.assert_close(norm(rotate_fourier(x, delta, dim=1)), rotate_fourier(y, delta, dim=1), rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        norm(rotate_fourier(x, delta, dim=1)), rotate_fourier(y, delta, dim=1), rtol=0, atol=1e-12
+    )
     assert torch.autograd.gradcheck(norm, (x.clone().requires_grad_(),))
     with pytest.raises(ValueError, match="2L \\+ 1"):
         norm(torch.randn(n, 2, c, dtype=torch.float64))
@@ -414,7 +421,11 @@ def test_layer_shapes_repr_and_errors():
     x = torch.randn(9, 3, 2)
     assert DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1)(x, op).shape == (9, 3, 5)
     assert DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1, out_order=4)(x, op).shape == (9, 9, 5)
-    assert DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1, output="samples", angular_resolution=6)(x, op).shape == (9, 6, 5)
+    assert DirectionalZernikeConv(2, 5, n_max=N_MAX, order=1, output="samples", angular_resolution=6)(x, op).shape == (
+        9,
+        6,
+        5,
+    )
     assert DirectionalLifting(2, 5, n_max=N_MAX, out_order=2)(x[:, 0], scalar_op).shape == (9, 5, 5)
     assert DirectionalPooling("mean")(x).shape == (9, 2)
     assert DirectionalReLU(2, 1)(x).shape == (9, 3, 2)
@@ -451,7 +462,9 @@ def sphere_patches():
     from zernet.operators import PatchConfig, assemble_operator
 
     mesh = trimesh.creation.icosphere(subdivisions=2)
-    surface = Surface(vertices=np.asarray(mesh.vertices, dtype=np.float64), faces=np.asarray(mesh.faces, dtype=np.int64))
+    surface = Surface(
+        vertices=np.asarray(mesh.vertices, dtype=np.float64), faces=np.asarray(mesh.faces, dtype=np.int64)
+    )
     config = PatchConfig(r0=0.6, n_samples=1500, patch_size=30, n_max=N_MAX)
     samples = sample_surface(surface, config.n_samples, seed=0)
     polar = compute_polar(surface, samples, config.r0, backend="fast")
@@ -489,7 +502,10 @@ def test_real_mesh_directional_model_is_invariant(sphere_patches):
             with torch.no_grad():
                 model.acts[0].norm_bias.uniform_(-0.5, 0.5)
         order = model.directional_order
-        y, y_turned = model(x, Geometry([op]).with_directional(order)), model(x, Geometry([build(delta)]).with_directional(order))
+        y, y_turned = (
+            model(x, Geometry([op]).with_directional(order)),
+            model(x, Geometry([build(delta)]).with_directional(order)),
+        )
         torch.testing.assert_close(y_turned, y, rtol=0, atol=5e-6 * y.abs().max().item())
     # the transported fit on the mesh: order-1 Fourier coefficients at p turn by δ_p
     conv = DirectionalZernikeConv(3, 4, n_max=N_MAX, order=1, out_order=2).double()

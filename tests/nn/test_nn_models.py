@@ -37,7 +37,12 @@ def test_registry_and_names():
 
 
 @pytest.mark.parametrize(
-    "task,widths", [("correspondence", (64, 128, 256, 512)), ("segmentation", (32, 64, 128, 256)), ("regression", (128, 256, 512, 800))]
+    "task,widths",
+    [
+        ("correspondence", (64, 128, 256, 512)),
+        ("segmentation", (32, 64, 128, 256)),
+        ("regression", (128, 256, 512, 800)),
+    ],
 )
 def test_task_widths(task, widths):
     model = build_model("zernet", 3, 8, task=task)
@@ -176,7 +181,9 @@ def ellipsoid_geometry():
     from zernet.operators import PatchConfig, build_patch_operator
 
     mesh = trimesh.creation.icosphere(subdivisions=2)
-    surface = Surface(vertices=np.asarray(mesh.vertices) * [1.3, 1.0, 0.8], faces=np.asarray(mesh.faces), name="ellipsoid")
+    surface = Surface(
+        vertices=np.asarray(mesh.vertices) * [1.3, 1.0, 0.8], faces=np.asarray(mesh.faces), name="ellipsoid"
+    )
     operator = build_patch_operator(surface, PatchConfig(r0=0.6, n_samples=1500, patch_size=30, n_max=5, seed=0))
     return Geometry([operator], mesh_edge_index(surface))
 

@@ -21,7 +21,9 @@ def test_trig_basis_layout():
     phi = torch.tensor([0.0, 0.4], dtype=torch.float64)
     T = trig_basis(phi, 3)
     assert T.shape == (2, 7)
-    expected = torch.tensor([1, math.cos(0.4), math.sin(0.4), math.cos(0.8), math.sin(0.8), math.cos(1.2), math.sin(1.2)])
+    expected = torch.tensor(
+        [1, math.cos(0.4), math.sin(0.4), math.cos(0.8), math.sin(0.8), math.cos(1.2), math.sin(1.2)]
+    )
     torch.testing.assert_close(T[1], expected.double())
     torch.testing.assert_close(T[0], torch.tensor([1.0, 1, 0, 1, 0, 1, 0]).double())
 

@@ -44,9 +44,9 @@ def _reference_harmonic_matrix(dop, harmonics):
         for x in harmonics:
             j, r = divmod(x, d)
             row = p * dop.k + j
-            columns = a.indices[a.indptr[row]:a.indptr[row + 1]]
+            columns = a.indices[a.indptr[row] : a.indptr[row + 1]]
             if r == 0:
-                for q, value in zip(columns, a.data[a.indptr[row]:a.indptr[row + 1]]):
+                for q, value in zip(columns, a.data[a.indptr[row] : a.indptr[row + 1]]):
                     indices.append(q * d)
                     data.append(value)
             else:
@@ -129,8 +129,16 @@ def _sphere_source(seed):
 
 def test_streamed_dataset_gives_the_in_memory_directional_loss(tmp_path):
     sources = [ShapeSource(f"s{i}", partial(_sphere_source, i), key=f"sphere-{i}") for i in range(2)]
-    common = dict(patch_configs=[CONFIG], cache_dir=tmp_path, target_area=None, task="classification",
-                  num_classes=3, split_names={"train": ["s0", "s1"]}, workers=0, progress=False)
+    common = dict(
+        patch_configs=[CONFIG],
+        cache_dir=tmp_path,
+        target_area=None,
+        task="classification",
+        num_classes=3,
+        split_names={"train": ["s0", "s1"]},
+        workers=0,
+        progress=False,
+    )
     held = build_dataset(sources, in_memory=True, **common)
     streamed = build_dataset(sources, in_memory=False, **common)
     assert held.in_memory and not streamed.in_memory

@@ -114,11 +114,19 @@ def test_rotating_frames_rotates_coefficients():
     config = PatchConfig(r0=1.5, n_samples=3000)
     samples = sample_surface(surface, config.n_samples, seed=config.seed)
     polar = compute_polar(surface, samples, config.r0)
-    op = assemble_operator(polar.center, polar.sample, polar.radius, polar.angle, polar.frames, samples.interpolation, config)
+    op = assemble_operator(
+        polar.center, polar.sample, polar.radius, polar.angle, polar.frames, samples.interpolation, config
+    )
     delta = np.random.default_rng(0).uniform(-np.pi, np.pi, surface.n_vertices)
     # Turning e1 by +δ_p lowers every angle at p by δ_p.
     turned = assemble_operator(
-        polar.center, polar.sample, polar.radius, polar.angle - delta[polar.center], polar.frames, samples.interpolation, config
+        polar.center,
+        polar.sample,
+        polar.radius,
+        polar.angle - delta[polar.center],
+        polar.frames,
+        samples.interpolation,
+        config,
     )
     field = torch.from_numpy(np.random.default_rng(1).standard_normal((surface.n_vertices, 3)))
     a, b = op.apply(field).numpy(), turned.apply(field).numpy()
@@ -250,7 +258,9 @@ def test_two_components_and_concatenate():
     assert joined.interpolation.shape == (sum(o.interpolation.shape[0] for o in ops), joined.n_vertices)
     second = joined.patch_sample_index[a.n_vertices :]
     shift = ops[0].interpolation.shape[0]
-    assert np.array_equal(second[:, :30], np.where(ops[1].patch_sample_index >= 0, ops[1].patch_sample_index + shift, -1))
+    assert np.array_equal(
+        second[:, :30], np.where(ops[1].patch_sample_index >= 0, ops[1].patch_sample_index + shift, -1)
+    )
     assert np.all(second[:, 30:] == -1)
 
 
@@ -385,8 +395,9 @@ def test_a_loaded_operator_applies_and_backpropagates_without_transposing(tmp_pa
     monkeypatch.setattr(scipy.sparse.csr_matrix, "tocsc", must_not_run)
     order = tuple(np.random.default_rng(4).permutation(loaded.k).tolist())
     x = torch.randn(loaded.n_vertices, 3, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda v: loaded.apply(v, basis_order=order), (x,), eps=1e-6, atol=1e-8,
-                                    fast_mode=True)
+    assert torch.autograd.gradcheck(
+        lambda v: loaded.apply(v, basis_order=order), (x,), eps=1e-6, atol=1e-8, fast_mode=True
+    )
     g = torch.randn(loaded.n_vertices, loaded.k, 3, dtype=torch.float64)
     (grad,) = torch.autograd.grad(loaded.apply(x, basis_order=order), x, g)
     inverse = np.argsort(order)

@@ -44,7 +44,7 @@ def test_any_rotation_is_uniform():
     rng = np.random.default_rng(1)
     rotations = np.stack([random_rotation(rng, "any") for _ in range(4000)])
     assert np.abs(rotations.mean(axis=0)).max() < 0.05
-    assert np.allclose((rotations ** 2).mean(axis=0), 1.0 / 3.0, atol=0.03)
+    assert np.allclose((rotations**2).mean(axis=0), 1.0 / 3.0, atol=0.03)
 
 
 def test_feature_slices_follow_the_parts():
@@ -65,7 +65,7 @@ def test_augmented_features_are_a_rigid_motion_and_scaling():
     gram_before = original[:, :3] @ original[:, :3].T
     factor = np.sqrt((xyz @ xyz.T).trace() / gram_before.trace())
     assert 0.8 <= factor <= 1.2 and abs(factor - 1.0) > 1e-4
-    assert np.allclose(xyz @ xyz.T, factor ** 2 * gram_before, atol=1e-4)
+    assert np.allclose(xyz @ xyz.T, factor**2 * gram_before, atol=1e-4)
     assert np.allclose(normals @ normals.T, original[:, 3:6] @ original[:, 3:6].T, atol=1e-5)
     assert np.allclose((xyz * normals).sum(1), factor * (original[:, :3] * original[:, 3:6]).sum(1), atol=1e-5)
     assert not np.allclose(xyz, factor * original[:, :3], atol=1e-3)  # really rotated
@@ -91,11 +91,14 @@ def test_no_augmentation_returns_the_records_themselves():
     assert augment_records([record], TrainSection(), "xyz", [3], 1, 1)[0] is record
 
 
-@pytest.mark.parametrize("kind, train, message", [
-    ("shape", TrainSection(augment_rotation="any"), "rotation-invariant"),
-    ("ones+curvature", TrainSection(augment_rotation="vertical"), "rotation-invariant"),
-    ("normals", TrainSection(augment_scale=0.1), "no xyz part"),
-])
+@pytest.mark.parametrize(
+    "kind, train, message",
+    [
+        ("shape", TrainSection(augment_rotation="any"), "rotation-invariant"),
+        ("ones+curvature", TrainSection(augment_rotation="vertical"), "rotation-invariant"),
+        ("normals", TrainSection(augment_scale=0.1), "no xyz part"),
+    ],
+)
 def test_meaningless_augmentation_is_refused(kind, train, message):
     with pytest.raises(ConfigError, match=message):
         check_augmentation(train, kind)
@@ -108,8 +111,11 @@ def test_check_accepts_what_changes_something():
 
 def test_training_with_augmentation_is_reproducible_and_differs(tmp_path, cache_dir):
     weights = []
-    for name, options in (("a", {"augment_rotation": "any", "augment_scale": 0.1}),
-                          ("b", {"augment_rotation": "any", "augment_scale": 0.1}), ("plain", {})):
+    for name, options in (
+        ("a", {"augment_rotation": "any", "augment_scale": 0.1}),
+        ("b", {"augment_rotation": "any", "augment_scale": 0.1}),
+        ("plain", {}),
+    ):
         train(tiny_config(cache_dir, epochs=1, **options), tmp_path / name, progress=False, workers=0)
         weights.append(load_checkpoint(tmp_path / name / "last.pt")["model"])
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])

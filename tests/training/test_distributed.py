@@ -81,8 +81,7 @@ def _reference_weights(config: dict, world_size: int) -> dict:
     model.train()
     for epoch in range(1, tcfg.epochs + 1):
         order = [train_idx[i] for i in epoch_order(tcfg.seed, epoch, len(train_idx))]
-        per_rank = [step_groups(shard_indices(order, r, world_size), tcfg.shapes_per_step)
-                    for r in range(world_size)]
+        per_rank = [step_groups(shard_indices(order, r, world_size), tcfg.shapes_per_step) for r in range(world_size)]
         for step_groups_of_ranks in zip(*per_rank):
             optimizer.zero_grad(set_to_none=True)
             losses = []
@@ -113,11 +112,25 @@ def test_two_gloo_ranks_match_one_process_with_averaged_losses(tmp_path):
     for epochs, extra in ((1, []), (2, ["--resume"])):
         config_path = tmp_path / f"ddp{epochs}.yaml"
         config_path.write_text(yaml.safe_dump({**config, "train": {**config["train"], "epochs": epochs}}))
-        command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-                   "-m", "zernet.cli", "train", str(config_path), "--run-dir", str(run_dir), "--no-progress",
-                   "--workers", "0", *extra]
-        result = subprocess.run(command, cwd=tmp_path, env=_free_env(), capture_output=True, text=True,
-                                timeout=240)
+        command = [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc_per_node",
+            "2",
+            "-m",
+            "zernet.cli",
+            "train",
+            str(config_path),
+            "--run-dir",
+            str(run_dir),
+            "--no-progress",
+            "--workers",
+            "0",
+            *extra,
+        ]
+        result = subprocess.run(command, cwd=tmp_path, env=_free_env(), capture_output=True, text=True, timeout=240)
         assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
 
     # Rank 0 alone wrote the run folder and printed the report.

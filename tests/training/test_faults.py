@@ -86,9 +86,23 @@ def test_sigkill_mid_epoch_then_resume_equals_uninterrupted(uninterrupted, tmp_p
     script.write_text(KILL_SCRIPT)
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     child = subprocess.Popen(
-        [sys.executable, str(script), str(run_dir), str(marker), "train", str(config_path), "--run-dir",
-         str(run_dir), "--no-progress", "--workers", "0"],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        [
+            sys.executable,
+            str(script),
+            str(run_dir),
+            str(marker),
+            "train",
+            str(config_path),
+            "--run-dir",
+            str(run_dir),
+            "--no-progress",
+            "--workers",
+            "0",
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
     try:
         deadline = time.monotonic() + 180
         while not marker.exists():
@@ -104,7 +118,6 @@ def test_sigkill_mid_epoch_then_resume_equals_uninterrupted(uninterrupted, tmp_p
     assert child.returncode == -signal.SIGKILL
     assert load_checkpoint(run_dir / "last.pt")["state"]["epoch"] == 1  # epoch 2 never finished
     assert not list(run_dir.glob(".*.tmp"))
-
 
     assert main(["train", "--resume", "--run-dir", str(run_dir), "--no-progress", "--workers", "0"]) == 0
     assert_same_weights(load_checkpoint(run_dir / "last.pt"), reference)
@@ -127,7 +140,7 @@ def test_damaged_last_checkpoint_is_named_and_resume_falls_back(uninterrupted, t
         last.write_bytes(data[: len(data) // 2])
     else:  # flip bytes in the middle of the stored tensors: the zip CRC catches it
         middle = len(data) // 2
-        last.write_bytes(data[:middle] + bytes(b ^ 0xFF for b in data[middle:middle + 64]) + data[middle + 64:])
+        last.write_bytes(data[:middle] + bytes(b ^ 0xFF for b in data[middle : middle + 64]) + data[middle + 64 :])
 
     with pytest.raises(ValueError, match=r"last\.pt: not a readable zernet checkpoint"):
         load_checkpoint(last)
@@ -298,11 +311,22 @@ def test_parallel_preprocessing_reports_a_broken_mesh_and_resumes_from_the_cache
     damaged = next((cache / "shapes").glob("good1-*.npz"))
     damaged.write_bytes(damaged.read_bytes()[:100])
     log.unlink()
-    with pytest.warns(RuntimeWarning, match=rf"{damaged.name}: shape cache file is unreadable"), \
-            pytest.warns(SkippedShapesWarning, match="bad.obj"):
-        dataset = build_dataset(_sources(paths, log), CONFIGS, cache, AREA, task="classification", num_classes=2,
-                                split_names={"train": ["good0", "good1"], "test": ["good2"]}, workers=0,
-                                progress=False, on_error="skip")
+    with (
+        pytest.warns(RuntimeWarning, match=rf"{damaged.name}: shape cache file is unreadable"),
+        pytest.warns(SkippedShapesWarning, match="bad.obj"),
+    ):
+        dataset = build_dataset(
+            _sources(paths, log),
+            CONFIGS,
+            cache,
+            AREA,
+            task="classification",
+            num_classes=2,
+            split_names={"train": ["good0", "good1"], "test": ["good2"]},
+            workers=0,
+            progress=False,
+            on_error="skip",
+        )
     assert _calls(log) == ["bad", "good1"]
     assert dataset.names == ["good0", "good1", "good2"] and set(dataset.failures) == {"bad"}
     assert np.isfinite(dataset[1].features).all()
@@ -322,8 +346,17 @@ def test_a_worker_killed_mid_shape_is_reported_and_the_others_go_on(tmp_path):
 def test_every_shape_failing_is_an_error_naming_them(tmp_path):
     bad = _mesh_folder(tmp_path / "meshes", n_good=0)
     with pytest.raises(PreprocessError, match="bad.obj"):
-        build_dataset(_sources(bad, tmp_path / "log"), CONFIGS, tmp_path / "cache", AREA, task="classification",
-                      num_classes=2, split_names={"train": ["bad"]}, workers=0, progress=False)
+        build_dataset(
+            _sources(bad, tmp_path / "log"),
+            CONFIGS,
+            tmp_path / "cache",
+            AREA,
+            task="classification",
+            num_classes=2,
+            split_names={"train": ["bad"]},
+            workers=0,
+            progress=False,
+        )
 
 
 def test_atomic_write_bytes_leaves_no_temp_file_on_interrupt(tmp_path, monkeypatch):

@@ -87,8 +87,9 @@ def test_missing_source_is_a_clear_error(tmp_path):
 def test_run_starts_from_the_weights_and_reports_it(source_run, tmp_path, cache_dir):
     """Zero epochs: the selected model is the initial one, so it must equal the source's weights."""
     run_dir = tmp_path / "tuned"
-    metrics = train(tiny_config(cache_dir, epochs=1, lr=1e-12), run_dir, progress=False, workers=0,
-                    init_from=source_run)
+    metrics = train(
+        tiny_config(cache_dir, epochs=1, lr=1e-12), run_dir, progress=False, workers=0, init_from=source_run
+    )
     source = load_checkpoint(source_run / "best.pt")["model"]
     tuned = load_checkpoint(run_dir / "best.pt")
     for name, value in tuned["model"].items():
@@ -117,8 +118,7 @@ def test_cli_init_from(source_run, tmp_path, cache_dir, capsys):
     config = tmp_path / "tiny.yaml"
     config.write_text(yaml.safe_dump(tiny_config(cache_dir, epochs=1)))
     run_dir = tmp_path / "run"
-    assert main(["train", str(config), "--run-dir", str(run_dir), "--no-progress", "--init-from",
-                 str(source_run)]) == 0
+    assert main(["train", str(config), "--run-dir", str(run_dir), "--no-progress", "--init-from", str(source_run)]) == 0
     assert "init_from" in json.loads((run_dir / "metrics.json").read_text())
     capsys.readouterr()
     # With --resume: refused by the command, exit 2, one line naming both options.
@@ -126,8 +126,22 @@ def test_cli_init_from(source_run, tmp_path, cache_dir, capsys):
     err = capsys.readouterr().err
     assert "--init-from" in err and "--resume" in err and len(err.strip().splitlines()) == 1
     # A model that does not fit: exit 2, the parameter named.
-    assert main(["train", str(config), "--run-dir", str(tmp_path / "other"), "--no-progress", "--init-from",
-                 str(source_run), "--set", "model.widths=[8,12,16]"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                str(config),
+                "--run-dir",
+                str(tmp_path / "other"),
+                "--no-progress",
+                "--init-from",
+                str(source_run),
+                "--set",
+                "model.widths=[8,12,16]",
+            ]
+        )
+        == 2
+    )
     assert "parameter 'blocks.1." in capsys.readouterr().err
     # A missing source fails before any preprocessing.
     assert main(["train", str(config), "--run-dir", str(tmp_path / "x"), "--init-from", str(tmp_path / "nope")]) == 2

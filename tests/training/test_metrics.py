@@ -97,8 +97,16 @@ def test_error_curve_monotone_and_endpoints():
 def test_metrics_files_are_strict_json_with_null_for_undefined_scores(tmp_path):
     scores = metrics.segmentation_scores(np.array([0, 0, 1]), np.array([0, 0, 1]), num_classes=4)
     assert np.isnan(scores["per_class_accuracy"][2])
-    path = write_json(tmp_path / "m.json", {"summary": scores, "inf": float("inf"), "n": np.int64(3),
-                                            "array": np.array([1.5, np.nan]), "flag": np.bool_(True)})
+    path = write_json(
+        tmp_path / "m.json",
+        {
+            "summary": scores,
+            "inf": float("inf"),
+            "n": np.int64(3),
+            "array": np.array([1.5, np.nan]),
+            "flag": np.bool_(True),
+        },
+    )
 
     def refuse(constant):
         raise ValueError(f"not JSON: {constant}")
@@ -127,5 +135,6 @@ def test_geodesic_errors_of_one_mesh_measure_each_pair_once(sphere, monkeypatch)
     distinct = {(int(t), int(p)) for prediction in (first, second) for t, p in zip(truth, prediction) if t != p}
     assert sorted(calls) == sorted(distinct)
     for prediction, values in zip((first, second), got):  # the same numbers as one call each
-        np.testing.assert_array_equal(values, metrics.geodesic_errors(vertices, prediction, truth, faces=faces,
-                                                                      diameter=errors.diameter))
+        np.testing.assert_array_equal(
+            values, metrics.geodesic_errors(vertices, prediction, truth, faces=faces, diameter=errors.diameter)
+        )

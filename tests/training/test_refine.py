@@ -66,8 +66,9 @@ def test_refinement_keeps_rows_normalised_and_zero_rings_change_nothing(sphere_s
     n = sphere_surface.n_vertices
     probabilities = rng.random((n, n)).astype(np.float32)
     probabilities /= probabilities.sum(axis=1, keepdims=True)
-    np.testing.assert_array_equal(refine_correspondence(probabilities, sphere_surface.faces,
-                                                        sphere_surface.faces, 0), probabilities)
+    np.testing.assert_array_equal(
+        refine_correspondence(probabilities, sphere_surface.faces, sphere_surface.faces, 0), probabilities
+    )
     refined = refine_correspondence(probabilities, sphere_surface.faces, sphere_surface.faces, 3)
     np.testing.assert_allclose(refined.sum(axis=1), 1.0, rtol=1e-5)
     with pytest.raises(ValueError, match="rings"):
@@ -84,8 +85,9 @@ def test_refinement_follows_a_reindexing_of_either_mesh():
     rows, cols = rng.permutation(n), rng.permutation(m)
     rows_inverse, cols_inverse = np.argsort(rows), np.argsort(cols)
     # New vertex a of the shape is old vertex rows[a]: its faces use the inverse permutation.
-    renumbered = refine_correspondence(probabilities[rows][:, cols], rows_inverse[shape.faces],
-                                       cols_inverse[template.faces], 2)
+    renumbered = refine_correspondence(
+        probabilities[rows][:, cols], rows_inverse[shape.faces], cols_inverse[template.faces], 2
+    )
     np.testing.assert_allclose(renumbered, refined[rows][:, cols], rtol=1e-5, atol=1e-7)
 
 
@@ -124,17 +126,23 @@ def faust_root(tmp_path_factory):
 @pytest.fixture(scope="module")
 def spheres_in_faust_layout(faust_root):
     """3 train (1 of them validation), 2 test."""
-    options = LoaderOptions(patch_configs=[PatchConfig(**PATCH)], cache_dir=faust_root / "cache", n_val=1,
-                            workers=0, progress=False)
-    return load_faust(faust_root, train_indices=range(3), test_indices=[3, 4], n_vertices=None, area=100.0,
-                      options=options)
+    options = LoaderOptions(
+        patch_configs=[PatchConfig(**PATCH)], cache_dir=faust_root / "cache", n_val=1, workers=0, progress=False
+    )
+    return load_faust(
+        faust_root, train_indices=range(3), test_indices=[3, 4], n_vertices=None, area=100.0, options=options
+    )
 
 
 def test_evaluation_scores_the_refined_map_and_keeps_the_unrefined_beside(spheres_in_faust_layout):
     dataset = spheres_in_faust_layout
     vertices = dataset[0].surface.vertices - dataset[0].surface.vertices.mean(axis=0)
-    members = [(_KnownMap(vertices, wrong=[5, 40, 100]), {"task": "classification", "correspondence": True,
-                                                          "num_classes": 162})]
+    members = [
+        (
+            _KnownMap(vertices, wrong=[5, 40, 100]),
+            {"task": "classification", "correspondence": True, "num_classes": 162},
+        )
+    ]
     test, device = dataset.splits["test"], torch.device("cpu")
     raw, _ = evaluate_members(members, dataset, test, device, progress=False, keep=0)
     assert raw["refine_rings"] == 0 and "unrefined_summary" not in raw
@@ -154,8 +162,7 @@ def test_evaluation_scores_the_refined_map_and_keeps_the_unrefined_beside(sphere
 
 def test_refinement_is_ignored_by_segmentation_and_needs_a_validation_split(spheres_in_faust_layout):
     dataset = spheres_in_faust_layout
-    segmentation = [(_KnownMap(dataset[0].surface.vertices, wrong=[]), {"task": "classification",
-                                                                        "num_classes": 162})]
+    segmentation = [(_KnownMap(dataset[0].surface.vertices, wrong=[]), {"task": "classification", "num_classes": 162})]
     assert select_refine_rings(segmentation, dataset, [0, 4], torch.device("cpu"), progress=False) == (0, None)
     correspondence = [(segmentation[0][0], {"task": "classification", "correspondence": True, "num_classes": 162})]
     no_validation = dataset.subset(dataset.splits["train"] + dataset.splits["test"])
@@ -174,13 +181,22 @@ def test_the_eval_section_takes_a_number_or_candidates():
 
 
 def test_a_trained_run_stores_its_template_and_choice_and_predict_applies_them(faust_root, tmp_path):
-    config = {"data": {"kind": "faust", "root": str(faust_root), "train_indices": [0, 1, 2], "test_indices": [3, 4],
-                       "val_count": 1, "n_vertices": 162, "workers": 0},
-              "patch": {"area": 100.0, "scales": [PATCH]},
-              "model": {"name": "zernet", "widths": [8, 16], "angular_resolution": 2, "dropout": 0.0},
-              "train": {"epochs": 1, "seed": 0, "threads": 1, "lr": 1e-2},
-              "eval": {"renders": 0, "plots": False, "refine_rings": [0, 1, 2]},
-              "cache_dir": str(faust_root / "cache")}
+    config = {
+        "data": {
+            "kind": "faust",
+            "root": str(faust_root),
+            "train_indices": [0, 1, 2],
+            "test_indices": [3, 4],
+            "val_count": 1,
+            "n_vertices": 162,
+            "workers": 0,
+        },
+        "patch": {"area": 100.0, "scales": [PATCH]},
+        "model": {"name": "zernet", "widths": [8, 16], "angular_resolution": 2, "dropout": 0.0},
+        "train": {"epochs": 1, "seed": 0, "threads": 1, "lr": 1e-2},
+        "eval": {"renders": 0, "plots": False, "refine_rings": [0, 1, 2]},
+        "cache_dir": str(faust_root / "cache"),
+    }
     metrics = train(config, tmp_path / "run", progress=False)
     best = load_checkpoint(tmp_path / "run" / "best.pt")
     assert best["refine_rings"] == metrics["refine_choice"]["rings"] == metrics["refine_rings"]
@@ -192,11 +208,14 @@ def test_a_trained_run_stores_its_template_and_choice_and_predict_applies_them(f
     for rings in (1, 2):
         expected = refine_correspondence(raw, surface.faces, surface.faces, rings).argmax(axis=1)
         np.testing.assert_array_equal(predict(tmp_path / "run", surface, refine_rings=rings), expected)
-    np.testing.assert_array_equal(predict(tmp_path / "run", surface),
-                                  predict(tmp_path / "run", surface, refine_rings=best["refine_rings"]))
+    np.testing.assert_array_equal(
+        predict(tmp_path / "run", surface), predict(tmp_path / "run", surface, refine_rings=best["refine_rings"])
+    )
     # A checkpoint without a template (written before refinement existed), or of another task, says so.
-    for change, message in (({"template_faces": None}, "stores no template mesh"),
-                            ({"correspondence": False}, "correspondence models only")):
+    for change, message in (
+        ({"template_faces": None}, "stores no template mesh"),
+        ({"correspondence": False}, "correspondence models only"),
+    ):
         torch.save({**best, **change}, tmp_path / "changed.pt")
         with pytest.raises(ValueError, match=message):
             predict(tmp_path / "changed.pt", surface, refine_rings=1)
@@ -206,12 +225,26 @@ def test_a_trained_run_stores_its_template_and_choice_and_predict_applies_them(f
     # The command line: evaluate and predict take a radius of their own.
     mesh = tmp_path / "new.ply"
     trimesh.Trimesh(surface.vertices, surface.faces, process=False).export(mesh)
-    assert main(["evaluate", str(tmp_path / "run"), "--refine-rings", "2", "--no-progress",
-                 "--out", str(tmp_path / "two.json")]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                str(tmp_path / "run"),
+                "--refine-rings",
+                "2",
+                "--no-progress",
+                "--out",
+                str(tmp_path / "two.json"),
+            ]
+        )
+        == 0
+    )
     two = json.loads((tmp_path / "two.json").read_text())
     assert two["refine_rings"] == 2 and "refine_choice" not in two
     assert two["unrefined_summary"] == again.get("unrefined_summary", again["summary"])
-    assert main(["predict", str(tmp_path / "run"), str(mesh), "--refine-rings", "2", "--out",
-                 str(tmp_path / "pred")]) == 0
-    np.testing.assert_array_equal(np.load(tmp_path / "pred.npy"),
-                                  refine_correspondence(raw, surface.faces, surface.faces, 2).argmax(axis=1))
+    assert (
+        main(["predict", str(tmp_path / "run"), str(mesh), "--refine-rings", "2", "--out", str(tmp_path / "pred")]) == 0
+    )
+    np.testing.assert_array_equal(
+        np.load(tmp_path / "pred.npy"), refine_correspondence(raw, surface.faces, surface.faces, 2).argmax(axis=1)
+    )

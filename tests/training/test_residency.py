@@ -76,8 +76,10 @@ def test_auto_chooses_by_size_and_free_memory():
     assert choose_residency("auto", gb, 10, cuda, {"device": 10 * gb, "host": 10 * gb})[0] == "stream"
     level, reason = choose_residency("auto", gb, 10, cuda, {"device": 30 * gb})
     assert "10 shapes" in reason and f"{MEMORY_FRACTION:.0%}" in reason
-    assert choose_residency("stream", gb, 10, cpu) == ("stream", "data.residency stream; 10 shapes x 1000 MB = "
-                                                                  "10.00 GB of prepared operators")
+    assert choose_residency("stream", gb, 10, cpu) == (
+        "stream",
+        "data.residency stream; 10 shapes x 1000 MB = 10.00 GB of prepared operators",
+    )
     with pytest.raises(ValueError, match="residency"):
         choose_residency("gpu", gb, 10, cpu)
 

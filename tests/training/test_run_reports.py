@@ -76,8 +76,15 @@ def make_data(root, bad: dict[str, str] | None = None, test: tuple[str, ...] = (
 
 def config_file(tmp_path, meshes, cache, **data) -> str:
     config = {
-        "data": {"kind": "segmentation", "meshes": str(meshes), "num_classes": 2, "val_count": 1, "seed": 0,
-                 "features": "xyz", **data},
+        "data": {
+            "kind": "segmentation",
+            "meshes": str(meshes),
+            "num_classes": 2,
+            "val_count": 1,
+            "seed": 0,
+            "features": "xyz",
+            **data,
+        },
         "patch": {"area": 100.0, "scales": [{"r0": 3.0, "n_samples": 400, "patch_size": 12, "n_max": 2}]},
         "model": {"name": "zernet", "widths": [4, 4], "angular_resolution": 2, "dropout": 0.0},
         "train": {"epochs": 2, "seed": 0, "threads": 1, "lr": 0.01, "patience": None},
@@ -92,6 +99,7 @@ def config_file(tmp_path, meshes, cache, **data) -> str:
 def strict_json(path):
     def refuse(constant):
         raise ValueError(f"{path} holds {constant}, which is not JSON")
+
     return json.loads(path.read_text(), parse_constant=refuse)
 
 
@@ -110,8 +118,17 @@ def skipped_run(tmp_path_factory):
 def test_a_bad_shape_stops_training_before_it_starts_listing_every_failure(tmp_path, capsys):
     meshes = make_data(tmp_path / "meshes", {"badnan": "nan", "badface": "face"})
     run_dir = tmp_path / "run"
-    code = main(["train", config_file(tmp_path, meshes, tmp_path / "cache"), "--run-dir", str(run_dir),
-                 "--no-progress", "--workers", "0"])
+    code = main(
+        [
+            "train",
+            config_file(tmp_path, meshes, tmp_path / "cache"),
+            "--run-dir",
+            str(run_dir),
+            "--no-progress",
+            "--workers",
+            "0",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err
     assert "2 of 8 shapes failed to load or preprocess" in err
@@ -137,8 +154,23 @@ def test_skip_bad_trains_without_them_and_says_so_everywhere(skipped_run, capsys
 def test_the_banner_counts_the_skipped_shapes(tmp_path, capsys):
     meshes = make_data(tmp_path / "meshes", {"badnan": "nan"})
     path = config_file(tmp_path, meshes, tmp_path / "cache")
-    assert main(["train", path, "--run-dir", str(tmp_path / "run"), "--no-progress", "--workers", "0",
-                 "--set", "data.on_error=skip", "train.epochs=1"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                path,
+                "--run-dir",
+                str(tmp_path / "run"),
+                "--no-progress",
+                "--workers",
+                "0",
+                "--set",
+                "data.on_error=skip",
+                "train.epochs=1",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "test metrics (1 shapes, model of epoch 1 chosen on validation, 1 shapes skipped)" in out
     assert "skipped train/badnan: " in out
@@ -165,8 +197,21 @@ def test_evaluate_follows_the_same_policy(skipped_run, capsys):
         err = capsys.readouterr().err
         assert "test/shape5: " in err and "shape5.txt: line 2: 'xyz' is not a number" in err
         assert "--skip-bad" in err
-        assert main(["evaluate", str(run_dir), "--split", "val", "--no-progress", "--skip-bad",
-                     "--out", str(run_dir / "e.json")]) == 0
+        assert (
+            main(
+                [
+                    "evaluate",
+                    str(run_dir),
+                    "--split",
+                    "val",
+                    "--no-progress",
+                    "--skip-bad",
+                    "--out",
+                    str(run_dir / "e.json"),
+                ]
+            )
+            == 0
+        )
         skipped = strict_json(run_dir / "e.json")["skipped"]
         assert {item["name"] for item in skipped} == {"train/badnan", "test/shape5"}
     finally:
@@ -179,8 +224,23 @@ def test_a_label_file_with_text_is_one_bad_shape_named_by_file_and_line(tmp_path
     assert main(["train", path, "--run-dir", str(tmp_path / "run"), "--no-progress", "--workers", "0"]) == 2
     err = capsys.readouterr().err
     assert "badlabel.txt: line 21: 'abc' is not a number" in err and "row 20" not in err
-    assert main(["train", path, "--run-dir", str(tmp_path / "run"), "--no-progress", "--workers", "0",
-                 "--skip-bad", "--set", "train.epochs=1"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                path,
+                "--run-dir",
+                str(tmp_path / "run"),
+                "--no-progress",
+                "--workers",
+                "0",
+                "--skip-bad",
+                "--set",
+                "train.epochs=1",
+            ]
+        )
+        == 0
+    )
     assert "badlabel.txt: line 21" in strict_json(tmp_path / "run" / "metrics.json")["skipped"][0]["reason"]
 
 
@@ -235,6 +295,7 @@ def test_a_run_trained_on_meshes_predicts_on_the_cloud_of_a_mesh(skipped_run, tm
 def test_predict_with_an_explicit_scale_equals_the_area_normalised_prediction(skipped_run):
     from zernet.geometry import load_surface
     from zernet.training.predict import predict
+
     surface = load_surface(skipped_run["meshes"] / "test" / "shape5.obj")
     run = skipped_run["run"]
     _, probabilities = predict(run, surface, probabilities=True)
@@ -243,13 +304,16 @@ def test_predict_with_an_explicit_scale_equals_the_area_normalised_prediction(sk
     np.testing.assert_allclose(scaled, probabilities, atol=1e-5)
 
 
-@pytest.mark.parametrize("override, expected", [
-    ("data.num_classes=two", "data.num_classes must be an integer >= 1, got 'two'"),
-    ("model.widths=abc", "model.widths must be a list of integers, got 'abc'"),
-    ("model.widths=[8,-1]", "model 'zernet' cannot be built from its options (model.widths=[8, -1]"),
-    ("data.colour=red", "unknown key data.colour for data kind 'segmentation'"),
-    ("train.device=gpu7", "train.device: 'gpu7' is not a device"),
-])
+@pytest.mark.parametrize(
+    "override, expected",
+    [
+        ("data.num_classes=two", "data.num_classes must be an integer >= 1, got 'two'"),
+        ("model.widths=abc", "model.widths must be a list of integers, got 'abc'"),
+        ("model.widths=[8,-1]", "model 'zernet' cannot be built from its options (model.widths=[8, -1]"),
+        ("data.colour=red", "unknown key data.colour for data kind 'segmentation'"),
+        ("train.device=gpu7", "train.device: 'gpu7' is not a device"),
+    ],
+)
 def test_config_errors_name_the_key_before_any_data_is_read(tmp_path, capsys, override, expected):
     path = config_file(tmp_path, tmp_path / "no-such-folder", tmp_path / "cache")
     assert main(["train", path, "--run-dir", str(tmp_path / "run"), "--set", override]) == 2
@@ -263,8 +327,22 @@ def test_class_names_come_from_a_names_file_beside_the_labels(tmp_path, capsys):
     meshes = make_data(tmp_path / "meshes")
     path = config_file(tmp_path, meshes, tmp_path / "cache", labels=str(meshes))
     (meshes / "class_names.txt").write_text("lower half\nupper half\n")
-    assert main(["train", path, "--run-dir", str(tmp_path / "run"), "--no-progress", "--workers", "0",
-                 "--set", "train.epochs=1"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                path,
+                "--run-dir",
+                str(tmp_path / "run"),
+                "--no-progress",
+                "--workers",
+                "0",
+                "--set",
+                "train.epochs=1",
+            ]
+        )
+        == 0
+    )
     best = torch.load(tmp_path / "run" / "best.pt", weights_only=True)
     assert best["preprocess"]["class_names"] == ["lower half", "upper half"]
     (meshes / "class_names.txt").write_text("only one\n")
@@ -277,8 +355,10 @@ def test_classes_no_shape_has_give_one_warning_and_null_scores(tmp_path, capsys)
     meshes = make_data(tmp_path / "meshes")
     path = config_file(tmp_path, meshes, tmp_path / "cache", num_classes=4)
     run_dir = tmp_path / "run"
-    assert main(["train", path, "--run-dir", str(run_dir), "--no-progress", "--workers", "0",
-                 "--set", "train.epochs=1"]) == 0
+    assert (
+        main(["train", path, "--run-dir", str(run_dir), "--no-progress", "--workers", "0", "--set", "train.epochs=1"])
+        == 0
+    )
     log = (run_dir / "train.log").read_text()
     assert log.count("data.num_classes is 4 but no shape has a vertex of class 2, 3") == 1
     summary = strict_json(run_dir / "metrics.json")["summary"]
@@ -302,8 +382,23 @@ def test_a_corrupt_cache_entry_is_reported_once(skipped_run, capsys):
 
 def test_resume_may_change_threads_and_never_lowers_the_recorded_epochs(skipped_run, tmp_path, capsys):
     run_dir = skipped_run["run"]
-    assert main(["train", "--resume", "--run-dir", str(run_dir), "--no-progress", "--workers", "0",
-                 "--set", "train.threads=2", "train.epochs=1"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--resume",
+                "--run-dir",
+                str(run_dir),
+                "--no-progress",
+                "--workers",
+                "0",
+                "--set",
+                "train.threads=2",
+                "train.epochs=1",
+            ]
+        )
+        == 0
+    )
     stored = yaml.safe_load((run_dir / "config.yaml").read_text())
     assert stored["train"]["epochs"] == 2 and stored["train"]["threads"] == 2
     assert main(["train", "--resume", "--run-dir", str(run_dir), "--set", "model.dropout=0.5"]) == 2

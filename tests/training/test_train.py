@@ -120,8 +120,10 @@ def test_ensemble_averages_the_members_probabilities(finished_run, cache_dir, tm
     assert ensemble["checkpoint"] == [str(run_a / "best.pt"), str(run_b / "best.pt")]
     for i in dataset.splits["test"]:
         record = dataset[i]
-        mean = (predict(run_a, record.surface, probabilities=True)[1]
-                + predict(run_b, record.surface, probabilities=True)[1]) / 2
+        mean = (
+            predict(run_a, record.surface, probabilities=True)[1]
+            + predict(run_b, record.surface, probabilities=True)[1]
+        ) / 2
         expected = float(np.mean(mean.argmax(axis=1) == record.target))
         assert ensemble["per_shape"][record.name]["accuracy"] == pytest.approx(expected)
 
@@ -236,8 +238,9 @@ def test_config_errors_name_the_key(cache_dir):
 
 def test_overrides_are_parsed_as_yaml():
     config = {"train": {"epochs": 200}, "patch": {"scales": [{"r0": 5.5}]}}
-    out = apply_overrides(config, ["train.epochs=5", "model.name=feastnet", "model.widths=[8, 16]",
-                                   "patch.scales.0.r0=4.5"])
+    out = apply_overrides(
+        config, ["train.epochs=5", "model.name=feastnet", "model.widths=[8, 16]", "patch.scales.0.r0=4.5"]
+    )
     assert out["train"]["epochs"] == 5 and out["model"] == {"name": "feastnet", "widths": [8, 16]}
     assert out["patch"]["scales"][0]["r0"] == 4.5
     assert config["train"]["epochs"] == 200  # the input is not modified
@@ -277,8 +280,9 @@ def test_log_target_transform_round_trips_and_is_standardised():
     assert stats["mean"] == pytest.approx(logs.mean()) and stats["std"] == pytest.approx(logs.std())
     target = torch.from_numpy(data.targets[1])
     trained = standardise(target, stats)
-    torch.testing.assert_close(trained.double(), torch.from_numpy((np.log(data.targets[1]) - logs.mean()) / logs.std()),
-                               rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(
+        trained.double(), torch.from_numpy((np.log(data.targets[1]) - logs.mean()) / logs.std()), rtol=1e-5, atol=1e-5
+    )
     torch.testing.assert_close(unstandardise(trained, stats).double(), target, rtol=1e-5, atol=0)
     # Without standardisation the network is trained on log y itself.
     plain = target_stats(data, [0, 1], transform="log", standardize=False)
@@ -361,11 +365,14 @@ def test_cosine_schedule_and_resume_from_mid_schedule(tmp_path, cache_dir):
     assert all(a > b > 0 for a, b in zip(rates, rates[1:]))
     assert epoch_learning_rate(TrainSection(lr=0.1, epochs=4), 3) == 0.1  # constant by default
     # A run trained in pieces (epochs 1, 2, ... with resume) keeps the schedule of its whole span.
-    pieces = [epoch_learning_rate(TrainSection(lr=0.1, lr_schedule="cosine", epochs=e, lr_schedule_epochs=4), e)
-              for e in range(1, 5)]
+    pieces = [
+        epoch_learning_rate(TrainSection(lr=0.1, lr_schedule="cosine", epochs=e, lr_schedule_epochs=4), e)
+        for e in range(1, 5)
+    ]
     assert pieces == pytest.approx(rates)
-    assert epoch_learning_rate(TrainSection(lr=0.1, lr_schedule="cosine", epochs=6, lr_schedule_epochs=4), 6) == \
-        pytest.approx(rates[-1])  # past the span: the last epoch's rate
+    assert epoch_learning_rate(
+        TrainSection(lr=0.1, lr_schedule="cosine", epochs=6, lr_schedule_epochs=4), 6
+    ) == pytest.approx(rates[-1])  # past the span: the last epoch's rate
 
     config = tiny_config(cache_dir, epochs=4, patience=None, lr_schedule="cosine")
     train(config, tmp_path / "full", progress=False, workers=0)
@@ -385,8 +392,10 @@ def test_cosine_schedule_and_resume_from_mid_schedule(tmp_path, cache_dir):
 
 def test_feature_standardisation_is_stored_and_used_by_predict(tmp_path, cache_dir):
     # Statistics over every training vertex, per channel; a constant channel keeps std 1.
-    records = [SimpleNamespace(features=np.c_[np.arange(4.0), np.full(4, 3.0)]),
-               SimpleNamespace(features=np.c_[np.arange(4.0, 8.0), np.full(4, 3.0)])]
+    records = [
+        SimpleNamespace(features=np.c_[np.arange(4.0), np.full(4, 3.0)]),
+        SimpleNamespace(features=np.c_[np.arange(4.0, 8.0), np.full(4, 3.0)]),
+    ]
     stats = feature_stats(records, [0, 1])
     np.testing.assert_allclose(stats["mean"], [3.5, 3.0])
     np.testing.assert_allclose(stats["std"], [np.arange(8.0).std(), 1.0])
@@ -400,8 +409,9 @@ def test_feature_standardisation_is_stored_and_used_by_predict(tmp_path, cache_d
     assert probabilities.shape == (200, 4) and np.isfinite(probabilities).all()
     # What every batch (training, validation, predict) feeds the model: (x - mean) / std per channel.
     raw = np.asarray(surface.vertices, np.float32)
-    record = SimpleNamespace(features=raw, name="x", target=None,
-                             geometry=SimpleNamespace(to=lambda device, basis_orders=(): None))
+    record = SimpleNamespace(
+        features=raw, name="x", target=None, geometry=SimpleNamespace(to=lambda device, basis_orders=(): None)
+    )
     batch = Batch([record], torch.device("cpu"), None, checkpoint["feature_stats"])
     expected = (raw - np.array(checkpoint["feature_stats"]["mean"])) / np.array(checkpoint["feature_stats"]["std"])
     np.testing.assert_allclose(batch.features.numpy(), expected, rtol=1e-5, atol=1e-5)
@@ -411,8 +421,7 @@ def test_directional_model_trains_and_predicts_with_operators_built_before_the_n
     # The direction-preserving model reads directional operators from the geometry; training and
     # prediction build them per shape before the forward (the layers never do).
     config = tiny_config(cache_dir, epochs=1)
-    config["model"] = {"name": "zernet-directional", "widths": [4, 4], "angular_resolution": 3,
-                       "dropout": 0.0}
+    config["model"] = {"name": "zernet-directional", "widths": [4, 4], "angular_resolution": 3, "dropout": 0.0}
     metrics = train(config, tmp_path / "run")
     assert 0.0 <= metrics["summary"]["accuracy"] <= 1.0
     again = evaluate(tmp_path / "run")

@@ -40,8 +40,9 @@ def test_render_point_cloud(tmp_path, surface):
 def test_render_comparison_rows(tmp_path, surface):
     truth = surface.vertices[:, 1]
     prediction = truth + 0.1 * np.sin(5 * surface.vertices[:, 0])
-    path = viz.render_comparison(surface, prediction, truth, np.abs(prediction - truth), tmp_path / "c.png",
-                                 title="regression")
+    path = viz.render_comparison(
+        surface, prediction, truth, np.abs(prediction - truth), tmp_path / "c.png", title="regression"
+    )
     assert _size(path) == (1080, 1000)
     labels = (truth > 0).astype(np.int64)
     path = viz.render_comparison(surface, labels[::-1].copy(), labels, None, tmp_path / "d.png")
@@ -52,11 +53,21 @@ def test_render_comparison_rows(tmp_path, surface):
 
 def test_error_curve_and_training_curves(tmp_path):
     errors = np.abs(np.random.default_rng(0).normal(0, 0.03, 500))
-    path = viz.plot_error_curve({"zernet": error_curve(errors), "baseline": error_curve(2 * errors)},
-                                tmp_path / "curve.png")
+    path = viz.plot_error_curve(
+        {"zernet": error_curve(errors), "baseline": error_curve(2 * errors)}, tmp_path / "curve.png"
+    )
     assert _size(path) == (550, 420)
-    history = [{"epoch": e, "train_loss": 2.0 / e, "val_loss": 2.2 / e, "train_accuracy": 1 - 1 / (e + 1),
-                "val_accuracy": 1 - 1.2 / (e + 1), "seconds": 1.0} for e in range(1, 21)]
+    history = [
+        {
+            "epoch": e,
+            "train_loss": 2.0 / e,
+            "val_loss": 2.2 / e,
+            "train_accuracy": 1 - 1 / (e + 1),
+            "val_accuracy": 1 - 1.2 / (e + 1),
+            "seconds": 1.0,
+        }
+        for e in range(1, 21)
+    ]
     path = viz.plot_training_curves(history, tmp_path / "history.png")
     assert _size(path) == (1000, 380) and path.stat().st_size > 5000
 
@@ -64,21 +75,25 @@ def test_error_curve_and_training_curves(tmp_path):
 def _red_pixels(image: np.ndarray, top: float, bottom: float) -> int:
     """Pixels of the right/wrong mask's "wrong" red in a band of rows, left of the colour bars."""
     height, width = image.shape[:2]
-    band = image[int(top * height):int(bottom * height), : int(0.85 * width), :3]
-    return int(np.count_nonzero((band[..., 0] > 0.45) & (band[..., 1] < 0.2) & (band[..., 2] < 0.2)
-                                & (band[..., 0] > 2.5 * band[..., 1])))
+    band = image[int(top * height) : int(bottom * height), : int(0.85 * width), :3]
+    return int(
+        np.count_nonzero(
+            (band[..., 0] > 0.45) & (band[..., 1] < 0.2) & (band[..., 2] < 0.2) & (band[..., 0] > 2.5 * band[..., 1])
+        )
+    )
 
 
 def test_corner_cells_tile_each_triangle_and_belong_to_its_corners():
     triangles = np.random.default_rng(0).normal(size=(5, 3, 3))
     cells = viz._corner_cells(triangles)
     assert cells.shape == (15, 4, 3)
-    np.testing.assert_allclose(cells[0::3, 0], triangles[:, 0])   # cell 3f+i starts at corner i of face f
+    np.testing.assert_allclose(cells[0::3, 0], triangles[:, 0])  # cell 3f+i starts at corner i of face f
     np.testing.assert_allclose(cells[2::3, 0], triangles[:, 2])
 
     def area(polygon):  # planar polygons (each cell lies in its triangle's plane)
-        return 0.5 * np.linalg.norm(sum(np.cross(polygon[k], polygon[(k + 1) % len(polygon)])
-                                        for k in range(len(polygon))))
+        return 0.5 * np.linalg.norm(
+            sum(np.cross(polygon[k], polygon[(k + 1) % len(polygon)]) for k in range(len(polygon)))
+        )
 
     for f in range(5):
         np.testing.assert_allclose(sum(area(cells[3 * f + i]) for i in range(3)), area(triangles[f]), rtol=1e-9)
@@ -89,13 +104,29 @@ def test_one_wrong_vertex_shows_in_the_prediction_and_in_the_error_row(tmp_path,
     front = int(np.argmax(surface.vertices[:, 2]))  # the vertex nearest the camera of the front view
     prediction = truth.copy()
     prediction[front] = 1
-    wrong = viz.render_comparison(surface, prediction, truth, prediction != truth, tmp_path / "wrong.png",
-                                  views=("front",), error_label="wrong label", class_names=["a", "b"])
-    right = viz.render_comparison(surface, truth, truth, truth != truth, tmp_path / "right.png",
-                                  views=("front",), error_label="wrong label", class_names=["a", "b"])
+    wrong = viz.render_comparison(
+        surface,
+        prediction,
+        truth,
+        prediction != truth,
+        tmp_path / "wrong.png",
+        views=("front",),
+        error_label="wrong label",
+        class_names=["a", "b"],
+    )
+    right = viz.render_comparison(
+        surface,
+        truth,
+        truth,
+        truth != truth,
+        tmp_path / "right.png",
+        views=("front",),
+        error_label="wrong label",
+        class_names=["a", "b"],
+    )
     wrong_image, right_image = mpimg.imread(wrong), mpimg.imread(right)
     assert _red_pixels(right_image, 0.66, 1.0) == 0
-    assert _red_pixels(wrong_image, 0.66, 1.0) > 20   # the error row: one vertex's cells, in red
+    assert _red_pixels(wrong_image, 0.66, 1.0) > 20  # the error row: one vertex's cells, in red
     # The prediction row: the vertex's cells take class 1's colour (tab10 orange) among class 0's blue.
     band = wrong_image[: wrong_image.shape[0] // 3, : int(0.85 * wrong_image.shape[1]), :3]
     orange = (band[..., 0] > 0.6) & (band[..., 1] > 0.3) & (band[..., 1] < 0.6) & (band[..., 2] < 0.2)

@@ -10,8 +10,15 @@ from __future__ import annotations
 
 def _tiny(cache_dir, train: dict, dropout: float, renders: int) -> dict:
     return {
-        "data": {"kind": "synthetic", "task": "segmentation", "n_shapes": 6, "n_vertices": 200,
-                 "test_fraction": 0.34, "val_count": 1, "seed": 0},
+        "data": {
+            "kind": "synthetic",
+            "task": "segmentation",
+            "n_shapes": 6,
+            "n_vertices": 200,
+            "test_fraction": 0.34,
+            "val_count": 1,
+            "seed": 0,
+        },
         "patch": {"scales": [{"r0": 5.0, "n_samples": 800, "patch_size": 20, "n_max": 3}]},
         "model": {"name": "zernet", "widths": [8, 8, 16], "angular_resolution": 2, "dropout": dropout},
         "train": train,
@@ -22,8 +29,7 @@ def _tiny(cache_dir, train: dict, dropout: float, renders: int) -> dict:
 
 def tiny_config(cache_dir, **train_options) -> dict:
     """Two epochs, dropout 0.1; ``train_options`` override ``train`` keys."""
-    return _tiny(cache_dir, {"epochs": 2, "seed": 0, "threads": 1, "lr": 1e-2, **train_options},
-                 dropout=0.1, renders=1)
+    return _tiny(cache_dir, {"epochs": 2, "seed": 0, "threads": 1, "lr": 1e-2, **train_options}, dropout=0.1, renders=1)
 
 
 def cli_config(cache_dir) -> dict:
@@ -33,13 +39,18 @@ def cli_config(cache_dir) -> dict:
 
 def faults_config(cache_dir, epochs: int = 3) -> dict:
     """Dropout 0.2, so the RNG states matter for resume; no early stopping."""
-    return _tiny(cache_dir, {"epochs": epochs, "seed": 1, "threads": 1, "lr": 1e-2, "patience": None},
-                 dropout=0.2, renders=0)
+    return _tiny(
+        cache_dir, {"epochs": epochs, "seed": 1, "threads": 1, "lr": 1e-2, "patience": None}, dropout=0.2, renders=0
+    )
 
 
 def ddp_config(cache_dir) -> dict:
     """No dropout (a distributed run and its one-process replay share every random number); weight decay,
     since Adam alone is nearly invariant to the gradient's scale, so a sum instead of a mean over the
     ranks would go unnoticed."""
-    return _tiny(cache_dir, {"epochs": 2, "seed": 3, "threads": 1, "lr": 1e-2, "weight_decay": 0.05,
-                             "patience": None}, dropout=0.0, renders=0)
+    return _tiny(
+        cache_dir,
+        {"epochs": 2, "seed": 3, "threads": 1, "lr": 1e-2, "weight_decay": 0.05, "patience": None},
+        dropout=0.0,
+        renders=0,
+    )

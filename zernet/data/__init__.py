@@ -102,15 +102,18 @@ def load_dataset(kind: str, options: LoaderOptions | None = None, **arguments) -
     else:
         shared = sorted(set(arguments) & (set(SHARED_OPTIONS) | set(_VALIDATION_KEYWORDS)))
         if shared:
-            raise TypeError(f"{', '.join(shared)}: give shared options inside options=LoaderOptions(...), "
-                            "not as keywords beside it")
+            raise TypeError(
+                f"{', '.join(shared)}: give shared options inside options=LoaderOptions(...), not as keywords beside it"
+            )
     loader = LOADERS[kind]
     accepted = set(inspect.signature(loader).parameters) - {"options"}
     unknown = sorted(set(arguments) - accepted)
     if unknown:
         takes = sorted(accepted - ({"task"} if kind in _SYNTHETIC_TASKS else set()))
-        raise TypeError(f"unknown option(s) {', '.join(unknown)} for data kind {kind!r} (it takes: "
-                        f"{', '.join(takes)}; and the shared options {', '.join(SHARED_OPTIONS)})")
+        raise TypeError(
+            f"unknown option(s) {', '.join(unknown)} for data kind {kind!r} (it takes: "
+            f"{', '.join(takes)}; and the shared options {', '.join(SHARED_OPTIONS)})"
+        )
     return loader(**arguments, options=options)
 
 
@@ -132,8 +135,11 @@ def _options_from_keywords(arguments: dict) -> tuple[LoaderOptions, dict]:
     arguments = dict(arguments)
     if "strict" in arguments:  # the former name of on_error
         strict = arguments.pop("strict")
-        warnings.warn("the data option 'strict' is deprecated: use on_error='raise' (strict true) or 'skip' "
-                      "(strict false)", FutureWarning, stacklevel=3)
+        warnings.warn(
+            "the data option 'strict' is deprecated: use on_error='raise' (strict true) or 'skip' (strict false)",
+            FutureWarning,
+            stacklevel=3,
+        )
         arguments.setdefault("on_error", "raise" if strict else "skip")
     shared = {name: arguments.pop(name) for name in SHARED_OPTIONS if name in arguments}
     val_fraction = arguments.pop("val_fraction", 0.1)

@@ -86,18 +86,18 @@ from __future__ import annotations
 
 from zernet.data.bodies_dataset import load_bodies
 from zernet.data.bodies_forms import (
-                                      FORMS,
-                                      BodyForm,
-                                      closest_points,
-                                      cloud_form,
-                                      decimated_form,
-                                      ground_truth,
-                                      make_forms,
-                                      noisy_cloud_form,
-                                      nonmanifold_edge_count,
-                                      partial_form,
-                                      remeshed_form,
-                                      resolve_forms,
+    FORMS,
+    BodyForm,
+    closest_points,
+    cloud_form,
+    decimated_form,
+    ground_truth,
+    make_forms,
+    noisy_cloud_form,
+    nonmanifold_edge_count,
+    partial_form,
+    remeshed_form,
+    resolve_forms,
 )
 from zernet.data.bodies_generator import GENERATOR_VERSION, Body, BodyGenerator, generate_bodies
 from zernet.data.bodies_layout import FORM_SPLITS, BodiesLayout, FormsLayout, write_bodies, write_forms

@@ -82,11 +82,13 @@ def load_bodies(
         split, index = split_of(number, int(count), int(n_test))
         body = generator.body(index, split, name=f"body_{number:03d}")
         target = body.parts if task == "segmentation" else body.correspondence
-        sources.append(ShapeSource(
-            name=body.name,
-            load=partial(body_shape, body.name, body.vertices, body.faces, target),
-            key=json.dumps({"body": generator.body_key(index, split), "task": task}),
-        ))
+        sources.append(
+            ShapeSource(
+                name=body.name,
+                load=partial(body_shape, body.name, body.vertices, body.faces, target),
+                key=json.dumps({"body": generator.body_key(index, split), "task": task}),
+            )
+        )
         splits[split].append(body.name)
     n_vertices = generator.topology().n_vertices
     segmentation = task == "segmentation"
@@ -97,8 +99,15 @@ def load_bodies(
         num_classes=len(HUMAN_PART_NAMES) if segmentation else n_vertices,
         split_names=splits,
         correspondence=not segmentation,
-        info={"kind": "bodies", "task": task, "topology": topology, "poses": poses, "body_seed": seed,
-              "n_vertices": n_vertices, "class_names": list(HUMAN_PART_NAMES) if segmentation else None,
-              "generator": generator.version},
+        info={
+            "kind": "bodies",
+            "task": task,
+            "topology": topology,
+            "poses": poses,
+            "body_seed": seed,
+            "n_vertices": n_vertices,
+            "class_names": list(HUMAN_PART_NAMES) if segmentation else None,
+            "generator": generator.version,
+        },
         **options.build_arguments(),
     )

@@ -60,10 +60,13 @@ __all__ = [
 #: The form names, in the order :func:`make_forms` draws their random streams.
 FORMS = ("remeshed", "decimated", "cloud", "cloud-noisy", "partial")
 
-_REMESH_EXTRA_MESSAGE = ("the 'remeshed' body form needs pymeshlab: pip install 'zernet[bodies]' "
-                         "(or pip install pymeshlab)")
-_DECIMATE_EXTRA_MESSAGE = ("the 'decimated' body form needs fast-simplification: pip install 'zernet[bodies]' "
-                           "(or pip install fast-simplification)")
+_REMESH_EXTRA_MESSAGE = (
+    "the 'remeshed' body form needs pymeshlab: pip install 'zernet[bodies]' (or pip install pymeshlab)"
+)
+_DECIMATE_EXTRA_MESSAGE = (
+    "the 'decimated' body form needs fast-simplification: pip install 'zernet[bodies]' "
+    "(or pip install fast-simplification)"
+)
 
 
 @dataclass(frozen=True)
@@ -125,13 +128,19 @@ def make_forms(body, forms: str | Sequence[str] | None, rng: np.random.Generator
     on ``rng``'s state and its own name only, not on which other forms are made."""
     names = resolve_forms(forms)
     seeds = rng.integers(0, 2**63 - 1, size=len(FORMS))
-    makers = {"remeshed": remeshed_form, "decimated": decimated_form, "cloud": cloud_form,
-              "cloud-noisy": noisy_cloud_form, "partial": partial_form}
+    makers = {
+        "remeshed": remeshed_form,
+        "decimated": decimated_form,
+        "cloud": cloud_form,
+        "cloud-noisy": noisy_cloud_form,
+        "partial": partial_form,
+    }
     vertices = np.asarray(body.vertices, dtype=np.float64)
     faces = np.asarray(body.faces, dtype=np.int64)
     labels = np.asarray(body.parts, dtype=np.int64)
-    return {name: makers[name](vertices, faces, labels, np.random.default_rng(seeds[FORMS.index(name)]))
-            for name in names}
+    return {
+        name: makers[name](vertices, faces, labels, np.random.default_rng(seeds[FORMS.index(name)])) for name in names
+    }
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -139,8 +148,14 @@ def make_forms(body, forms: str | Sequence[str] | None, rng: np.random.Generator
 # ------------------------------------------------------------------------------------------------------
 
 
-def remeshed_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-                  vertex_ratio: tuple[float, float] = (0.55, 1.0), iterations: int = 10) -> BodyForm:
+def remeshed_form(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    labels: np.ndarray,
+    rng: np.random.Generator,
+    vertex_ratio: tuple[float, float] = (0.55, 1.0),
+    iterations: int = 10,
+) -> BodyForm:
     """The surface remeshed isotropically (MeshLab's ``meshing_isotropic_explicit_remeshing``).
 
     The target edge length is that of an equilateral mesh of the same area with ``r * N`` vertices, ``r``
@@ -178,13 +193,23 @@ def remeshed_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, r
     new_vertices, new_faces = _shuffle_vertices(new_vertices, new_faces, rng)
     face_index, barycentric, _, distance = closest_points(vertices, faces, new_vertices)
     part, template = ground_truth(faces, labels, face_index, barycentric)
-    return BodyForm("remeshed", new_vertices, new_faces, part, template,
-                    {"target_vertices": target, "target_edge_length": edge_length,
-                     "max_distance": float(distance.max(initial=0.0))})
+    return BodyForm(
+        "remeshed",
+        new_vertices,
+        new_faces,
+        part,
+        template,
+        {
+            "target_vertices": target,
+            "target_edge_length": edge_length,
+            "max_distance": float(distance.max(initial=0.0)),
+        },
+    )
 
 
-def decimated_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-                   reduction: float = 0.5) -> BodyForm:
+def decimated_form(
+    vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, rng: np.random.Generator, reduction: float = 0.5
+) -> BodyForm:
     """Quadric decimation (``fast_simplification.simplify``) to ``1 - reduction`` of the faces, as returned:
     non-manifold edges, duplicate or degenerate faces and unused vertices the simplifier leaves are kept on
     purpose (a robustness test). Vertex positions are the simplifier's (off the surface by up to a fraction
@@ -206,18 +231,30 @@ def decimated_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
     new_vertices, new_faces = _shuffle_vertices(new_vertices, new_faces, rng)
     face_index, barycentric, _, distance = closest_points(vertices, faces, new_vertices)
     part, template = ground_truth(faces, labels, face_index, barycentric)
-    degenerate = ((new_faces[:, 0] == new_faces[:, 1]) | (new_faces[:, 1] == new_faces[:, 2])
-                  | (new_faces[:, 0] == new_faces[:, 2]))
-    return BodyForm("decimated", new_vertices, new_faces, part, template,
-                    {"nonmanifold_edges": nonmanifold_edge_count(new_faces),
-                     "duplicate_faces": duplicate_face_count(new_faces),
-                     "degenerate_faces": int(degenerate.sum()),
-                     "unused_vertices": int(len(new_vertices) - len(np.unique(new_faces))),
-                     "max_distance": float(distance.max(initial=0.0))})
+    degenerate = (
+        (new_faces[:, 0] == new_faces[:, 1])
+        | (new_faces[:, 1] == new_faces[:, 2])
+        | (new_faces[:, 0] == new_faces[:, 2])
+    )
+    return BodyForm(
+        "decimated",
+        new_vertices,
+        new_faces,
+        part,
+        template,
+        {
+            "nonmanifold_edges": nonmanifold_edge_count(new_faces),
+            "duplicate_faces": duplicate_face_count(new_faces),
+            "degenerate_faces": int(degenerate.sum()),
+            "unused_vertices": int(len(new_vertices) - len(np.unique(new_faces))),
+            "max_distance": float(distance.max(initial=0.0)),
+        },
+    )
 
 
-def cloud_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-               n_points: int | None = None) -> BodyForm:
+def cloud_form(
+    vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, rng: np.random.Generator, n_points: int | None = None
+) -> BodyForm:
     """``n_points`` (default: the body's vertex count) points uniform on the surface (area-weighted), no faces.
 
     Returns:
@@ -232,8 +269,15 @@ def cloud_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, rng:
     return BodyForm("cloud", points, None, part, template)
 
 
-def noisy_cloud_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-                     fraction: float = 0.5, contrast: float = 3.0, noise: float = 0.002) -> BodyForm:
+def noisy_cloud_form(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    labels: np.ndarray,
+    rng: np.random.Generator,
+    fraction: float = 0.5,
+    contrast: float = 3.0,
+    noise: float = 0.002,
+) -> BodyForm:
     """``fraction`` of the body's vertex count as points, with a smoothly varying density, plus noise.
 
     The density per unit area is ``contrast ** s(x)``, ``s`` a random smooth field scaled to [0, 1] over the
@@ -257,18 +301,35 @@ def noisy_cloud_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray
     field_value = np.cos(2.0 * np.pi * (centroids @ directions.T) / wavelengths + phases).sum(axis=1)
     span = field_value.max() - field_value.min()
     scaled = (field_value - field_value.min()) / span if span > 0 else np.zeros_like(field_value)
-    face_index, barycentric = _sample_faces(_face_areas(vertices, faces) * contrast ** scaled, n_points, rng)
+    face_index, barycentric = _sample_faces(_face_areas(vertices, faces) * contrast**scaled, n_points, rng)
     clean = np.einsum("mc,mcd->md", barycentric, vertices[faces[face_index]])
     points = clean + rng.normal(0.0, noise, size=clean.shape)
     part, template = ground_truth(faces, labels, face_index, barycentric)
-    return BodyForm("cloud-noisy", points, None, part, template,
-                    {"noise": float(noise), "contrast": float(contrast), "field_directions": directions,
-                     "field_wavelengths": wavelengths, "field_phases": phases})
+    return BodyForm(
+        "cloud-noisy",
+        points,
+        None,
+        part,
+        template,
+        {
+            "noise": float(noise),
+            "contrast": float(contrast),
+            "field_directions": directions,
+            "field_wavelengths": wavelengths,
+            "field_phases": phases,
+        },
+    )
 
 
-def partial_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-                 direction: np.ndarray | None = None, up: np.ndarray = (0.0, 1.0, 0.0),
-                 max_elevation: float = 20.0) -> BodyForm:
+def partial_form(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    labels: np.ndarray,
+    rng: np.random.Generator,
+    direction: np.ndarray | None = None,
+    up: np.ndarray = (0.0, 1.0, 0.0),
+    max_elevation: float = 20.0,
+) -> BodyForm:
     """The part of the surface a camera sees from one side: a one-sided scan.
 
     The camera looks along ``-direction`` (orthographic; ``direction`` points from the body to the camera).
@@ -288,8 +349,9 @@ def partial_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, rn
         first, second = _plane_basis(up_axis)
         azimuth = rng.uniform(0.0, 2.0 * np.pi)
         elevation = np.radians(rng.uniform(-max_elevation, max_elevation))
-        direction = (np.cos(elevation) * (np.cos(azimuth) * first + np.sin(azimuth) * second)
-                     + np.sin(elevation) * up_axis)
+        direction = (
+            np.cos(elevation) * (np.cos(azimuth) * first + np.sin(azimuth) * second) + np.sin(elevation) * up_axis
+        )
     direction = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
     visible = _visible_faces(vertices, faces, direction)
     kept_faces = faces[visible]
@@ -298,8 +360,14 @@ def partial_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, rn
     kept_vertices = kept_vertices[order]
     new_index = np.full(len(vertices), -1, dtype=np.int64)
     new_index[kept_vertices] = np.arange(len(kept_vertices))
-    return BodyForm("partial", vertices[kept_vertices], new_index[kept_faces], labels[kept_vertices].copy(),
-                    kept_vertices.copy(), {"direction": direction, "kept_faces": float(visible.mean())})
+    return BodyForm(
+        "partial",
+        vertices[kept_vertices],
+        new_index[kept_faces],
+        labels[kept_vertices].copy(),
+        kept_vertices.copy(),
+        {"direction": direction, "kept_faces": float(visible.mean())},
+    )
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -307,8 +375,9 @@ def partial_form(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, rn
 # ------------------------------------------------------------------------------------------------------
 
 
-def ground_truth(faces: np.ndarray, labels: np.ndarray, face_index: np.ndarray,
-                 barycentric: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def ground_truth(
+    faces: np.ndarray, labels: np.ndarray, face_index: np.ndarray, barycentric: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(labels (M,), template_vertex (M,)) int64 of M positions given as ``barycentric`` (M, 3) coordinates in
     faces ``face_index`` (M,) of the original mesh: the corner with the largest weight (the first on a tie)
     is the template vertex, and its label the label."""
@@ -317,8 +386,9 @@ def ground_truth(faces: np.ndarray, labels: np.ndarray, face_index: np.ndarray,
     return np.asarray(labels, dtype=np.int64)[template], template
 
 
-def closest_points(vertices: np.ndarray, faces: np.ndarray,
-                   points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def closest_points(
+    vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The exact closest point of a triangle mesh to each of M points.
 
     Candidates come from a k-d tree of anchors (:func:`_anchors`: points of each face, every point of a face
@@ -374,8 +444,7 @@ def duplicate_face_count(faces: np.ndarray) -> int:
 
 def _face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     triangles = vertices[faces]
-    return 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]),
-                                axis=1)
+    return 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1)
 
 
 def _sample_faces(weights: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -390,8 +459,9 @@ def _sample_faces(weights: np.ndarray, n: int, rng: np.random.Generator) -> tupl
     return face_index, np.stack([1.0 - root, root * (1.0 - r2), root * r2], axis=1)
 
 
-def _shuffle_vertices(vertices: np.ndarray, faces: np.ndarray,
-                      rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _shuffle_vertices(
+    vertices: np.ndarray, faces: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Vertices in a random order (faces renumbered and shuffled too): the order of a form says nothing."""
     order = rng.permutation(len(vertices))
     new_index = np.empty(len(vertices), dtype=np.int64)
@@ -421,8 +491,8 @@ def _visible_faces(vertices: np.ndarray, faces: np.ndarray, direction: np.ndarra
         normals = -normals
     facing = normals @ direction > 0
     first, second = _plane_basis(direction)
-    plane = np.stack([triangles @ first, triangles @ second], axis=2)    # (F, 3, 2) image coordinates
-    depth = triangles @ direction                                         # (F, 3) toward the camera
+    plane = np.stack([triangles @ first, triangles @ second], axis=2)  # (F, 3, 2) image coordinates
+    depth = triangles @ direction  # (F, 3) toward the camera
     centre_plane, centre_depth = plane.mean(axis=1), depth.mean(axis=1)
     anchors, anchor_face, reach = _anchors(plane)
     tested = np.flatnonzero(facing)
@@ -470,20 +540,21 @@ def _anchors(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         # Centroids of the level x level sub-triangles, as (x, y) along edges ab, ac in units of 1/level:
         # upward triangles (i, j), i + j <= level - 1, and downward ones, i + j <= level - 2.
         i, j = np.meshgrid(np.arange(level), np.arange(level), indexing="ij")
-        up = (i + j <= level - 1)
-        down = (i + j <= level - 2)
+        up = i + j <= level - 1
+        down = i + j <= level - 2
         x = np.concatenate([i[up] + 1.0 / 3.0, i[down] + 2.0 / 3.0]) / level
         y = np.concatenate([j[up] + 1.0 / 3.0, j[down] + 2.0 / 3.0]) / level
-        weights = np.stack([1.0 - x - y, x, y], axis=1)                      # (S, 3)
-        points = np.einsum("sc,fcd->fsd", weights, triangles[chosen])        # (F_level, S, D)
+        weights = np.stack([1.0 - x - y, x, y], axis=1)  # (S, 3)
+        points = np.einsum("sc,fcd->fsd", weights, triangles[chosen])  # (F_level, S, D)
         anchors.append(points.reshape(-1, triangles.shape[2]))
         anchor_face.append(np.repeat(chosen, len(weights)))
     reach = float((sizes / levels).max(initial=0.0))
     return np.concatenate(anchors), np.concatenate(anchor_face), reach
 
 
-def _ball_faces(tree: cKDTree, anchor_face: np.ndarray, points: np.ndarray,
-                radius: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+def _ball_faces(
+    tree: cKDTree, anchor_face: np.ndarray, points: np.ndarray, radius: np.ndarray | float
+) -> tuple[np.ndarray, np.ndarray]:
     """(owner (P,), face (P,)): each point's faces with an anchor within ``radius`` (a face may repeat)."""
     balls = tree.query_ball_point(points, r=radius)
     counts = np.fromiter((len(ball) for ball in balls), dtype=np.int64, count=len(points))
@@ -491,14 +562,15 @@ def _ball_faces(tree: cKDTree, anchor_face: np.ndarray, points: np.ndarray,
     return np.repeat(np.arange(len(points)), counts), anchor_face[found]
 
 
-def _best_per_point(points: np.ndarray, triangles: np.ndarray, owners: np.ndarray, candidates: np.ndarray,
-                    n_points: int) -> tuple[np.ndarray, np.ndarray]:
+def _best_per_point(
+    points: np.ndarray, triangles: np.ndarray, owners: np.ndarray, candidates: np.ndarray, n_points: int
+) -> tuple[np.ndarray, np.ndarray]:
     """(face (n_points,), distance (n_points,)): the nearest of each point's candidate faces."""
     face_index = np.zeros(n_points, dtype=np.int64)
     distance = np.full(n_points, np.inf)
     step = 200_000  # pairs per batch: bounded memory on dense balls
     for start in range(0, len(owners), step):
-        owner, candidate = owners[start:start + step], candidates[start:start + step]
+        owner, candidate = owners[start : start + step], candidates[start : start + step]
         barycentric = _closest_barycentric(points[owner], triangles[candidate])
         closest = np.einsum("mc,mcd->md", barycentric, triangles[candidate])
         gap = np.linalg.norm(points[owner] - closest, axis=1)

@@ -24,8 +24,17 @@ from zernet.data.dataset import DatasetError
 from zernet.geometry import Surface
 from zernet.io_utils import atomic_write_bytes
 
-__all__ = ["GENERATOR_VERSION", "SPLIT_CODES", "Body", "BodyGenerator", "generate_bodies", "split_of",
-           "check_counts", "package_version", "npz_bytes"]
+__all__ = [
+    "GENERATOR_VERSION",
+    "SPLIT_CODES",
+    "Body",
+    "BodyGenerator",
+    "generate_bodies",
+    "split_of",
+    "check_counts",
+    "package_version",
+    "npz_bytes",
+]
 
 #: Bumped whenever a change alters generated bodies, so cached bodies of older versions are not reused.
 GENERATOR_VERSION = 1
@@ -80,8 +89,13 @@ class BodyGenerator:
     with the same anny version; the anny model is built on the first cache miss only.
     """
 
-    def __init__(self, topology: str = "faust", poses: str = "varied", seed: int = 0,
-                 cache_dir: str | os.PathLike | None = ".zernet-cache"):
+    def __init__(
+        self,
+        topology: str = "faust",
+        poses: str = "varied",
+        seed: int = 0,
+        cache_dir: str | os.PathLike | None = ".zernet-cache",
+    ):
         if topology not in TOPOLOGIES:
             raise DatasetError(f"unknown body topology {topology!r}; choose one of {', '.join(TOPOLOGIES)}")
         if poses not in POSE_MODES:
@@ -112,8 +126,9 @@ class BodyGenerator:
             else:
                 self._topology = build_topology(self.topology_name, self.model)
                 if path is not None:
-                    atomic_write_bytes(path, npz_bytes(**{key: getattr(self._topology, key)
-                                                          for key in TOPOLOGY_ARRAYS}))
+                    atomic_write_bytes(
+                        path, npz_bytes(**{key: getattr(self._topology, key) for key in TOPOLOGY_ARRAYS})
+                    )
         return self._topology
 
     def draws(self, index: int, split: str = "train") -> tuple[dict[str, float], dict[str, float]]:
@@ -151,8 +166,10 @@ class BodyGenerator:
         with torch.no_grad():
             rest = model(phenotype_kwargs=phenotype)
             heads = rest["rest_bone_heads"][0].detach().cpu().numpy().astype(np.float64)
-            deltas = {bone: torch.as_tensor(matrix, dtype=model.dtype, device=model.device)[None]
-                      for bone, matrix in bone_rotations(list(model.bone_labels), heads, pose).items()}
+            deltas = {
+                bone: torch.as_tensor(matrix, dtype=model.dtype, device=model.device)[None]
+                for bone, matrix in bone_rotations(list(model.bone_labels), heads, pose).items()
+            }
             posed = model(pose_parameters=deltas or None, phenotype_kwargs=phenotype)
         return posed["vertices"][0].detach().cpu().numpy().astype(np.float64)
 
@@ -169,9 +186,15 @@ def check_counts(count: int, n_test: int) -> None:
         raise DatasetError(f"bodies: need count >= 1 and 0 <= n_test < count, got count={count}, n_test={n_test}")
 
 
-def generate_bodies(count: int = 100, seed: int = 0, topology: str = "faust", poses: str = "varied",
-                    n_test: int = 20, cache_dir: str | os.PathLike | None = ".zernet-cache",
-                    progress: bool = False) -> list[Body]:
+def generate_bodies(
+    count: int = 100,
+    seed: int = 0,
+    topology: str = "faust",
+    poses: str = "varied",
+    n_test: int = 20,
+    cache_dir: str | os.PathLike | None = ".zernet-cache",
+    progress: bool = False,
+) -> list[Body]:
     """``count`` bodies named ``body_000`` ...: the first ``count - n_test`` train, the rest test."""
     check_counts(count, n_test)
     generator = BodyGenerator(topology, poses, seed, cache_dir)
@@ -181,4 +204,3 @@ def generate_bodies(count: int = 100, seed: int = 0, topology: str = "faust", po
         split, index = split_of(number, count, n_test)
         bodies.append(generator.body(index, split, name=f"body_{number:03d}"))
     return bodies
-

@@ -97,10 +97,18 @@ def _lines(values: np.ndarray) -> bytes:
     return ("\n".join(str(int(value)) for value in values) + "\n").encode()
 
 
-def write_bodies(out_dir: str | os.PathLike, count: int = 100, seed: int = 0, topology: str = "faust",
-                 poses: str = "varied", n_test: int = 20, cache_dir: str | os.PathLike | None = ".zernet-cache",
-                 progress: bool = True, forms: str | Sequence[str] | None = None,
-                 forms_split: str = "test") -> BodiesLayout:
+def write_bodies(
+    out_dir: str | os.PathLike,
+    count: int = 100,
+    seed: int = 0,
+    topology: str = "faust",
+    poses: str = "varied",
+    n_test: int = 20,
+    cache_dir: str | os.PathLike | None = ".zernet-cache",
+    progress: bool = True,
+    forms: str | Sequence[str] | None = None,
+    forms_split: str = "test",
+) -> BodiesLayout:
     """Generate bodies (:func:`~zernet.data.bodies_generator.generate_bodies`) and write them in the layout
     of the module docstring; with ``forms`` (names, a comma-separated string or ``"all"``), also those forms
     of the test bodies (``forms_split="test"``) or of every body (``"all"``), by :func:`write_forms`. Returns
@@ -111,10 +119,19 @@ def write_bodies(out_dir: str | os.PathLike, count: int = 100, seed: int = 0, to
     root = Path(os.path.expanduser(os.fspath(out_dir)))
     bodies = generate_bodies(count, seed, topology, poses, n_test, cache_dir, progress)
     forms_layout = write_forms(root, bodies, forms, seed, forms_split, progress) if forms else None
-    layout = BodiesLayout(root, root / "segmentation" / "meshes", root / "segmentation" / "labels",
-                          root / "segmentation" / "labels" / "class_names.txt",
-                          root / "correspondence" / "training" / "registrations", root / "README.txt",
-                          topology, len(bodies[0].vertices), count - n_test, n_test, forms_layout)
+    layout = BodiesLayout(
+        root,
+        root / "segmentation" / "meshes",
+        root / "segmentation" / "labels",
+        root / "segmentation" / "labels" / "class_names.txt",
+        root / "correspondence" / "training" / "registrations",
+        root / "README.txt",
+        topology,
+        len(bodies[0].vertices),
+        count - n_test,
+        n_test,
+        forms_layout,
+    )
     for number, body in enumerate(bodies):
         mesh = _ply_bytes(body)
         atomic_write_bytes(layout.meshes / body.split / f"{body.name}.ply", mesh)
@@ -131,8 +148,14 @@ def _check_forms_split(split: str) -> None:
         raise DatasetError(f"forms split must be one of {', '.join(FORM_SPLITS)}, got {split!r}")
 
 
-def write_forms(out_dir: str | os.PathLike, bodies: Sequence[Body], forms: str | Sequence[str] | None = "all",
-                seed: int = 0, split: str = "test", progress: bool = False) -> FormsLayout:
+def write_forms(
+    out_dir: str | os.PathLike,
+    bodies: Sequence[Body],
+    forms: str | Sequence[str] | None = "all",
+    seed: int = 0,
+    split: str = "test",
+    progress: bool = False,
+) -> FormsLayout:
     """Write the forms (:func:`~zernet.data.bodies_forms.make_forms`) of ``bodies`` under ``out_dir/forms``.
 
     ``bodies`` are in :func:`~zernet.data.bodies_generator.generate_bodies` order (the train bodies, then the
@@ -153,16 +176,18 @@ def write_forms(out_dir: str | os.PathLike, bodies: Sequence[Body], forms: str |
         if split == "all" or body.split == "test":
             chosen.append((body, index))
     for body, index in tqdm(chosen, desc=f"forms ({', '.join(names)})", unit="body", disable=not progress):
-        rng = np.random.default_rng(np.random.SeedSequence([int(seed), SPLIT_CODES[body.split], index,
-                                                             _FORMS_STREAM]))
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), SPLIT_CODES[body.split], index, _FORMS_STREAM]))
         for name, form in make_forms(body, names, rng).items():
             atomic_write_bytes(layout.meshes(name) / body.split / f"{body.name}.ply", _form_ply_bytes(form))
             atomic_write_bytes(layout.labels(name) / body.split / f"{body.name}.txt", _lines(form.labels))
-            atomic_write_bytes(layout.correspondence(name) / body.split / f"{body.name}.txt",
-                               _lines(form.template_vertex))
+            atomic_write_bytes(
+                layout.correspondence(name) / body.split / f"{body.name}.txt", _lines(form.template_vertex)
+            )
             layout.summary[name][body.name] = {
-                "n_vertices": len(form.vertices), "n_faces": None if form.faces is None else len(form.faces),
-                **form.details}
+                "n_vertices": len(form.vertices),
+                "n_faces": None if form.faces is None else len(form.faces),
+                **form.details,
+            }
     for name in names:
         atomic_write_bytes(layout.labels(name) / "class_names.txt", ("\n".join(HUMAN_PART_NAMES) + "\n").encode())
     write_json(layout.details, {"seed": int(seed), "split": split, "forms": layout.summary})
@@ -172,7 +197,7 @@ def write_forms(out_dir: str | os.PathLike, bodies: Sequence[Body], forms: str |
 def _readme(layout: BodiesLayout, seed: int, poses: str) -> str:
     last = layout.n_train + layout.n_test - 1
     return f"""Human bodies generated by zernet (zernet.data.bodies, generator version {GENERATOR_VERSION}) with the
-parametric body model anny {package_version('anny')}: seed {seed}, poses "{poses}", topology "{layout.topology}"
+parametric body model anny {package_version("anny")}: seed {seed}, poses "{poses}", topology "{layout.topology}"
 ({layout.n_vertices} vertices, one connectivity shared by every body). Metres, y up, facing +z (as FAUST).
 Bodies body_000 ... body_{layout.n_train - 1:03d} are the training set, the rest (up to body_{last:03d}) the test
 set; test phenotypes and poses are independent draws from a random stream the training bodies do not use.
@@ -180,7 +205,7 @@ set; test phenotypes and poses are independent draws from a random stream the tr
 segmentation/meshes/train/body_XXX.ply, segmentation/meshes/test/body_XXX.ply
 segmentation/labels/train/body_XXX.txt, segmentation/labels/test/body_XXX.txt
     one part label per vertex (0-based), in the order of segmentation/labels/class_names.txt:
-    {', '.join(f'{i} {name}' for i, name in enumerate(HUMAN_PART_NAMES))}
+    {", ".join(f"{i} {name}" for i, name in enumerate(HUMAN_PART_NAMES))}
     (the 8 parts of the human-segmentation benchmark of Maron et al. 2017, left and right merged).
 correspondence/training/registrations/tr_reg_XXX.ply
     the same meshes under FAUST's names (tr_reg_XXX = body_XXX): the correspondence class of a vertex is
@@ -193,14 +218,14 @@ split: --set data.train_indices=0:{layout.n_train} data.test_indices={layout.n_t
 # What each form is, for the README.txt (docs/BODIES.md and zernet.data.bodies_forms say more).
 _FORM_TEXT = {
     "remeshed": "remeshed isotropically (MeshLab), its own triangulation and vertex count per body, vertices on "
-                "the surface",
+    "the surface",
     "decimated": "quadric decimation to half the faces (fast-simplification), left as the simplifier returns it: "
-                 "non-manifold edges and near-duplicate faces are kept on purpose",
+    "non-manifold edges and near-duplicate faces are kept on purpose",
     "cloud": "points uniform on the surface (area-weighted), as many as the body has vertices; PLY without faces",
     "cloud-noisy": "half as many points, density varying smoothly over the body (a factor 3), Gaussian noise "
-                   "of 2 mm per coordinate; PLY without faces",
+    "of 2 mm per coordinate; PLY without faces",
     "partial": "the faces one camera sees (front-facing, not occluded; orthographic, a random direction around "
-               "the vertical axis per body), vertices renumbered",
+    "the vertical axis per body), vertices renumbered",
 }
 
 
@@ -212,7 +237,8 @@ def _count_range(values: list) -> str:
 
 def _forms_readme(forms: FormsLayout) -> str:
     which = "the test bodies" if forms.split == "test" else "every body"
-    text = [f"""
+    text = [
+        f"""
 forms/<form>/meshes/<split>/body_XXX.ply        {which} in the forms a scan comes in (below)
 forms/<form>/labels/<split>/body_XXX.txt        one part label per vertex or point (0-based, as above)
 forms/<form>/correspondence/<split>/body_XXX.txt  the template vertex (= vertex of the body's own mesh above)
@@ -223,21 +249,26 @@ forms/details.json                              per form and body: counts and wh
     barycentric coordinates of one of its triangles; the corner with the largest weight is the template
     vertex, and its part the label. Same seed and body: the same forms.
     Read a form with the segmentation loader: data.meshes=forms/<form>/meshes data.labels=forms/<form>/labels.
-"""]
+"""
+    ]
     for name in forms.forms:
         bodies = forms.summary[name]
         vertices = [entry["n_vertices"] for entry in bodies.values()]
         line = f"{len(bodies)} bodies, {_count_range(vertices)} " + (
-            "points" if name.startswith("cloud") else "vertices")
+            "points" if name.startswith("cloud") else "vertices"
+        )
         faces = [entry["n_faces"] for entry in bodies.values() if entry["n_faces"] is not None]
         if faces:
             line += f", {_count_range(faces)} faces"
         if name == "decimated":
             counts = [entry["nonmanifold_edges"] for entry in bodies.values()]
             duplicates = [entry["duplicate_faces"] for entry in bodies.values()]
-            line += (f"; non-manifold edges (shared by more than 2 faces) per body: {_count_range(counts)} "
-                     f"({sum(counts)} in all), duplicate faces: {_count_range(duplicates)}")
-        text.append(textwrap.fill(f"{name}: {_FORM_TEXT[name]}.", 110, initial_indent="  ",
-                                  subsequent_indent="    ") + "\n")
+            line += (
+                f"; non-manifold edges (shared by more than 2 faces) per body: {_count_range(counts)} "
+                f"({sum(counts)} in all), duplicate faces: {_count_range(duplicates)}"
+            )
+        text.append(
+            textwrap.fill(f"{name}: {_FORM_TEXT[name]}.", 110, initial_indent="  ", subsequent_indent="    ") + "\n"
+        )
         text.append(textwrap.fill(line + ".", 110, initial_indent="    ", subsequent_indent="    ") + "\n")
     return "".join(text)

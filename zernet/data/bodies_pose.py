@@ -53,8 +53,14 @@ JOINTS = (
 )
 
 #: Phenotype -> (low, high) of its uniform draw.
-PHENOTYPE_RANGES = {"gender": (0.0, 1.0), "age": (0.5, 0.95), "muscle": (0.1, 0.9), "weight": (0.1, 0.9),
-                    "height": (0.1, 0.9), "proportions": (0.2, 0.8)}
+PHENOTYPE_RANGES = {
+    "gender": (0.0, 1.0),
+    "age": (0.5, 0.95),
+    "muscle": (0.1, 0.9),
+    "weight": (0.1, 0.9),
+    "height": (0.1, 0.9),
+    "proportions": (0.2, 0.8),
+}
 
 
 def _sides(bone_pattern: str) -> tuple[str, ...]:
@@ -86,8 +92,9 @@ def rotation_matrix(axis: np.ndarray, degrees: float) -> np.ndarray:
     return matrix
 
 
-def _joint_axis(bone: str, side: str, tip_pattern: str | None, direction, bones: dict[str, int],
-                heads: np.ndarray) -> np.ndarray:
+def _joint_axis(
+    bone: str, side: str, tip_pattern: str | None, direction, bones: dict[str, int], heads: np.ndarray
+) -> np.ndarray:
     """The unit rotation axis of one joint: its fixed axis, or the one that turns bone -> tip toward a direction."""
     if tip_pattern is None:
         axis = np.asarray(direction, dtype=np.float64)

@@ -131,8 +131,9 @@ def largest_component(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, n
     return kept, renumber[kept_faces]
 
 
-def closest_barycentric(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
-                        neighbours: int = 8) -> tuple[np.ndarray, np.ndarray]:
+def closest_barycentric(
+    vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, neighbours: int = 8
+) -> tuple[np.ndarray, np.ndarray]:
     """For each point, (the triangle of the mesh closest to it, its barycentric coordinates there).
 
     Candidates are the triangles around the ``neighbours`` nearest mesh vertices, exact among those.
@@ -159,8 +160,9 @@ def decimate_to_faust(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarr
     except ImportError as error:
         raise DatasetError(MISSING_EXTRA_MESSAGE + " (the 'faust' topology also needs fast-simplification)") from error
     # agg=3: fewer sliver triangles than the default 7, and it still reaches the target count.
-    points, reduced_faces = fast_simplification.simplify(vertices, faces.astype(np.int32), target_count=FAUST_FACES,
-                                                         agg=3.0)
+    points, reduced_faces = fast_simplification.simplify(
+        vertices, faces.astype(np.int32), target_count=FAUST_FACES, agg=3.0
+    )
     triangles, barycentric = closest_barycentric(vertices, faces, points)
     return faces[triangles], barycentric, reduced_faces.astype(np.int64)
 
@@ -173,8 +175,11 @@ def labels_from_weights(model, corners: np.ndarray, weights: np.ndarray) -> tupl
     bone_part = np.array([part_of_bone(bone) for bone in bones])
     bone_side = np.array([side_of_bone(bone) for bone in bones], dtype=np.float64)
     per_part = np.zeros((len(bone_weights), len(HUMAN_PART_NAMES)))
-    np.add.at(per_part, (np.arange(len(bone_weights))[:, None].repeat(bone_ids.shape[1], 1), bone_part[bone_ids]),
-              bone_weights)
+    np.add.at(
+        per_part,
+        (np.arange(len(bone_weights))[:, None].repeat(bone_ids.shape[1], 1), bone_part[bone_ids]),
+        bone_weights,
+    )
     side_weight = (bone_weights * bone_side[bone_ids]).sum(1)
     parts = np.einsum("nk,nkp->np", weights, per_part[corners]).argmax(1).astype(np.int64)
     side = np.einsum("nk,nk->n", weights, side_weight[corners])

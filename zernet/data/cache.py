@@ -47,8 +47,9 @@ def config_fingerprint(config: PatchConfig) -> dict:
     return asdict(config) if is_dataclass(config) else dict(vars(config))
 
 
-def shape_cache_path(cache_dir: Path, source: ShapeSource, target_area: float | None,
-                     configs: Sequence[PatchConfig], repair: bool) -> Path | None:
+def shape_cache_path(
+    cache_dir: Path, source: ShapeSource, target_area: float | None, configs: Sequence[PatchConfig], repair: bool
+) -> Path | None:
     """Cache file of one shape, or None when the source has no content key."""
     if source.key is None:
         return None
@@ -105,8 +106,10 @@ def read_shape(path: Path) -> tuple[Surface, np.ndarray | None, float]:
     except FileNotFoundError:
         raise
     except Exception as error:  # BadZipFile, EOFError, KeyError, ValueError, zlib.error ...
-        raise DatasetError(f"{path}: shape cache file is unreadable ({type(error).__name__}: {error}); "
-                           "delete it or run the preprocessing again to rebuild it") from None
+        raise DatasetError(
+            f"{path}: shape cache file is unreadable ({type(error).__name__}: {error}); "
+            "delete it or run the preprocessing again to rebuild it"
+        ) from None
 
 
 def read_cached_target(path: Path) -> tuple[np.ndarray | None, int]:

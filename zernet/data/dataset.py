@@ -196,9 +196,18 @@ class ShapeDataset(Sequence[ShapeRecord]):
         position = {old: new for new, old in enumerate(indices)}
         splits = {key: [position[i] for i in value if i in position] for key, value in self.splits.items()}
         return ShapeDataset(
-            [self._items[i] for i in indices], [self.names[i] for i in indices], self.task, self.num_classes,
-            splits, self.patch_configs, self.in_channels, self.feature_kind, self.target_area, self.failures,
-            self.info, self.correspondence,
+            [self._items[i] for i in indices],
+            [self.names[i] for i in indices],
+            self.task,
+            self.num_classes,
+            splits,
+            self.patch_configs,
+            self.in_channels,
+            self.feature_kind,
+            self.target_area,
+            self.failures,
+            self.info,
+            self.correspondence,
         )
 
     def split(self, name: str) -> ShapeDataset:
@@ -210,8 +219,18 @@ class ShapeDataset(Sequence[ShapeRecord]):
     def with_splits(self, splits: dict[str, list[int]]) -> ShapeDataset:
         """The same shapes with other splits (e.g. one leave-one-out fold)."""
         return ShapeDataset(
-            self._items, self.names, self.task, self.num_classes, splits, self.patch_configs, self.in_channels,
-            self.feature_kind, self.target_area, self.failures, self.info, self.correspondence,
+            self._items,
+            self.names,
+            self.task,
+            self.num_classes,
+            splits,
+            self.patch_configs,
+            self.in_channels,
+            self.feature_kind,
+            self.target_area,
+            self.failures,
+            self.info,
+            self.correspondence,
         )
 
     def summary(self) -> str:
@@ -233,8 +252,7 @@ def as_target(target, task: str, n_vertices: int, name: str) -> np.ndarray | Non
     if target.ndim == 2 and target.shape[1] == 1:
         target = target[:, 0]
     if target.ndim != 1 or target.shape[0] != n_vertices:
-        raise DatasetError(f"{name}: target has shape {target.shape}, expected ({n_vertices},) — one value "
-                           f"per vertex")
+        raise DatasetError(f"{name}: target has shape {target.shape}, expected ({n_vertices},) — one value per vertex")
     if task == "classification":
         if not np.all(np.isfinite(target)) or np.any(target != np.round(target)):
             raise DatasetError(f"{name}: classification labels must be integers")
@@ -243,4 +261,3 @@ def as_target(target, task: str, n_vertices: int, name: str) -> np.ndarray | Non
         bad = int(np.flatnonzero(~np.isfinite(target))[0])
         raise DatasetError(f"{name}: regression target is not finite at vertex {bad}")
     return target.astype(np.float32)
-

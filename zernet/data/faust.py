@@ -31,8 +31,14 @@ from zernet.data.source import ShapeSource, file_key
 from zernet.geometry import Surface, load_surface
 from zernet.operators import PatchConfig
 
-__all__ = ["FAUST_AREA", "FAUST_VERTICES", "load_faust", "registration_numbers", "find_registrations",
-           "faust_patch_configs"]
+__all__ = [
+    "FAUST_AREA",
+    "FAUST_VERTICES",
+    "load_faust",
+    "registration_numbers",
+    "find_registrations",
+    "faust_patch_configs",
+]
 
 FAUST_AREA = 15000.0
 FAUST_VERTICES = 6890
@@ -76,11 +82,15 @@ def _load_registration(path: str, n_vertices: int, faces_digest: str, reference:
     """ShapeSource loader: one registration, checked against the reference connectivity."""
     surface = load_surface(path)
     if surface.n_vertices != n_vertices:
-        raise DatasetError(f"{path}: has {surface.n_vertices} vertices, but FAUST registrations have "
-                           f"{n_vertices} (as {reference} does)")
+        raise DatasetError(
+            f"{path}: has {surface.n_vertices} vertices, but FAUST registrations have "
+            f"{n_vertices} (as {reference} does)"
+        )
     if surface.faces is None or _faces_digest(surface.faces) != faces_digest:
-        raise DatasetError(f"{path}: its connectivity (faces) differs from {reference}; FAUST registrations share "
-                           "one connectivity, and correspondence by vertex index needs it")
+        raise DatasetError(
+            f"{path}: its connectivity (faces) differs from {reference}; FAUST registrations share "
+            "one connectivity, and correspondence by vertex index needs it"
+        )
     return surface, np.arange(n_vertices, dtype=np.int64)
 
 
@@ -91,17 +101,22 @@ def registration_numbers(value: Sequence[int] | str, name: str) -> list[int]:
     if isinstance(value, str):
         start, colon, stop = value.partition(":")
         if not colon or not start.strip().isdigit() or not stop.strip().isdigit() or int(start) >= int(stop):
-            raise DatasetError(f"FAUST: {name} {value!r} is not a list of registration numbers or a range "
-                               f"'START:STOP' with START < STOP (e.g. '0:180')")
+            raise DatasetError(
+                f"FAUST: {name} {value!r} is not a list of registration numbers or a range "
+                f"'START:STOP' with START < STOP (e.g. '0:180')"
+            )
         return list(range(int(start), int(stop)))
     if isinstance(value, int):  # e.g. YAML 1.1 reads an unquoted 10:20 as the base-60 number 620
-        raise DatasetError(f"FAUST: {name} is the number {value}; give a list of registration numbers or a "
-                           f"quoted range such as '0:180'")
+        raise DatasetError(
+            f"FAUST: {name} is the number {value}; give a list of registration numbers or a "
+            f"quoted range such as '0:180'"
+        )
     try:
         numbers = [operator.index(i) for i in value]  # integers only: 1.5 is refused, not truncated
     except TypeError:
-        raise DatasetError(f"FAUST: {name} must be a list of registration numbers or 'START:STOP', "
-                           f"got {value!r}") from None
+        raise DatasetError(
+            f"FAUST: {name} must be a list of registration numbers or 'START:STOP', got {value!r}"
+        ) from None
     if any(i < 0 for i in numbers):
         raise DatasetError(f"FAUST: {name} has negative registration numbers: {[i for i in numbers if i < 0][:5]}")
     return numbers
@@ -152,8 +167,9 @@ def load_faust(
     if reference.faces is None:
         raise DatasetError(f"{reference_path}: has no faces; FAUST registrations are triangle meshes")
     if n_vertices is not None and reference.n_vertices != n_vertices:
-        raise DatasetError(f"{reference_path}: has {reference.n_vertices} vertices, but FAUST registrations have "
-                           f"{n_vertices}")
+        raise DatasetError(
+            f"{reference_path}: has {reference.n_vertices} vertices, but FAUST registrations have {n_vertices}"
+        )
     count = reference.n_vertices
     digest = _faces_digest(reference.faces)
 

@@ -63,8 +63,10 @@ def feature_parts(kind: str) -> list[str]:
     parts = str(kind).split("+")
     unknown = [part for part in parts if part not in FEATURE_PARTS]
     if unknown or len(set(parts)) != len(parts):
-        raise DatasetError(f"unknown feature kind {kind!r}: join distinct parts of {sorted(FEATURE_PARTS)} "
-                           "with '+', e.g. 'xyz+normals' or 'shape+curvature+membrane'")
+        raise DatasetError(
+            f"unknown feature kind {kind!r}: join distinct parts of {sorted(FEATURE_PARTS)} "
+            "with '+', e.g. 'xyz+normals' or 'shape+curvature+membrane'"
+        )
     return parts
 
 

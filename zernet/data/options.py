@@ -72,23 +72,34 @@ class LoaderOptions:
         object.__setattr__(self, "patch_configs", tuple(as_patch_configs(configs)) if configs else None)
         feature_parts(self.feature_kind)  # an unknown feature kind fails here, before any file is read
         if not self.patch_operators and needs_patch_operators(self.feature_kind):
-            raise DatasetError(f"features {self.feature_kind!r} are computed from the patch operators, "
-                               "which patch_operators=False leaves out")
+            raise DatasetError(
+                f"features {self.feature_kind!r} are computed from the patch operators, "
+                "which patch_operators=False leaves out"
+            )
         if self.on_error not in ON_ERROR_CHOICES:
             raise DatasetError(f"on_error must be one of {', '.join(ON_ERROR_CHOICES)}, got {self.on_error!r}")
 
     def with_defaults(self, *, n_val: int | float, patch_configs=None) -> LoaderOptions:
         """These options with a data set's defaults filled in where a field is None."""
-        return replace(self, n_val=n_val if self.n_val is None else self.n_val,
-                       patch_configs=self.patch_configs or patch_configs)
+        return replace(
+            self, n_val=n_val if self.n_val is None else self.n_val, patch_configs=self.patch_configs or patch_configs
+        )
 
     def build_arguments(self) -> dict[str, Any]:
         """The keyword arguments of :func:`~zernet.data.preprocess.build_dataset` these options give."""
         if self.n_val is None:
             raise ValueError("LoaderOptions.build_arguments needs n_val: call with_defaults first")
-        return {"patch_configs": self.patch_configs if self.patch_operators else (), "cache_dir": self.cache_dir,
-                "n_val": self.n_val, "seed": self.seed, "feature_kind": self.feature_kind, "workers": self.workers,
-                "on_error": self.on_error, "repair": self.repair, "progress": self.progress}
+        return {
+            "patch_configs": self.patch_configs if self.patch_operators else (),
+            "cache_dir": self.cache_dir,
+            "n_val": self.n_val,
+            "seed": self.seed,
+            "feature_kind": self.feature_kind,
+            "workers": self.workers,
+            "on_error": self.on_error,
+            "repair": self.repair,
+            "progress": self.progress,
+        }
 
 
 #: Names of the shared options (the fields of :class:`LoaderOptions`).

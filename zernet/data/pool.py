@@ -26,8 +26,10 @@ __all__ = ["WORKER_DIED", "pool_context", "worker_init", "run_pool", "run_isolat
 logger = logging.getLogger(__name__)
 
 #: Reason recorded for a shape whose worker process died while working on it.
-WORKER_DIED = ("the worker process died while preprocessing this shape (killed, e.g. by the out-of-memory "
-               "killer, or crashed in native code)")
+WORKER_DIED = (
+    "the worker process died while preprocessing this shape (killed, e.g. by the out-of-memory "
+    "killer, or crashed in native code)"
+)
 
 #: What a job does: ``work(job) -> (name, error message or None)``; module level, so workers can unpickle it.
 Work = Callable[[Any], tuple[str, str | None]]
@@ -119,8 +121,12 @@ def run_jobs(work: Work, jobs: Mapping[str, Any], workers: int, max_in_flight: i
     # Each remaining job then runs in its own one-worker pool, so a job that kills its worker is reported by
     # name instead of taking this process down when retried here. Only if no worker ever finished a job (a
     # start-up problem) are the jobs run in this process.
-    warnings.warn(f"preprocessing worker pool failed; processing the remaining {len(leftover)} shapes "
-                  "one at a time in fresh worker processes", RuntimeWarning, stacklevel=3)
+    warnings.warn(
+        f"preprocessing worker pool failed; processing the remaining {len(leftover)} shapes "
+        "one at a time in fresh worker processes",
+        RuntimeWarning,
+        stacklevel=3,
+    )
     outcomes = {name: run_isolated(work, name, job) for name, job in leftover.items()}
     workers_work = bool(done_names) or any(o is not None and o[1] != WORKER_DIED for o in outcomes.values())
     for name, outcome in outcomes.items():

@@ -130,8 +130,7 @@ def mesh_edge_index(surface: Surface, k_cloud: int = 8) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------------------------------ per-shape work
-def _normalise(surface: Surface, target, target_area: float | None, target_exponent: float, repair: bool,
-               configs):
+def _normalise(surface: Surface, target, target_area: float | None, target_exponent: float, repair: bool, configs):
     """Validate, triangulate a point cloud for the front backend, scale to ``target_area`` (None: keep),
     scale the target with its area exponent."""
     surface = validate_surface(surface, repair=repair)
@@ -145,8 +144,9 @@ def _normalise(surface: Surface, target, target_area: float | None, target_expon
     if carry:
         target = np.asarray(target, dtype=np.float64)
         if target.shape[0] != surface.n_vertices:
-            raise DatasetError(f"{surface.name}: target has {target.shape[0]} values but the surface has "
-                               f"{surface.n_vertices} vertices")
+            raise DatasetError(
+                f"{surface.name}: target has {target.shape[0]} values but the surface has {surface.n_vertices} vertices"
+            )
         surface = surface.with_fields({_TARGET_FIELD: target})
     scaled, scale = normalize_area(surface, target_area, {_TARGET_FIELD: target_exponent} if carry else None)
     if carry:
@@ -163,8 +163,10 @@ def _prepare_one(job: tuple) -> tuple[str, str | None]:
         surface, target = source.load()
         surface, target, scale = _normalise(surface, target, target_area, source.target_exponent, repair, configs)
         if target is not None and np.asarray(target).shape[0] != surface.n_vertices:
-            raise DatasetError(f"{surface.name}: target has {np.asarray(target).shape[0]} values but the surface "
-                               f"has {surface.n_vertices} vertices")
+            raise DatasetError(
+                f"{surface.name}: target has {np.asarray(target).shape[0]} values but the surface "
+                f"has {surface.n_vertices} vertices"
+            )
         for config in configs:
             build_patch_operator(surface, config, cache_dir=cache_dir)
         if cache_path is not None:
@@ -201,7 +203,9 @@ def preprocess_shapes(
     cache_dir.mkdir(parents=True, exist_ok=True)
     names = [s.name for s in sources]
     if len(set(names)) != len(names):
-        raise DatasetError(f"shape names must be unique; repeated: {sorted({n for n in names if names.count(n) > 1})[:5]}")
+        raise DatasetError(
+            f"shape names must be unique; repeated: {sorted({n for n in names if names.count(n) > 1})[:5]}"
+        )
 
     jobs = {}
     for source in sources:
@@ -209,11 +213,18 @@ def preprocess_shapes(
         if path is None or not usable_cache_entry(path):
             jobs[source.name] = (source, configs, str(cache_dir), target_area, repair, path)
     if len(jobs) < len(sources):
-        logger.info("preprocess: %d of %d shapes already cached, %d to do", len(sources) - len(jobs),
-                    len(sources), len(jobs))
+        logger.info(
+            "preprocess: %d of %d shapes already cached, %d to do", len(sources) - len(jobs), len(sources), len(jobs)
+        )
     failures: dict[str, str] = {}
-    bar = tqdm(total=len(sources), initial=len(sources) - len(jobs), desc="preprocess", unit="shape",
-               disable=not progress or not jobs, leave=False)
+    bar = tqdm(
+        total=len(sources),
+        initial=len(sources) - len(jobs),
+        desc="preprocess",
+        unit="shape",
+        disable=not progress or not jobs,
+        leave=False,
+    )
 
     def record(name: str, error: str | None) -> None:
         if error is not None:
@@ -232,8 +243,9 @@ def preprocess_shapes(
     return failures
 
 
-def _make_record(surface: Surface, target, scale: float, name: str, configs, cache_dir, task: str,
-                 feature_kind: str) -> ShapeRecord:
+def _make_record(
+    surface: Surface, target, scale: float, name: str, configs, cache_dir, task: str, feature_kind: str
+) -> ShapeRecord:
     operators = [build_patch_operator(surface, config, cache_dir=cache_dir) for config in configs]
     geometry = Geometry(operators=operators, edge_index=mesh_edge_index(surface))
     return ShapeRecord(
@@ -260,8 +272,9 @@ class _CachedRecord:
 
     def __call__(self) -> ShapeRecord:
         surface, target, scale = read_shape(self.path)
-        return _make_record(surface, target, scale, self.name, self.configs, self.cache_dir, self.task,
-                            self.feature_kind)
+        return _make_record(
+            surface, target, scale, self.name, self.configs, self.cache_dir, self.task, self.feature_kind
+        )
 
 
 def prepare_record(
@@ -285,8 +298,9 @@ def prepare_record(
     configs = as_patch_configs(patch_configs)
     surface, target, scale = _normalise(surface, target, target_area, target_exponent, repair, configs)
     name = name or Path(surface.name).stem
-    return _make_record(surface, target, scale, name, configs, None if cache_dir is None else str(cache_dir),
-                        task, feature_kind)
+    return _make_record(
+        surface, target, scale, name, configs, None if cache_dir is None else str(cache_dir), task, feature_kind
+    )
 
 
 def build_dataset(
@@ -333,8 +347,9 @@ def build_dataset(
         raise DatasetError("no shapes to preprocess")
     configs = as_patch_configs(patch_configs)
     cache_dir = Path(cache_dir)
-    failures = preprocess_shapes(sources, configs, cache_dir, target_area, workers=workers, repair=repair,
-                                 progress=progress)
+    failures = preprocess_shapes(
+        sources, configs, cache_dir, target_area, workers=workers, repair=repair, progress=progress
+    )
     if on_error not in ("raise", "skip"):
         raise DatasetError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
     if failures:
@@ -354,12 +369,25 @@ def build_dataset(
     if in_memory:
         loaders = [item if isinstance(item, ShapeRecord) else item() for item in loaders]
     in_channels = feature_channels(feature_kind, [c.n_max for c in configs] or 5)
-    return ShapeDataset(loaders, names, task, num_classes, splits, configs, in_channels,
-                        feature_kind, target_area, failures, info, correspondence)
+    return ShapeDataset(
+        loaders,
+        names,
+        task,
+        num_classes,
+        splits,
+        configs,
+        in_channels,
+        feature_kind,
+        target_area,
+        failures,
+        info,
+        correspondence,
+    )
 
 
-def _record_loader(source: ShapeSource, configs, cache_dir: Path, target_area: float | None, task: str,
-                   feature_kind: str, repair: bool) -> ShapeRecord | _CachedRecord:
+def _record_loader(
+    source: ShapeSource, configs, cache_dir: Path, target_area: float | None, task: str, feature_kind: str, repair: bool
+) -> ShapeRecord | _CachedRecord:
     """The record of a preprocessed shape, or its loader from the shape cache."""
     path = shape_cache_path(cache_dir, source, target_area, configs, repair)
     if path is not None:
@@ -370,8 +398,9 @@ def _record_loader(source: ShapeSource, configs, cache_dir: Path, target_area: f
     return _make_record(surface, target, scale, source.name, configs, str(cache_dir), task, feature_kind)
 
 
-def _index_splits(split_names: dict[str, Sequence[str]], kept: list[str], every_name: set[str],
-                  n_val: int | float, seed: int) -> dict[str, list[int]]:
+def _index_splits(
+    split_names: dict[str, Sequence[str]], kept: list[str], every_name: set[str], n_val: int | float, seed: int
+) -> dict[str, list[int]]:
     """Splits by name -> index lists into the kept shapes, with "val" carved from "train" when not given."""
     position = {name: i for i, name in enumerate(kept)}
     unknown = sorted({n for split in split_names.values() for n in split} - every_name)

@@ -89,8 +89,10 @@ def read_values(path: str | os.PathLike) -> np.ndarray:
         raise DatasetError(f"{path}: {where}: value {values[bad]} is not finite; targets must be finite")
     if values.size and np.abs(values).max() > MAX_VALUE:
         bad = int(np.argmax(np.abs(values)))
-        raise DatasetError(f"{path}: value {bad} is {values[bad]}; values beyond ±{MAX_VALUE:g} overflow the "
-                           "target statistics (their squares exceed float64): rescale the file")
+        raise DatasetError(
+            f"{path}: value {bad} is {values[bad]}; values beyond ±{MAX_VALUE:g} overflow the "
+            "target statistics (their squares exceed float64): rescale the file"
+        )
     return values
 
 
@@ -106,19 +108,21 @@ def load_mat_field(path: str, field: str) -> tuple[Surface, np.ndarray]:
     return Surface(surface.vertices, surface.faces, surface.normals, fields, surface.name), target
 
 
-
-
 def load_mesh_values(mesh_path: str, value_path: str) -> tuple[Surface, np.ndarray]:
     """ShapeSource loader: a mesh and the per-vertex values of its companion file."""
     surface = load_surface(mesh_path)
     values = read_values(value_path)
     if len(values) != surface.n_vertices:
-        raise DatasetError(f"{value_path}: has {len(values)} values but {mesh_path} has {surface.n_vertices} "
-                           "vertices (one value per vertex expected)")
+        raise DatasetError(
+            f"{value_path}: has {len(values)} values but {mesh_path} has {surface.n_vertices} "
+            "vertices (one value per vertex expected)"
+        )
     return surface, values
 
 
-def leave_one_out_splits(names: Sequence[str], held_out: str, n_val: int | float = 2, seed: int = 0) -> dict[str, list[int]]:
+def leave_one_out_splits(
+    names: Sequence[str], held_out: str, n_val: int | float = 2, seed: int = 0
+) -> dict[str, list[int]]:
     """Splits of one leave-one-out fold: test = ``held_out``, val = ``n_val`` seeded shapes of the others,
     train = the rest. Indices refer to ``names`` (use ``dataset.names``); apply with ``dataset.with_splits``.
     """
@@ -158,22 +162,37 @@ def load_aneurysm(
     options = options.with_defaults(n_val=2, patch_configs=aneurysm_patch_configs())
     root = Path(os.path.expanduser(os.fspath(root)))
     if not root.is_dir():
-        raise DatasetError(f"aneurysm folder {root} does not exist" if not root.exists()
-                           else f"aneurysm root {root} is a file; give the folder holding the TP_Ia*I.mat files")
+        raise DatasetError(
+            f"aneurysm folder {root} does not exist"
+            if not root.exists()
+            else f"aneurysm root {root} is a file; give the folder holding the TP_Ia*I.mat files"
+        )
     files = sorted(root.glob("*.mat"))
     if not files:
         raise DatasetError(f"{root}: no .mat files; expected the authors' layout TP_Ia<ID>I.mat (X, F, {field})")
     sources = [
-        ShapeSource(name=path.stem, load=partial(load_mat_field, str(path), field),
-                    key=file_key(path) + f"|{field}", target_exponent=0.5)
+        ShapeSource(
+            name=path.stem,
+            load=partial(load_mat_field, str(path), field),
+            key=file_key(path) + f"|{field}",
+            target_exponent=0.5,
+        )
         for path in files
     ]
     names = [s.name for s in sources]
     return build_dataset(
-        sources, target_area=area, task="regression", num_classes=None,
+        sources,
+        target_area=area,
+        task="regression",
+        num_classes=None,
         split_names=_splits_for(names, test, root),
-        info={"kind": "aneurysm", "root": str(root), "field": field, "paper_cases": list(PAPER_CASES),
-              "target_exponent": 0.5},
+        info={
+            "kind": "aneurysm",
+            "root": str(root),
+            "field": field,
+            "paper_cases": list(PAPER_CASES),
+            "target_exponent": 0.5,
+        },
         **options.build_arguments(),
     )
 
@@ -199,8 +218,11 @@ def load_regression(
     options = options.with_defaults(n_val=0.1)
     root = Path(os.path.expanduser(os.fspath(root)))
     if not root.is_dir():
-        raise DatasetError(f"regression folder {root} does not exist" if not root.exists()
-                           else f"regression root {root} is a file; give the folder of meshes and value files")
+        raise DatasetError(
+            f"regression folder {root} does not exist"
+            if not root.exists()
+            else f"regression root {root} is a file; give the folder of meshes and value files"
+        )
     if options.patch_operators and not options.patch_configs:
         raise DatasetError("regression: give patch_configs (a patch radius suited to the surfaces' area)")
     sources, missing = [], []
@@ -209,26 +231,40 @@ def load_regression(
         if path.suffix.lower() == ".mat":
             if field is None:
                 raise DatasetError(f"{path}: .mat files need field= (the name of the per-vertex target array)")
-            sources.append(ShapeSource(name, partial(load_mat_field, str(path), field),
-                                       file_key(path) + f"|{field}", target_exponent))
+            sources.append(
+                ShapeSource(
+                    name, partial(load_mat_field, str(path), field), file_key(path) + f"|{field}", target_exponent
+                )
+            )
             continue
         companions = [path.with_suffix(ext) for ext in VALUE_EXTENSIONS if path.with_suffix(ext).is_file()]
         if not companions:
             missing.append(str(path.relative_to(root)))
             continue
-        sources.append(ShapeSource(name, partial(load_mesh_values, str(path), str(companions[0])),
-                                   file_key(path, companions[0]), target_exponent))
+        sources.append(
+            ShapeSource(
+                name,
+                partial(load_mesh_values, str(path), str(companions[0])),
+                file_key(path, companions[0]),
+                target_exponent,
+            )
+        )
     if missing:
         shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
-        raise DatasetError(f"{root}: no per-vertex value file (<stem>.npy or <stem>.txt) for {len(missing)} "
-                           f"mesh(es): {shown}")
+        raise DatasetError(
+            f"{root}: no per-vertex value file (<stem>.npy or <stem>.txt) for {len(missing)} mesh(es): {shown}"
+        )
     if not sources:
         raise DatasetError(f"{root}: no meshes ({', '.join(MESH_EXTENSIONS)}) or .mat files found")
     names = [s.name for s in sources]
     if test is None and test_fraction is not None:
         test = draw_test_names(names, test_fraction, options.seed)
     return build_dataset(
-        sources, target_area=area, task="regression", num_classes=None, split_names=_splits_for(names, test, root),
+        sources,
+        target_area=area,
+        task="regression",
+        num_classes=None,
+        split_names=_splits_for(names, test, root),
         info={"kind": "regression", "root": str(root), "field": field, "target_exponent": target_exponent},
         **options.build_arguments(),
     )

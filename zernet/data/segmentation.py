@@ -109,7 +109,9 @@ def read_labels(path: str | os.PathLike) -> np.ndarray:
     return values.astype(np.int64)
 
 
-def face_to_vertex_labels(faces: np.ndarray, face_labels: np.ndarray, face_areas: np.ndarray, n_vertices: int) -> np.ndarray:
+def face_to_vertex_labels(
+    faces: np.ndarray, face_labels: np.ndarray, face_areas: np.ndarray, n_vertices: int
+) -> np.ndarray:
     """Per-vertex labels by the area-weighted majority of the incident faces (ties: smallest label).
 
     faces (F, 3), face_labels (F,) >= 0, face_areas (F,). Returns (n_vertices,) int64; vertices used by no
@@ -123,36 +125,46 @@ def face_to_vertex_labels(faces: np.ndarray, face_labels: np.ndarray, face_areas
     return votes.argmax(axis=1).astype(np.int64)
 
 
-def _resolve_labels(mesh_path: Path, surface: Surface, raw: np.ndarray, label_path: Path, label_kind: str,
-                    base: int, num_classes: int) -> np.ndarray:
+def _resolve_labels(
+    mesh_path: Path, surface: Surface, raw: np.ndarray, label_path: Path, label_kind: str, base: int, num_classes: int
+) -> np.ndarray:
     """Labels of one mesh as per-vertex classes 0..num_classes-1, with the errors of the module docstring."""
     n, f = surface.n_vertices, surface.n_faces
     count = len(raw)
     if label_kind == "vertex" or (label_kind == "auto" and count == n):
         if count != n:
-            raise DatasetError(f"{label_path}: has {count} labels but {mesh_path} has {n} vertices "
-                               "(label_kind='vertex' needs one label per vertex)")
+            raise DatasetError(
+                f"{label_path}: has {count} labels but {mesh_path} has {n} vertices "
+                "(label_kind='vertex' needs one label per vertex)"
+            )
         kind = "vertex"
     elif label_kind == "face" or (label_kind == "auto" and count == f):
         if count != f:
-            raise DatasetError(f"{label_path}: has {count} labels but {mesh_path} has {f} faces "
-                               "(label_kind='face' needs one label per face)")
+            raise DatasetError(
+                f"{label_path}: has {count} labels but {mesh_path} has {f} faces "
+                "(label_kind='face' needs one label per face)"
+            )
         kind = "face"
     else:
-        raise DatasetError(f"{label_path}: has {count} labels but {mesh_path} has {n} vertices and {f} faces; "
-                           "expected one label per vertex or one per face")
+        raise DatasetError(
+            f"{label_path}: has {count} labels but {mesh_path} has {n} vertices and {f} faces; "
+            "expected one label per vertex or one per face"
+        )
     labels = raw - base
     if labels.min() < 0 or labels.max() >= num_classes:
         bad = labels.min() if labels.min() < 0 else labels.max()
-        raise DatasetError(f"{label_path}: label {bad + base} is outside the {num_classes} classes "
-                           f"({base}..{num_classes - 1 + base} with {base}-based labels)")
+        raise DatasetError(
+            f"{label_path}: label {bad + base} is outside the {num_classes} classes "
+            f"({base}..{num_classes - 1 + base} with {base}-based labels)"
+        )
     if kind == "face":
         labels = face_to_vertex_labels(surface.faces, labels, surface.face_areas(), n)
     return labels
 
 
-def load_labelled_mesh(mesh_path: str, label_path: str, label_kind: str, base: int, num_classes: int,
-                        repair: bool) -> tuple[Surface, np.ndarray]:
+def load_labelled_mesh(
+    mesh_path: str, label_path: str, label_kind: str, base: int, num_classes: int, repair: bool
+) -> tuple[Surface, np.ndarray]:
     """ShapeSource loader: the mesh and its per-vertex labels.
 
     Without repair, the mesh is read and validated by :func:`~zernet.geometry.io.load_surface`. With repair,
@@ -164,16 +176,15 @@ def load_labelled_mesh(mesh_path: str, label_path: str, label_kind: str, base: i
         surface = load_surface(mesh_path)
     else:
         surface = _read_as_stored(mesh_path)
-    labels = _resolve_labels(Path(mesh_path), surface, read_labels(label_path), Path(label_path), label_kind,
-                             base, num_classes)
+    labels = _resolve_labels(
+        Path(mesh_path), surface, read_labels(label_path), Path(label_path), label_kind, base, num_classes
+    )
     if repair:
         labelled = validate_surface(surface.with_fields({"__labels__": labels}), repair=True)
         labels = np.asarray(labelled.fields["__labels__"]).astype(np.int64)
         fields = {k: v for k, v in labelled.fields.items() if k != "__labels__"}
         surface = Surface(labelled.vertices, labelled.faces, labelled.normals, fields, labelled.name)
     return surface, labels
-
-
 
 
 def _read_as_stored(mesh_path: str) -> Surface:
@@ -214,8 +225,10 @@ def _pair_with_labels(mesh_files: list[Path], mesh_root: Path, label_root: Path)
             pairs.append((mesh, label))
     if unlabelled:
         shown = ", ".join(unlabelled[:8]) + (f" and {len(unlabelled) - 8} more" if len(unlabelled) > 8 else "")
-        raise DatasetError(f"{label_root}: no label file (same name, {'/'.join(LABEL_EXTENSIONS)}) for "
-                           f"{len(unlabelled)} mesh(es): {shown}")
+        raise DatasetError(
+            f"{label_root}: no label file (same name, {'/'.join(LABEL_EXTENSIONS)}) for "
+            f"{len(unlabelled)} mesh(es): {shown}"
+        )
     return pairs
 
 
@@ -256,8 +269,10 @@ def resolve_class_names(class_names: Sequence[str] | None, num_classes: int, lab
     if isinstance(class_names, str) or not all(isinstance(name, str) for name in class_names):
         raise DatasetError(f"{source}: class names must be a list of strings, got {class_names!r}")
     if len(class_names) != num_classes:
-        raise DatasetError(f"{source}: {len(class_names)} class names for {num_classes} classes "
-                           "(data.num_classes); give one name per class, in label order")
+        raise DatasetError(
+            f"{source}: {len(class_names)} class names for {num_classes} classes "
+            "(data.num_classes); give one name per class, in label order"
+        )
     return list(class_names)
 
 
@@ -270,15 +285,18 @@ def draw_test_names(names: Sequence[str], test_fraction: float, seed: int) -> li
     return [names[i] for i in sorted(order[:count])]
 
 
-def _test_names(names: list[str], test: Sequence[str] | None, test_fraction: float, seed: int,
-                mesh_root: Path) -> list[str]:
+def _test_names(
+    names: list[str], test: Sequence[str] | None, test_fraction: float, seed: int, mesh_root: Path
+) -> list[str]:
     """The test meshes: ``test`` if given, else those under a ``test`` folder, else a seeded share."""
     if test is not None:
         test_names = [str(t) for t in test]
         unknown = sorted(set(test_names) - set(names))
         if unknown:
-            raise DatasetError(f"{mesh_root}: test meshes {unknown[:5]} not found (names are paths relative to "
-                               f"the mesh folder without extension, e.g. {names[0]!r})")
+            raise DatasetError(
+                f"{mesh_root}: test meshes {unknown[:5]} not found (names are paths relative to "
+                f"the mesh folder without extension, e.g. {names[0]!r})"
+            )
         return test_names
     if any("test" in Path(name).parts[:-1] for name in names):
         return [name for name in names if "test" in Path(name).parts[:-1]]
@@ -342,8 +360,7 @@ def load_segmentation(
     sources = [
         ShapeSource(
             name=name,
-            load=partial(load_labelled_mesh, str(mesh), str(label), label_kind, base, num_classes,
-                         options.repair),
+            load=partial(load_labelled_mesh, str(mesh), str(label), label_kind, base, num_classes, options.repair),
             key=file_key(mesh, label) + f"|{label_kind}|{base}|{num_classes}|{options.repair}",
         )
         for name, (mesh, label) in zip(names, pairs)
@@ -357,9 +374,17 @@ def load_segmentation(
         raise DatasetError("segmentation: give patch_configs (e.g. [{'r0': 5.5}] for human bodies at area 15000)")
     # The shape loader repairs (so the labels follow the merged vertices); the pipeline must not repair again.
     return build_dataset(
-        sources, target_area=area, task="classification", num_classes=num_classes,
+        sources,
+        target_area=area,
+        task="classification",
+        num_classes=num_classes,
         split_names={"train": train_names, "test": test_names},
-        info={"kind": "segmentation", "meshes": str(mesh_root), "labels": str(label_root), "label_base": base,
-              "class_names": class_names},
+        info={
+            "kind": "segmentation",
+            "meshes": str(mesh_root),
+            "labels": str(label_root),
+            "label_base": base,
+            "class_names": class_names,
+        },
         **replace(options, repair=False).build_arguments(),
     )

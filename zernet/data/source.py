@@ -60,8 +60,9 @@ def read_text_numbers(path: str | os.PathLike, what: str = "value") -> tuple[np.
     try:
         text = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as error:
-        raise DatasetError(f"{path}: unreadable: not a text file of {what}s (not UTF-8 at byte "
-                           f"{error.start})") from None
+        raise DatasetError(
+            f"{path}: unreadable: not a text file of {what}s (not UTF-8 at byte {error.start})"
+        ) from None
     except OSError as error:
         raise DatasetError(f"{path}: cannot read {what}s: {error.strerror or error}") from None
     numbers: list[float] = []
@@ -72,6 +73,7 @@ def read_text_numbers(path: str | os.PathLike, what: str = "value") -> tuple[np.
                 numbers.append(float(token))
                 lines.append(line_number)
             except ValueError:
-                raise DatasetError(f"{path}: line {line_number}: {token[:40]!r} is not a number "
-                                   f"(expected one {what} per line)") from None
+                raise DatasetError(
+                    f"{path}: line {line_number}: {token[:40]!r} is not a number (expected one {what} per line)"
+                ) from None
     return np.asarray(numbers, dtype=np.float64), np.asarray(lines, dtype=np.int64)

@@ -169,8 +169,6 @@ def load_creature(seed: int, n_vertices: int, rotate: bool, task: str) -> tuple[
     return surface, labels if task == "segmentation" else curvature
 
 
-
-
 def demo_patch_configs(n_scales: int = 1, **overrides) -> list[PatchConfig]:
     """Patch settings for the synthetic creatures (paper density, see the module docstring).
 
@@ -215,22 +213,32 @@ def make_synthetic_dataset(
     sources = []
     for i in range(n_shapes):
         shape_seed = options.seed * 100003 + i
-        key = json.dumps({"generator": _GENERATOR_VERSION, "seed": shape_seed, "n": n_vertices, "rotate": rotate,
-                          "task": task})
-        sources.append(ShapeSource(
-            name=f"creature_{i:03d}",
-            load=partial(load_creature, shape_seed, n_vertices, rotate, task),
-            key=key,
-            target_exponent=target_exponent,
-        ))
+        key = json.dumps(
+            {"generator": _GENERATOR_VERSION, "seed": shape_seed, "n": n_vertices, "rotate": rotate, "task": task}
+        )
+        sources.append(
+            ShapeSource(
+                name=f"creature_{i:03d}",
+                load=partial(load_creature, shape_seed, n_vertices, rotate, task),
+                key=key,
+                target_exponent=target_exponent,
+            )
+        )
     n_test = min(n_shapes - 1, max(1, int(round(test_fraction * n_shapes))))
     names = [s.name for s in sources]
     return build_dataset(
-        sources, target_area=SYNTHETIC_AREA if area is None else float(area),
+        sources,
+        target_area=SYNTHETIC_AREA if area is None else float(area),
         task="classification" if task == "segmentation" else "regression",
         num_classes=len(PART_NAMES) if task == "segmentation" else None,
-        split_names={"train": names[: n_shapes - n_test], "test": names[n_shapes - n_test:]},
-        info={"kind": "synthetic", "task": task, "class_names": list(PART_NAMES) if task == "segmentation" else None,
-              "n_vertices": n_vertices, "rotate": rotate, "target_exponent": target_exponent},
+        split_names={"train": names[: n_shapes - n_test], "test": names[n_shapes - n_test :]},
+        info={
+            "kind": "synthetic",
+            "task": task,
+            "class_names": list(PART_NAMES) if task == "segmentation" else None,
+            "n_vertices": n_vertices,
+            "rotate": rotate,
+            "target_exponent": target_exponent,
+        },
         **options.build_arguments(),
     )

@@ -96,8 +96,7 @@ def mesh_from_cloud(surface: Surface, k: int = CLOUD_MESH_NEIGHBOURS) -> Surface
 
 def _select_triangles(points: np.ndarray, normals: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     """Steps 2-5 of the module docstring: the proposed triangles, filtered and selected (unoriented)."""
-    proposed = _local_rings(points, np.ascontiguousarray(normals, dtype=np.float64), neighbours,
-                            _MIN_NORMAL_AGREEMENT)
+    proposed = _local_rings(points, np.ascontiguousarray(normals, dtype=np.float64), neighbours, _MIN_NORMAL_AGREEMENT)
     if len(proposed) == 0:
         return np.zeros((0, 3), dtype=np.int64)
     triangles, votes = np.unique(np.sort(proposed, axis=1), axis=0, return_counts=True)
@@ -146,21 +145,29 @@ def _orient_faces(points: np.ndarray, normals: np.ndarray, faces: np.ndarray) ->
     # decides. Relaxed to real s, this is one sparse linear system (a signed graph Laplacian).
     relation = np.where(disagree, -1.0, 1.0)
     laplacian = scipy.sparse.coo_matrix(
-        (np.concatenate([smoothness, smoothness, -smoothness * relation, -smoothness * relation]),
-         (np.concatenate([first, second, first, second]), np.concatenate([first, second, second, first]))),
-        shape=(n_faces, n_faces)).tocsc()
-    signs = scipy.sparse.linalg.spsolve(laplacian + _ORIENTATION_PRIOR * scipy.sparse.identity(n_faces, format="csc"),
-                                        np.full(n_faces, _ORIENTATION_PRIOR))
+        (
+            np.concatenate([smoothness, smoothness, -smoothness * relation, -smoothness * relation]),
+            (np.concatenate([first, second, first, second]), np.concatenate([first, second, second, first])),
+        ),
+        shape=(n_faces, n_faces),
+    ).tocsc()
+    signs = scipy.sparse.linalg.spsolve(
+        laplacian + _ORIENTATION_PRIOR * scipy.sparse.identity(n_faces, format="csc"),
+        np.full(n_faces, _ORIENTATION_PRIOR),
+    )
     flip = signs < 0
     faces = np.where(flip[:, None], faces[:, [0, 2, 1]], faces)
-    _, piece = connected_components(scipy.sparse.coo_matrix((np.ones(len(first)), (first, second)),
-                                                            shape=(n_faces, n_faces)), directed=False)
+    _, piece = connected_components(
+        scipy.sparse.coo_matrix((np.ones(len(first)), (first, second)), shape=(n_faces, n_faces)), directed=False
+    )
     corners = points[faces]
     cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     area = 0.5 * np.linalg.norm(cross, axis=1)
     centroid = corners.mean(axis=1)
     weight_sum = np.maximum(np.bincount(piece, weights=area), 1e-300)
-    middle = np.stack([np.bincount(piece, weights=area * centroid[:, i]) for i in range(3)], axis=1) / weight_sum[:, None]
+    middle = (
+        np.stack([np.bincount(piece, weights=area * centroid[:, i]) for i in range(3)], axis=1) / weight_sum[:, None]
+    )
     volume = np.bincount(piece, weights=np.einsum("fi,fi->f", centroid - middle[piece], cross))
     size = np.bincount(piece)
     inward = (volume[piece] < 0) & (size[piece] >= _MIN_PIECE_FACES)
@@ -336,7 +343,9 @@ def _hull(xy, hull):
         for index in sequence:
             while size >= start + 2:
                 a, b = hull[size - 2], hull[size - 1]
-                cross = (xy[b, 0] - xy[a, 0]) * (xy[index, 1] - xy[a, 1]) - (xy[b, 1] - xy[a, 1]) * (xy[index, 0] - xy[a, 0])
+                cross = (xy[b, 0] - xy[a, 0]) * (xy[index, 1] - xy[a, 1]) - (xy[b, 1] - xy[a, 1]) * (
+                    xy[index, 0] - xy[a, 0]
+                )
                 if cross > 0.0:
                     break
                 size -= 1

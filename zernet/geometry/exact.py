@@ -120,7 +120,9 @@ class ExactGeodesics:
             the geodesic distance exceeds ``limit`` (the propagation stops there) or the sample is on
             another connected component.
         """
-        candidates = np.sort(np.asarray(self._sample_tree.query_ball_point(self._points[center], limit), dtype=np.int64))
+        candidates = np.sort(
+            np.asarray(self._sample_tree.query_ball_point(self._points[center], limit), dtype=np.int64)
+        )
         if len(candidates) == 0:
             return candidates, np.zeros(0)
         distance, _ = self._algorithm.geodesicDistances(

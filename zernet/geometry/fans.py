@@ -175,8 +175,9 @@ def _walk_fans(vertices, faces, frames, wedge_start, wedge_face, wedge_corner, c
 
 
 @numba.njit(cache=True, nogil=True)
-def tangent_angle_of(v, theta, vertices, faces, frames, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner,
-                     reversed_):
+def tangent_angle_of(
+    v, theta, vertices, faces, frames, wedge_start, wedge_face, wedge_corner, start_angle, scale, corner, reversed_
+):
     """The tangent-plane angle at vertex ``v`` of the direction with intrinsic angle ``theta``.
 
     The wedge holding ``theta`` is found, the direction is rebuilt inside that face (at unfolded angle

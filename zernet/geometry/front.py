@@ -77,8 +77,10 @@ def front_polar(
         SurfaceError: for a point cloud (the front needs triangles), or mismatched frames.
     """
     if surface.is_point_cloud:
-        raise SurfaceError(f"{surface.name}: the front backend needs a triangle mesh, got a point cloud "
-                           "(zernet.geometry.cloud_mesh.mesh_from_cloud triangulates it through its points)")
+        raise SurfaceError(
+            f"{surface.name}: the front backend needs a triangle mesh, got a point cloud "
+            "(zernet.geometry.cloud_mesh.mesh_from_cloud triangulates it through its points)"
+        )
     if not r0 > 0:
         raise ValueError(f"r0 must be positive, got {r0}")
     n = surface.n_vertices
@@ -223,7 +225,9 @@ def _front_chunk(
                     if r > r0:
                         continue
                     if count == out_center.shape[0]:
-                        out_center, out_sample, out_radius, out_angle = _grow(out_center, out_sample, out_radius, out_angle)
+                        out_center, out_sample, out_radius, out_angle = _grow(
+                            out_center, out_sample, out_radius, out_angle
+                        )
                     out_center[count] = p
                     out_sample[count] = s
                     out_radius[count] = r
@@ -298,7 +302,9 @@ def _propagate(
             for side in range(2):
                 to_target = side_geometry[slot, side, _TO_TARGET]
                 if relevant:
-                    bound = max(bound, min(key + to_target, r0 + min(side_geometry[slot, side, _TARGET_REACH], extension)))
+                    bound = max(
+                        bound, min(key + to_target, r0 + min(side_geometry[slot, side, _TARGET_REACH], extension))
+                    )
                 target, other = wedge_target[slot, side], wedge_target[slot, 1 - side]
                 if exact[target]:
                     continue

@@ -93,8 +93,9 @@ def _select_fields(surface: Surface, wanted: list[str]) -> Surface:
         raise SurfaceError(
             f"{surface.name}: requested field(s) {missing} not in the file (it has {sorted(surface.fields)})"
         )
-    return Surface(surface.vertices, surface.faces, surface.normals,
-                   {key: surface.fields[key] for key in wanted}, surface.name)
+    return Surface(
+        surface.vertices, surface.faces, surface.normals, {key: surface.fields[key] for key in wanted}, surface.name
+    )
 
 
 # ====================================================================== PLY, OBJ, OFF, STL
@@ -123,8 +124,9 @@ def _load_trimesh(name: str, extension: str) -> Surface:
         vertices = np.asarray(loaded.vertices, dtype=np.float64)
         normals = None
         if all(key in raw for key in ("nx", "ny", "nz")):
-            normals = np.concatenate([np.asarray(raw[key], dtype=np.float64).reshape(-1, 1)
-                                      for key in ("nx", "ny", "nz")], axis=1)
+            normals = np.concatenate(
+                [np.asarray(raw[key], dtype=np.float64).reshape(-1, 1) for key in ("nx", "ny", "nz")], axis=1
+            )
         return Surface(vertices, None, normals, _ply_fields(raw, len(vertices)), name)
     if not isinstance(loaded, trimesh.Trimesh):
         raise SurfaceError(f"{name}: the file holds a {type(loaded).__name__}, not a mesh or a point cloud")
@@ -150,8 +152,9 @@ def _check_text_mesh(name: str, extension: str) -> None:
         where = error.start
     if text is None or "\x00" in text:
         where = data.find(b"\x00") if text is not None else where
-        raise SurfaceError(f"{name}: unreadable: not a text {extension[1:].upper()} file (binary or not UTF-8 "
-                           f"at byte {where})")
+        raise SurfaceError(
+            f"{name}: unreadable: not a text {extension[1:].upper()} file (binary or not UTF-8 at byte {where})"
+        )
     lines = text.splitlines()
     faces = _obj_faces(lines) if extension == ".obj" else _off_faces(lines)
     if faces is None:
@@ -161,8 +164,10 @@ def _check_text_mesh(name: str, extension: str) -> None:
         for index in indices:
             resolved = index + n_vertices if (base == 1 and index < 0) else index - base
             if not 0 <= resolved < n_vertices:
-                raise SurfaceError(f"{name}: face {face_number} (line {line_number}) refers to vertex {index}, but "
-                                   f"the file has {n_vertices} vertices ({'1' if base else '0'}-based indices)")
+                raise SurfaceError(
+                    f"{name}: face {face_number} (line {line_number}) refers to vertex {index}, but "
+                    f"the file has {n_vertices} vertices ({'1' if base else '0'}-based indices)"
+                )
 
 
 def _obj_faces(lines: list[str]):
@@ -193,8 +198,8 @@ def _off_faces(lines: list[str]):
         content = content[1:] if not head else [(content[0][0], head)] + content[1:]
     try:
         n_vertices, n_faces = int(content[0][1][0]), int(content[0][1][1])
-        rows = content[1 + n_vertices: 1 + n_vertices + n_faces]
-        entries = [(number, [int(v) for v in parts[1: 1 + int(parts[0])]]) for number, parts in rows]
+        rows = content[1 + n_vertices : 1 + n_vertices + n_faces]
+        entries = [(number, [int(v) for v in parts[1 : 1 + int(parts[0])]]) for number, parts in rows]
     except (ValueError, IndexError):
         return None
     return n_vertices, entries, 0
@@ -247,9 +252,7 @@ def _load_mat(name: str) -> Surface:
     try:
         content = scipy.io.loadmat(name)
     except NotImplementedError as error:  # MATLAB v7.3 files are HDF5
-        raise SurfaceError(
-            f"{name}: MATLAB v7.3 (HDF5) files are not supported; save with -v7: {error}"
-        ) from error
+        raise SurfaceError(f"{name}: MATLAB v7.3 (HDF5) files are not supported; save with -v7: {error}") from error
     except Exception as error:
         raise SurfaceError(f"{name}: cannot read the .mat file: {type(error).__name__}: {error}") from error
     arrays = {key: value for key, value in content.items() if not key.startswith("__")}
@@ -279,8 +282,7 @@ def _mat_faces(name: str, one_based: np.ndarray) -> np.ndarray:
         whole = np.isfinite(one_based) & (one_based == np.round(one_based)) & (np.abs(one_based) < 2.0**53)
         if not whole.all():
             bad = int(np.argwhere(~whole)[0, 0])
-            raise SurfaceError(f"{name}: face {bad} = {one_based[bad].tolist()} in 'F' is not a whole vertex "
-                               "index")
+            raise SurfaceError(f"{name}: face {bad} = {one_based[bad].tolist()} in 'F' is not a whole vertex index")
     if one_based.size and one_based.min() < 1:
         bad = int(np.argwhere(one_based < 1)[0, 0])
         raise SurfaceError(

@@ -86,8 +86,10 @@ def membrane_stress(
 
 
 def _cache_path(surface: Surface, prestress: float, nu: float, cache_dir: str | os.PathLike) -> Path:
-    text = json.dumps({"geometry": surface.geometry_hash(), "prestress": prestress,
-                       "poisson_ratio": nu, "version": _FORMAT_VERSION}, sort_keys=True)
+    text = json.dumps(
+        {"geometry": surface.geometry_hash(), "prestress": prestress, "poisson_ratio": nu, "version": _FORMAT_VERSION},
+        sort_keys=True,
+    )
     return Path(cache_dir) / "membrane" / f"{hashlib.sha256(text.encode()).hexdigest()}.npy"
 
 
@@ -180,8 +182,10 @@ def _solve_displacement(surface: Surface, stiffness, load: np.ndarray, prestress
         except scipy.sparse.linalg.MatrixRankWarning:
             solution = np.full(int(free.sum()), np.nan)
     if not np.all(np.isfinite(solution)):
-        raise SurfaceError(f"{surface.name}: the membrane system is singular (a flat or folded region can move "
-                           f"freely); use a prestress > 0 (got {prestress})")
+        raise SurfaceError(
+            f"{surface.name}: the membrane system is singular (a flat or folded region can move "
+            f"freely); use a prestress > 0 (got {prestress})"
+        )
     displacement = np.zeros(3 * n)
     displacement[free] = solution
     return displacement

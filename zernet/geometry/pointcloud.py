@@ -79,7 +79,9 @@ def orient_normals(points: np.ndarray, normals: np.ndarray, neighbours: np.ndarr
     # or between touching limbs the normals are antiparallel (weight ~0 by Hoppe's term alone, so the tree
     # would cross there and flip the far sheet inward), but the step runs along the normals.
     offset = unit_rows(points[cols] - points[rows])
-    leaving = np.abs(np.einsum("ij,ij->i", offset, normals[rows])) + np.abs(np.einsum("ij,ij->i", offset, normals[cols]))
+    leaving = np.abs(np.einsum("ij,ij->i", offset, normals[rows])) + np.abs(
+        np.einsum("ij,ij->i", offset, normals[cols])
+    )
     weight = 1.0 - alignment + leaving + 1e-9  # strictly positive: csgraph treats 0 as "no edge"
     graph = scipy.sparse.coo_matrix((weight, (rows, cols)), shape=(n, n)).tocsr()
     graph = graph.maximum(graph.T)

@@ -66,8 +66,16 @@ from zernet.geometry.polar_fast import fast_polar
 from zernet.geometry.sampling import SurfaceSamples
 from zernet.geometry.surface import Surface
 
-__all__ = ["PolarCoordinates", "tangent_frames", "compute_polar", "transport_angles", "wrap_angle", "BACKENDS",
-           "BACKEND_VERSIONS", "resolve_backend"]
+__all__ = [
+    "PolarCoordinates",
+    "tangent_frames",
+    "compute_polar",
+    "transport_angles",
+    "wrap_angle",
+    "BACKENDS",
+    "BACKEND_VERSIONS",
+    "resolve_backend",
+]
 
 BACKENDS = ("fast", "accurate", "front")
 #: Bumped when a backend's output changes, so cached operators built from the old output are rebuilt.
@@ -187,11 +195,7 @@ def transport_angles(frames: np.ndarray, p, q) -> np.ndarray:
     denominator = 1.0 + cosine
     safe = denominator > 1e-12
     scale = np.divide(1.0, denominator, out=np.zeros_like(denominator), where=safe)
-    turned = (
-        cosine[:, None] * e1_q
-        + np.cross(axis, e1_q)
-        + axis * (np.einsum("ei,ei->e", axis, e1_q) * scale)[:, None]
-    )
+    turned = cosine[:, None] * e1_q + np.cross(axis, e1_q) + axis * (np.einsum("ei,ei->e", axis, e1_q) * scale)[:, None]
     turned[~safe] = e1_q[~safe]  # antipodal normals: rotation by π about e1_q keeps e1_q
     gamma = np.arctan2(np.einsum("ei,ei->e", turned, e2_p), np.einsum("ei,ei->e", turned, e1_p))
     return wrap_angle(gamma)

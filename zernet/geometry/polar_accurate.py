@@ -24,8 +24,7 @@ __all__ = ["accurate_polar"]
 _WORKER: dict = {}
 
 
-def accurate_polar(surface: Surface, samples: SurfaceSamples, frames: np.ndarray, r0: float,
-                   n_jobs: int | None):
+def accurate_polar(surface: Surface, samples: SurfaceSamples, frames: np.ndarray, r0: float, n_jobs: int | None):
     """potpourri3d log maps, one source vertex per solve, over ``n_jobs`` worker processes.
 
     Returns:
@@ -150,9 +149,7 @@ def _mesh_sample_log_map(source: int, js: np.ndarray) -> tuple[np.ndarray, np.nd
     radius = np.linalg.norm(vectors, axis=1)
     # Across the cut locus the corner vectors disagree in direction: interpolate the distance.
     unit = corners / np.maximum(lengths, 1e-300)[..., None]
-    coherence = np.min(
-        [np.einsum("nd,nd->n", unit[:, a], unit[:, b]) for a, b in ((0, 1), (1, 2), (0, 2))], axis=0
-    )
+    coherence = np.min([np.einsum("nd,nd->n", unit[:, a], unit[:, b]) for a, b in ((0, 1), (1, 2), (0, 2))], axis=0)
     # Only far from the source (a corner farther than twice the triangle's longest edge) can a
     # triangle straddle the cut; near the source wide corner angles are normal.
     far = lengths.min(axis=1) > 2.0 * w["longest_edge"][w["face_index"][js]]

@@ -128,8 +128,9 @@ def _surface_graph(surface: Surface) -> tuple[np.ndarray, float]:
     return edges, longest
 
 
-def same_sheet(surface: Surface, samples: SurfaceSamples, center: np.ndarray, sample: np.ndarray,
-               r0: float) -> np.ndarray:
+def same_sheet(
+    surface: Surface, samples: SurfaceSamples, center: np.ndarray, sample: np.ndarray, r0: float
+) -> np.ndarray:
     """Mask of (vertex p, sample j) pairs where j is reachable from p through the surface near p.
 
     For every vertex p, take the vertices within ``r0 + h`` of p (``h`` = longest graph edge) and the graph
@@ -160,9 +161,7 @@ def same_sheet(surface: Surface, samples: SurfaceSamples, center: np.ndarray, sa
     source, target, sample_slot, own = _link_ball_nodes(node_p, node_v, upper, center, sample_node)
 
     indptr = np.concatenate([[0], np.cumsum(np.bincount(source, minlength=len(node_p)))])
-    graph = scipy.sparse.csr_matrix(
-        (np.ones(len(source), dtype=np.int8), target, indptr), shape=(len(node_p),) * 2
-    )
+    graph = scipy.sparse.csr_matrix((np.ones(len(source), dtype=np.int8), target, indptr), shape=(len(node_p),) * 2)
     _, label = connected_components(graph, directed=False)
     reached = sample_slot >= 0
     reached[reached] = label[sample_slot[reached]] == label[own[center[reached]]]

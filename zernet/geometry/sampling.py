@@ -46,8 +46,9 @@ def normalize_area(
     field_exponents = dict(field_exponents or {})
     missing = [key for key in field_exponents if key not in surface.fields]
     if missing:
-        raise SurfaceError(f"{surface.name}: cannot scale missing field(s) {missing} "
-                           f"(the surface has {sorted(surface.fields)})")
+        raise SurfaceError(
+            f"{surface.name}: cannot scale missing field(s) {missing} (the surface has {sorted(surface.fields)})"
+        )
     weights = surface.vertex_areas()
     area = float(weights.sum())
     if not np.isfinite(area) or area <= 0:

@@ -165,8 +165,9 @@ class Surface:
         ``smoothing_steps`` rounds of averaging each vertex with its neighbours (mesh edges, or the 16
         nearest points), weighted by vertex area, remove the discretisation noise of irregular sampling.
         """
-        curvature = self._cached("mean_curvature", self._cloud_mean_curvature if self.is_point_cloud
-                                 else self._mesh_mean_curvature)
+        curvature = self._cached(
+            "mean_curvature", self._cloud_mean_curvature if self.is_point_cloud else self._mesh_mean_curvature
+        )
         if smoothing_steps <= 0:
             return curvature
         weighted = self._area_weighted_adjacency()

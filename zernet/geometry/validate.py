@@ -15,8 +15,7 @@ import numpy as np
 
 from zernet.geometry.surface import Surface, SurfaceError, SurfaceWarning
 
-__all__ = ["validate_surface", "repair_surface", "RepairedSurface", "check_faces", "check_manifold",
-           "merge_coincident"]
+__all__ = ["validate_surface", "repair_surface", "RepairedSurface", "check_faces", "check_manifold", "merge_coincident"]
 
 logger = logging.getLogger(__name__)
 
@@ -159,13 +158,17 @@ def _check_per_vertex_arrays(name: str, n: int, normals: np.ndarray | None, fiel
         length = np.linalg.norm(normals, axis=1)
         bad = np.flatnonzero(~np.isfinite(length) | (length == 0))
         if len(bad):
-            raise SurfaceError(f"{name}: normal of vertex {bad[0]} is {normals[bad[0]].tolist()} "
-                               f"({len(bad)} such normals); normals must be finite and non-zero")
+            raise SurfaceError(
+                f"{name}: normal of vertex {bad[0]} is {normals[bad[0]].tolist()} "
+                f"({len(bad)} such normals); normals must be finite and non-zero"
+            )
     for key, value in fields.items():
         count = value.shape[0] if value.ndim else None
         if count != n:
-            raise SurfaceError(f"{name}: field {key!r}: expected {n} values (one per vertex), got "
-                               f"{count if count is not None else 'a scalar'}")
+            raise SurfaceError(
+                f"{name}: field {key!r}: expected {n} values (one per vertex), got "
+                f"{count if count is not None else 'a scalar'}"
+            )
 
 
 def _check_face_indices(name: str, faces: np.ndarray, n: int) -> None:
@@ -181,8 +184,9 @@ def _check_face_indices(name: str, faces: np.ndarray, n: int) -> None:
 def _report_duplicates(name: str, vertices: np.ndarray, repair: bool) -> bool:
     """Whether some vertices share exactly the same position; raise for them unless repairing."""
     # +0.0 turns -0.0 into 0.0 so that the byte-wise row comparison agrees.
-    _, first, inverse, counts = np.unique(vertices + 0.0, axis=0, return_index=True, return_inverse=True,
-                                          return_counts=True)
+    _, first, inverse, counts = np.unique(
+        vertices + 0.0, axis=0, return_index=True, return_inverse=True, return_counts=True
+    )
     if not (counts > 1).any():
         return False
     inverse = inverse.reshape(-1)

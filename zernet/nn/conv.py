@@ -356,7 +356,9 @@ class ZernikeConv(nn.Module):
             raise ValueError(f"{self.__class__.__name__} has k={self.k} bases but the operator has k={operator.k}")
         F = operator.apply(x) if basis_order is None else operator.apply(x, basis_order=basis_order)
         if F.shape != (x.shape[0], self.k, self.in_channels):
-            raise ValueError(f"operator.apply returned {tuple(F.shape)}, expected {(x.shape[0], self.k, self.in_channels)}")
+            raise ValueError(
+                f"operator.apply returned {tuple(F.shape)}, expected {(x.shape[0], self.k, self.in_channels)}"
+            )
         return F
 
     def harmonics(self, x: Tensor, operator, angular_resolution: int | None = None) -> Tensor:

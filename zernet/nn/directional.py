@@ -176,7 +176,9 @@ class DirectionalZernikeConv(nn.Module):
                 f"expected input (N, {d}, {self.in_channels}) (Fourier order {self.order}), got {tuple(x.shape)}"
             )
         if operator.k != self.k:
-            raise ValueError(f"layer has k={self.k} Zernike bases (n_max={self.n_max}) but the operator has k={operator.k}")
+            raise ValueError(
+                f"layer has k={self.k} Zernike bases (n_max={self.n_max}) but the operator has k={operator.k}"
+            )
         if self.order == 0 and not isinstance(operator, DirectionalOperator):
             return
         if not isinstance(operator, DirectionalOperator) or operator.order != self.order:
@@ -338,7 +340,9 @@ class DirectionalReLU(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """``(N, 2L + 1, C)`` -> ``(N, 2L + 1, C)``."""
         if self.mode == "regular":
-            return samples_to_fourier(torch.relu(fourier_to_samples(x, self.angular_resolution, dim=1)), self.order, dim=1)
+            return samples_to_fourier(
+                torch.relu(fourier_to_samples(x, self.angular_resolution, dim=1)), self.order, dim=1
+            )
         if self.order == 0:
             return torch.relu(x)
         n = x.shape[0]

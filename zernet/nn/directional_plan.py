@@ -150,7 +150,9 @@ def _slab_ranges(output: str, out_dim: int) -> list[tuple[int, int]]:
 
 
 @lru_cache(maxsize=None)
-def directional_plan(n_max: int, in_order: int, out_order: int | None = None, samples: int | None = None) -> DirectionalPlan:
+def directional_plan(
+    n_max: int, in_order: int, out_order: int | None = None, samples: int | None = None
+) -> DirectionalPlan:
     """The plan of a layer with Zernike degree ``n_max`` and input order ``L_in`` whose output is its
     Fourier coefficients up to ``out_order`` or its values at ``samples`` angles (exactly one; cached)."""
     coupling = coupling_tensor(n_max, in_order, out_order=out_order, samples=samples)

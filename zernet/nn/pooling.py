@@ -214,9 +214,7 @@ def discrete_max(harmonics: Tensor, s: int) -> Tensor:
     return _DiscreteMax.apply(harmonics.reshape(2 * D + 1, -1), T).view(rest)
 
 
-def continuous_max(
-    harmonics: Tensor, grid: int | None = None, newton_steps: int = 3, return_angle: bool = False
-):
+def continuous_max(harmonics: Tensor, grid: int | None = None, newton_steps: int = 3, return_angle: bool = False):
     """Maximum of each trigonometric polynomial over the whole circle.
 
     Degree 1 is closed-form: ``max = A_0 + |(A_1, B_1)|`` at ``φ* = atan2(B_1, A_1)``. Higher degrees:

@@ -81,7 +81,8 @@ class Geometry:
         order also prepare ``basis_orders`` (:meth:`~zernet.operators.PatchOperator.to`)."""
         ops = [
             (op.to(device, basis_orders) if getattr(op, "accepts_basis_order", False) else op.to(device))
-            if hasattr(op, "to") else op
+            if hasattr(op, "to")
+            else op
             for op in self.operators
         ]
         move = lambda t: None if t is None else t.to(device)  # noqa: E731
@@ -91,12 +92,15 @@ class Geometry:
         """A copy on ``device`` whose operators' prepared tensors are copied there (``copy_to``), while this
         geometry keeps its own: a record held in host memory, copied to the GPU for one step."""
         move = lambda t: None if t is None else t.to(device, non_blocking=non_blocking)  # noqa: E731
-        copies = {id(op): op.copy_to(device, non_blocking) if hasattr(op, "copy_to") else op.to(device)
-                  for op in self.operators}
-        directional = [op.copy_to(device, non_blocking, operator=copies.get(id(op.operator)))  # copied once
-                       for op in self.directional]
-        return Geometry([copies[id(op)] for op in self.operators], move(self.edge_index), move(self.batch),
-                        directional)
+        copies = {
+            id(op): op.copy_to(device, non_blocking) if hasattr(op, "copy_to") else op.to(device)
+            for op in self.operators
+        }
+        directional = [
+            op.copy_to(device, non_blocking, operator=copies.get(id(op.operator)))  # copied once
+            for op in self.directional
+        ]
+        return Geometry([copies[id(op)] for op in self.operators], move(self.edge_index), move(self.batch), directional)
 
     def pin_memory(self) -> Geometry:
         """The host tensors of this geometry in page-locked memory (CUDA only): operators in place, the
@@ -142,7 +146,9 @@ class Geometry:
         ]
         sizes = [g.n_vertices for g in items]
         device = next((t.device for g in items for t in (g.edge_index, g.batch) if t is not None), None)
-        return Geometry(operators, _stacked_edges(items, sizes, device), _surface_ids(items, sizes, device), directional)
+        return Geometry(
+            operators, _stacked_edges(items, sizes, device), _surface_ids(items, sizes, device), directional
+        )
 
 
 def _stacked_edges(items: Sequence[Geometry], sizes: Sequence[int], device) -> torch.Tensor | None:

@@ -91,8 +91,16 @@ def cache_key(surface, config, backend: str | None = None, version: int | None =
     (``version``, default :data:`FORMAT_VERSION`)."""
     backend = resolve_backend(surface, config.backend) if backend is None else backend
     version = FORMAT_VERSION if version is None else int(version)
-    text = json.dumps({"geometry": surface.geometry_hash(), "config": config.to_dict(), "backend": backend,
-                       "backend_version": BACKEND_VERSIONS.get(backend), "version": version}, sort_keys=True)
+    text = json.dumps(
+        {
+            "geometry": surface.geometry_hash(),
+            "config": config.to_dict(),
+            "backend": backend,
+            "backend_version": BACKEND_VERSIONS.get(backend),
+            "version": version,
+        },
+        sort_keys=True,
+    )
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -125,8 +133,16 @@ def pack_arrays(arrays: dict[str, np.ndarray], key: str = "", meta: dict | None 
         entries.append({"name": name, "dtype": array.dtype.str, "shape": list(array.shape), "offset": offset})
         digest.update(memoryview(array).cast("B"))
         offset += array.nbytes
-    header = json.dumps({"version": FORMAT_VERSION, "key": key, "meta": meta or {}, "size": offset,
-                         "sha256": digest.hexdigest(), "arrays": entries}).encode()
+    header = json.dumps(
+        {
+            "version": FORMAT_VERSION,
+            "key": key,
+            "meta": meta or {},
+            "size": offset,
+            "sha256": digest.hexdigest(),
+            "arrays": entries,
+        }
+    ).encode()
     start = _aligned(len(MAGIC) + 8 + len(header))
     out = bytearray(start + offset)
     out[: len(MAGIC) + 8 + len(header)] = MAGIC + struct.pack("<Q", len(header)) + header
@@ -135,8 +151,9 @@ def pack_arrays(arrays: dict[str, np.ndarray], key: str = "", meta: dict | None 
     return out
 
 
-def unpack_arrays(buffer, key: str | None = None, name: str = "<bytes>",
-                  check_sum: bool = True) -> tuple[dict[str, np.ndarray], dict]:
+def unpack_arrays(
+    buffer, key: str | None = None, name: str = "<bytes>", check_sum: bool = True
+) -> tuple[dict[str, np.ndarray], dict]:
     """Inverse of :func:`pack_arrays`: ``(arrays, meta)``, the arrays read-only views of ``buffer`` (bytes,
     or an ``mmap``). ``ValueError`` naming ``name`` on any inconsistency (not an array file, truncated, other
     format version, other key when ``key`` is given, checksum mismatch unless ``check_sum`` is off)."""
@@ -174,8 +191,9 @@ def unpack_arrays(buffer, key: str | None = None, name: str = "<bytes>",
     return arrays, dict(header.get("meta") or {})
 
 
-def write_arrays(path: str | os.PathLike, arrays: dict[str, np.ndarray], key: str = "",
-                 meta: dict | None = None) -> Path:
+def write_arrays(
+    path: str | os.PathLike, arrays: dict[str, np.ndarray], key: str = "", meta: dict | None = None
+) -> Path:
     """Write :func:`pack_arrays` atomically to ``path``; the file counts as checked in this process."""
     path = atomic_write_bytes(path, pack_arrays(arrays, key, meta))
     _CHECKED.add(_file_version(path))
@@ -220,8 +238,9 @@ def pack_payload(arrays: dict[str, np.ndarray], key: str = "") -> bytes:
     return outer.getvalue()
 
 
-def unpack_payload(data: bytes, key: str | None = None, name: str = "<bytes>",
-                   check_sum: bool = True) -> dict[str, np.ndarray]:
+def unpack_payload(
+    data: bytes, key: str | None = None, name: str = "<bytes>", check_sum: bool = True
+) -> dict[str, np.ndarray]:
     """Inverse of :func:`pack_payload`; ``ValueError`` naming ``name`` on any inconsistency (unreadable,
     other format version, other key when ``key`` is given, checksum mismatch unless ``check_sum`` is off)."""
     try:
@@ -255,12 +274,15 @@ def sparse_to_arrays(name: str, matrix: scipy.sparse.csr_matrix) -> dict[str, np
     }
 
 
-def sparse_from_arrays(arrays: dict[str, np.ndarray], name: str, sorted_indices: bool = False) -> scipy.sparse.csr_matrix:
+def sparse_from_arrays(
+    arrays: dict[str, np.ndarray], name: str, sorted_indices: bool = False
+) -> scipy.sparse.csr_matrix:
     """Inverse of :func:`sparse_to_arrays`, over the same arrays (no copy). ``sorted_indices``: the writer
     sorted them (a checked file), so scipy need not scan the indices to find out."""
     matrix = scipy.sparse.csr_matrix(
         (arrays[f"{name}_data"], arrays[f"{name}_indices"], arrays[f"{name}_indptr"]),
-        shape=tuple(int(s) for s in arrays[f"{name}_shape"]), copy=False,
+        shape=tuple(int(s) for s in arrays[f"{name}_shape"]),
+        copy=False,
     )
     if sorted_indices:
         matrix.has_sorted_indices = True

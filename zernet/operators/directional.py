@@ -63,8 +63,14 @@ from .cache import CacheWarning, read_arrays, write_arrays
 from .harmonic_csr import entry_pairs, harmonic_csr
 from .sparse import SparseApply, block_diagonal_csr, canonical_device, csr_copy_to, csr_transpose
 
-__all__ = ["DirectionalOperator", "build_directional_operator", "patch_pairs", "patch_transport", "transport_cache_path",
-           "block_diagonal_csr"]
+__all__ = [
+    "DirectionalOperator",
+    "build_directional_operator",
+    "patch_pairs",
+    "patch_transport",
+    "transport_cache_path",
+    "block_diagonal_csr",
+]
 
 
 class DirectionalOperator:
@@ -129,8 +135,17 @@ class DirectionalOperator:
         if any(not 0 <= x < self.k * d for x in harmonics):
             raise ValueError(f"harmonics must lie in [0, {self.k * d}) for k={self.k}, L={self.order}")
         transported = any(x % d for x in harmonics)  # only these need the pair (and angle) of every entry
-        return harmonic_csr(a.indptr, a.indices, a.data, self.entry_pair() if transported else None, self.angles,
-                            self.k, self.order, harmonics, dtype)
+        return harmonic_csr(
+            a.indptr,
+            a.indices,
+            a.data,
+            self.entry_pair() if transported else None,
+            self.angles,
+            self.k,
+            self.order,
+            harmonics,
+            dtype,
+        )
 
     def harmonic_matrix(self, harmonics: Sequence[int]) -> sp.csr_matrix:
         """The matrix of :meth:`apply_harmonic`: ``(N X, N (2L + 1))``, row ``p X + i`` for harmonic
@@ -244,8 +259,10 @@ class DirectionalOperator:
             operator = self.operator.copy_to(device, non_blocking)
         copy.operator = self.operator if operator is None else operator
         copy.parts = [part.copy_to(device, non_blocking) for part in self.parts]
-        copy._torch = {(harmonics, dtype, device): tuple(csr_copy_to(m, device, non_blocking) for m in matrices)
-                       for (harmonics, dtype, _), matrices in self._torch.items()}
+        copy._torch = {
+            (harmonics, dtype, device): tuple(csr_copy_to(m, device, non_blocking) for m in matrices)
+            for (harmonics, dtype, _), matrices in self._torch.items()
+        }
         return copy
 
     def __getstate__(self):
@@ -267,7 +284,9 @@ class DirectionalOperator:
         if not ops:
             raise ValueError("concatenate needs at least one directional operator")
         if len({(op.order, op.k) for op in ops}) != 1:
-            raise ValueError(f"cannot concatenate directional operators of different (order, k): {[(op.order, op.k) for op in ops]}")
+            raise ValueError(
+                f"cannot concatenate directional operators of different (order, k): {[(op.order, op.k) for op in ops]}"
+            )
         if operator is None:
             operator = type(ops[0].operator).concatenate([op.operator for op in ops])
         offsets = np.cumsum([0] + [op.n_vertices for op in ops])[:-1]
@@ -329,7 +348,12 @@ def patch_transport(operator) -> tuple[np.ndarray, np.ndarray]:
             arrays, _ = read_arrays(path, key=key)
             pairs, angles = arrays["pairs"].astype(np.int64), arrays["angles"]
             n = operator.matrix.shape[1]
-            if pairs.ndim != 2 or pairs.shape[1] != 2 or angles.shape != (len(pairs),) or (pairs.size and pairs.max() >= n):
+            if (
+                pairs.ndim != 2
+                or pairs.shape[1] != 2
+                or angles.shape != (len(pairs),)
+                or (pairs.size and pairs.max() >= n)
+            ):
                 raise ValueError(f"{path}: pairs {pairs.shape} and angles {angles.shape} do not fit {n} vertices")
             return pairs, angles
         except (ValueError, KeyError, OSError) as error:

@@ -54,7 +54,9 @@ def ridge_weights(n_max: int) -> np.ndarray:
     return weights
 
 
-def fit_groups(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float) -> tuple[list, float]:
+def fit_groups(
+    radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float
+) -> tuple[list, float]:
     """Fit matrices of every non-empty patch, in groups of equal patch size.
 
     Args:
@@ -98,7 +100,9 @@ def fit_groups(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max:
     return [(rows, fit) for (_, rows), fit in zip(groups, fits)], lam
 
 
-def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float) -> tuple[np.ndarray, float]:
+def fit_patches(
+    radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max: int, ridge: float
+) -> tuple[np.ndarray, float]:
     """The fit matrices of :func:`fit_groups` padded into one array.
 
     Returns:
@@ -112,8 +116,9 @@ def fit_patches(radius: np.ndarray, angle: np.ndarray, counts: np.ndarray, n_max
     return fit, lam
 
 
-def carry_to_vertices(groups: list, sample_index: np.ndarray, interpolation, k: int,
-                      subtract_center: bool) -> scipy.sparse.csr_matrix:
+def carry_to_vertices(
+    groups: list, sample_index: np.ndarray, interpolation, k: int, subtract_center: bool
+) -> scipy.sparse.csr_matrix:
     """The fit of every patch carried from samples to mesh vertices: ``A = blockrows_p(P_p · Interp[patch p])``.
 
     Args:
@@ -135,13 +140,30 @@ def carry_to_vertices(groups: list, sample_index: np.ndarray, interpolation, k: 
 
     def patch_widths(group):
         rows, block = group
-        return _patch_widths(rows.astype(np.int64), sample_index[rows, : block.shape[2]], indptr_in, indices_in,
-                             n_vertices, subtract_center)
+        return _patch_widths(
+            rows.astype(np.int64),
+            sample_index[rows, : block.shape[2]],
+            indptr_in,
+            indices_in,
+            n_vertices,
+            subtract_center,
+        )
 
     def carry(group):
         rows, block = group
-        _carry(rows.astype(np.int64), np.ascontiguousarray(block), sample_index[rows, : block.shape[2]], indptr_in,
-               indices_in, interpolation.data, n_vertices, subtract_center, indptr[rows * k], columns, values)
+        _carry(
+            rows.astype(np.int64),
+            np.ascontiguousarray(block),
+            sample_index[rows, : block.shape[2]],
+            indptr_in,
+            indices_in,
+            interpolation.data,
+            n_vertices,
+            subtract_center,
+            indptr[rows * k],
+            columns,
+            values,
+        )
 
     # The kernels release the GIL: the groups are spread over threads (each writes only its own rows).
     width = np.zeros(n_vertices, dtype=np.int64)

@@ -54,8 +54,9 @@ def entry_pairs(indptr: np.ndarray, indices: np.ndarray, k: int, pairs: np.ndarr
 
 
 @numba.njit(cache=True, nogil=True)
-def _fill_harmonic_kernel(a_indptr, a_indices, a_data, entry_pair, k, d, source_row, harmonic_r, cos, sin,
-                          indptr, indices, data):
+def _fill_harmonic_kernel(
+    a_indptr, a_indices, a_data, entry_pair, k, d, source_row, harmonic_r, cos, sin, indptr, indices, data
+):
     n_harmonics = source_row.shape[0]
     n_vertices = (a_indptr.shape[0] - 1) // k
     for p in range(n_vertices):
@@ -116,6 +117,7 @@ def harmonic_csr(a_indptr, a_indices, a_data, entry_pair, angles, k: int, order:
     cos, sin = np.cos(ells * angles[None, :]), np.sin(ells * angles[None, :])
     if entry_pair is None:
         entry_pair = np.zeros(0, dtype=np.int64)
-    _fill_harmonic_kernel(a_indptr, a_indices, a_data, entry_pair, int(k), d, source_row, harmonic_r, cos, sin,
-                          indptr, indices, data)
+    _fill_harmonic_kernel(
+        a_indptr, a_indices, a_data, entry_pair, int(k), d, source_row, harmonic_r, cos, sin, indptr, indices, data
+    )
     return indptr, indices, data

@@ -132,7 +132,9 @@ class PatchConfig:
         if not 0 <= self.inner_radius < self.r0:
             raise ValueError(f"PatchConfig.inner_radius must be in [0, r0), got {self.inner_radius}")
         if not self.ridge > 0:
-            raise ValueError(f"PatchConfig.ridge must be positive (it keeps truncated patches well-posed), got {self.ridge}")
+            raise ValueError(
+                f"PatchConfig.ridge must be positive (it keeps truncated patches well-posed), got {self.ridge}"
+            )
         if self.backend is not None and self.backend not in BACKENDS:
             raise ValueError(f"PatchConfig.backend must be None (automatic) or one of {BACKENDS}, got {self.backend!r}")
 
@@ -206,11 +208,16 @@ class PatchOperator:
         self.k = config.k
         self.ridge_weights = ridge_weights(config.n_max)
         if self.matrix.shape != (self.n_vertices * self.k, self.n_vertices):
-            raise ValueError(f"operator matrix has shape {self.matrix.shape}, expected {(self.n_vertices * self.k, self.n_vertices)}")
-        if self._transpose is not None and (self._transpose.shape != self.matrix.shape[::-1]
-                                            or self._transpose.nnz != self.matrix.nnz):
-            raise ValueError(f"transpose has shape {self._transpose.shape} and {self._transpose.nnz} entries, "
-                             f"expected {self.matrix.shape[::-1]} and {self.matrix.nnz}")
+            raise ValueError(
+                f"operator matrix has shape {self.matrix.shape}, expected {(self.n_vertices * self.k, self.n_vertices)}"
+            )
+        if self._transpose is not None and (
+            self._transpose.shape != self.matrix.shape[::-1] or self._transpose.nnz != self.matrix.nnz
+        ):
+            raise ValueError(
+                f"transpose has shape {self._transpose.shape} and {self._transpose.nnz} entries, "
+                f"expected {self.matrix.shape[::-1]} and {self.matrix.nnz}"
+            )
         self._tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # (dtype, device, basis order)
         self._parts: list[PatchOperator] = []  # the surfaces of a batch (set by concatenate)
         self._basis: np.ndarray | None = None
@@ -323,16 +330,20 @@ class PatchOperator:
         copy = PatchOperator.__new__(PatchOperator)
         copy.__dict__.update(self.__dict__)
         copy._parts = [part.copy_to(device, non_blocking) for part in self._parts]
-        copy._tensors = {(dtype, device, order): tuple(csr_copy_to(m, device, non_blocking) for m in matrices)
-                         for (dtype, _, order), matrices in self._tensors.items()}
+        copy._tensors = {
+            (dtype, device, order): tuple(csr_copy_to(m, device, non_blocking) for m in matrices)
+            for (dtype, _, order), matrices in self._tensors.items()
+        }
         return copy
 
     def pin_memory(self) -> PatchOperator:
         """Put the prepared host tensors in page-locked memory (CUDA only); returns ``self``."""
         for part in self._parts:
             part.pin_memory()
-        self._tensors = {key: tuple(pinned_csr(m) if m.device.type == "cpu" else m for m in matrices)
-                         for key, matrices in self._tensors.items()}
+        self._tensors = {
+            key: tuple(pinned_csr(m) if m.device.type == "cpu" else m for m in matrices)
+            for key, matrices in self._tensors.items()
+        }
         return self
 
     @property
@@ -367,9 +378,18 @@ class PatchOperator:
         if len({op.k for op in ops}) != 1:
             raise ValueError(f"cannot concatenate operators with different k: {[op.k for op in ops]}")
         batch = PatchOperator.__new__(PatchOperator)
-        batch.__dict__.update(config=ops[0].config, lam=ops[0].lam, n_vertices=sum(op.n_vertices for op in ops),
-                              n_max=ops[0].n_max, k=ops[0].k, ridge_weights=ops[0].ridge_weights, _tensors={},
-                              _parts=ops, _basis=None, cache_file=None)
+        batch.__dict__.update(
+            config=ops[0].config,
+            lam=ops[0].lam,
+            n_vertices=sum(op.n_vertices for op in ops),
+            n_max=ops[0].n_max,
+            k=ops[0].k,
+            ridge_weights=ops[0].ridge_weights,
+            _tensors={},
+            _parts=ops,
+            _basis=None,
+            cache_file=None,
+        )
         return batch
 
     #: Host arrays of a batch (:meth:`concatenate`), joined from its surfaces on first access.
@@ -455,7 +475,10 @@ def _joined_arrays(ops: list[PatchOperator]) -> dict:
         return out
 
     index = np.concatenate(
-        [pad(np.where(op.patch_sample_index >= 0, op.patch_sample_index + off, -1), -1) for op, off in zip(ops, sample_offset)]
+        [
+            pad(np.where(op.patch_sample_index >= 0, op.patch_sample_index + off, -1), -1)
+            for op, off in zip(ops, sample_offset)
+        ]
     )
     matrix = scipy.sparse.block_diag([op.matrix for op in ops], format="csr")
     matrix.has_sorted_indices = True  # blocks of sorted rows, column offsets increasing
@@ -506,9 +529,12 @@ def build_patch_operator(
                 warnings.warn(f"rebuilding cached patch operator {path}: {error}", CacheWarning, stacklevel=2)
         legacy = legacy_cache_path(cache_dir, surface, config, backend)
         if legacy.exists():
-            warnings.warn(f"{legacy} is a patch operator cached in an older format; rebuilding it in format "
-                          f"{FORMAT_VERSION} as {path.name} (the old file is no longer read and can be deleted)",
-                          CacheWarning, stacklevel=2)
+            warnings.warn(
+                f"{legacy} is a patch operator cached in an older format; rebuilding it in format "
+                f"{FORMAT_VERSION} as {path.name} (the old file is no longer read and can be deleted)",
+                CacheWarning,
+                stacklevel=2,
+            )
     start = time.perf_counter()
     samples = sample_surface(surface, config.n_samples, seed=config.seed)
     polar = compute_polar(surface, samples, config.r0, backend=backend, n_jobs=n_jobs)

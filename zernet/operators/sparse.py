@@ -133,8 +133,9 @@ def reorder_basis_rows(matrix: scipy.sparse.csr_matrix, k: int, basis_order) -> 
         raise ValueError(f"a matrix of {matrix.shape[0]} rows has no {k} rows per vertex")
     indptr = np.zeros_like(matrix.indptr)
     indices, data = np.empty_like(matrix.indices), np.empty_like(matrix.data)
-    _reorder_rows_kernel(matrix.indptr, matrix.indices, matrix.data, int(k), np.asarray(basis_order, np.int64),
-                         indptr, indices, data)
+    _reorder_rows_kernel(
+        matrix.indptr, matrix.indices, matrix.data, int(k), np.asarray(basis_order, np.int64), indptr, indices, data
+    )
     return _csr(indptr, indices, data, matrix.shape)
 
 
@@ -207,8 +208,11 @@ def to_torch_csr(matrix: scipy.sparse.csr_matrix, dtype: torch.dtype, device: to
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
         return torch.sparse_csr_tensor(
-            _owned(matrix.indptr, index_dtype), _owned(matrix.indices, index_dtype), values,
-            size=matrix.shape, check_invariants=False,
+            _owned(matrix.indptr, index_dtype),
+            _owned(matrix.indices, index_dtype),
+            values,
+            size=matrix.shape,
+            check_invariants=False,
         ).to(device)
 
 
@@ -233,14 +237,20 @@ def csr_copy_to(matrix: torch.Tensor, device, non_blocking: bool = False) -> tor
     device = torch.device(device)
     if matrix.device == canonical_device(device):
         return matrix
-    return _csr_from(*(t.to(device, non_blocking=non_blocking) for t in
-                       (matrix.crow_indices(), matrix.col_indices(), matrix.values())), matrix.shape)
+    return _csr_from(
+        *(
+            t.to(device, non_blocking=non_blocking)
+            for t in (matrix.crow_indices(), matrix.col_indices(), matrix.values())
+        ),
+        matrix.shape,
+    )
 
 
 def pinned_csr(matrix: torch.Tensor) -> torch.Tensor:
     """A host CSR matrix in page-locked memory (copies to a GPU can then run asynchronously)."""
-    return _csr_from(*(t.pin_memory() for t in (matrix.crow_indices(), matrix.col_indices(), matrix.values())),
-                     matrix.shape)
+    return _csr_from(
+        *(t.pin_memory() for t in (matrix.crow_indices(), matrix.col_indices(), matrix.values())), matrix.shape
+    )
 
 
 def csr_nbytes(matrix: torch.Tensor) -> int:

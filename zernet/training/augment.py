@@ -31,8 +31,15 @@ from zernet.data.features import FEATURE_PARTS, feature_channels, feature_parts
 from zernet.training.batch import with_directional
 from zernet.training.config import ConfigError, TrainSection
 
-__all__ = ["ROTATING_PARTS", "SCALING_PARTS", "augmenting", "feature_slices", "check_augmentation",
-           "random_rotation", "augment_records"]
+__all__ = [
+    "ROTATING_PARTS",
+    "SCALING_PARTS",
+    "augmenting",
+    "feature_slices",
+    "check_augmentation",
+    "random_rotation",
+    "augment_records",
+]
 
 #: Feature parts whose 3 channels rotate with the surface, and those that also scale with it.
 ROTATING_PARTS = ("xyz", "normals")
@@ -58,11 +65,15 @@ def check_augmentation(train: TrainSection, kind: str) -> None:
     """ConfigError if augmentation is asked for but feature ``kind`` has no channel it would change."""
     parts = feature_parts(kind)
     if train.augment_rotation != "none" and not set(parts) & set(ROTATING_PARTS):
-        raise ConfigError(f"train.augment_rotation={train.augment_rotation} has no effect: the features {kind!r} are "
-                          "rotation-invariant (rotation changes only the xyz and normals parts); set it to none")
+        raise ConfigError(
+            f"train.augment_rotation={train.augment_rotation} has no effect: the features {kind!r} are "
+            "rotation-invariant (rotation changes only the xyz and normals parts); set it to none"
+        )
     if train.augment_scale > 0 and not set(parts) & set(SCALING_PARTS):
-        raise ConfigError(f"train.augment_scale={train.augment_scale} has no effect: the features {kind!r} have no "
-                          "xyz part; set it to 0")
+        raise ConfigError(
+            f"train.augment_scale={train.augment_scale} has no effect: the features {kind!r} have no "
+            "xyz part; set it to 0"
+        )
 
 
 def random_rotation(rng: np.random.Generator, mode: str) -> np.ndarray:
@@ -77,18 +88,31 @@ def random_rotation(rng: np.random.Generator, mode: str) -> np.ndarray:
         # Uniform on SO(3): a uniformly random unit quaternion (Shoemake 1992).
         u1, u2, u3 = rng.uniform(size=3)
         a, b = np.sqrt(1.0 - u1), np.sqrt(u1)
-        x, y, z, w = a * np.sin(2 * np.pi * u2), a * np.cos(2 * np.pi * u2), b * np.sin(2 * np.pi * u3), \
-            b * np.cos(2 * np.pi * u3)
-        return np.array([
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ])
+        x, y, z, w = (
+            a * np.sin(2 * np.pi * u2),
+            a * np.cos(2 * np.pi * u2),
+            b * np.sin(2 * np.pi * u3),
+            b * np.cos(2 * np.pi * u3),
+        )
+        return np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+            ]
+        )
     raise ValueError(f"augment_rotation must be none, vertical or any, got {mode!r}")
 
 
-def augment_records(records: Sequence, train: TrainSection, kind: str, degrees: Sequence[int], epoch: int,
-                    step: int, directional_order: int | None = None) -> list:
+def augment_records(
+    records: Sequence,
+    train: TrainSection,
+    kind: str,
+    degrees: Sequence[int],
+    epoch: int,
+    step: int,
+    directional_order: int | None = None,
+) -> list:
     """Copies of ``records`` with rotated and scaled placement-dependent features (see the module docstring).
 
     The copies share everything but ``features`` with the originals (whose features are never changed);
@@ -103,8 +127,9 @@ def augment_records(records: Sequence, train: TrainSection, kind: str, degrees: 
     for record in records:
         with_directional(record, directional_order)
         rotation = random_rotation(rng, train.augment_rotation).astype(np.float32)
-        factor = np.float32(rng.uniform(1.0 - train.augment_scale, 1.0 + train.augment_scale)
-                            if train.augment_scale > 0 else 1.0)
+        factor = np.float32(
+            rng.uniform(1.0 - train.augment_scale, 1.0 + train.augment_scale) if train.augment_scale > 0 else 1.0
+        )
         features = np.array(record.features, dtype=np.float32, copy=True)
         for part in ROTATING_PARTS:
             if part in slices:

@@ -47,9 +47,15 @@ class Batch:
     matrices in ``basis_orders`` (:func:`model_basis_orders`), so building a batch on the read-ahead
     thread leaves no operator work to the forward pass."""
 
-    def __init__(self, records: Sequence, device: torch.device, target_stats: dict | None = None,
-                 feature_stats: dict | None = None, directional_order: int | None = None,
-                 basis_orders: Sequence[tuple] = ()):
+    def __init__(
+        self,
+        records: Sequence,
+        device: torch.device,
+        target_stats: dict | None = None,
+        feature_stats: dict | None = None,
+        directional_order: int | None = None,
+        basis_orders: Sequence[tuple] = (),
+    ):
         self.names = [r.name for r in records]
         self.sizes = [len(r.features) for r in records]
         self.features = torch.from_numpy(np.concatenate([np.asarray(r.features, np.float32) for r in records]))

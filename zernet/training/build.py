@@ -22,17 +22,36 @@ from zernet.operators import PatchConfig
 from zernet.training.config import ConfigError, DataSection, ModelSection, PatchSection, RunConfig, parse_config
 from zernet.zernike import num_bases
 
-__all__ = ["build_dataset", "load_data", "needs_operators", "check_model_config", "model_spec",
-           "build_model_from_spec", "is_correspondence", "preprocess_spec"]
+__all__ = [
+    "build_dataset",
+    "load_data",
+    "needs_operators",
+    "check_model_config",
+    "model_spec",
+    "build_model_from_spec",
+    "is_correspondence",
+    "preprocess_spec",
+]
 
 
-def build_dataset(config: Mapping[str, Any] | RunConfig, progress: bool = True, workers: int | None = None,
-                  on_error: str | None = None):
+def build_dataset(
+    config: Mapping[str, Any] | RunConfig,
+    progress: bool = True,
+    workers: int | None = None,
+    on_error: str | None = None,
+):
     """The :class:`~zernet.data.ShapeDataset` a run configuration describes (preprocessed and cached);
     ``on_error`` overrides ``data.on_error``."""
     config = parse_config(config)
-    return load_data(config.data, config.patch, config.cache_dir, progress=progress, workers=workers,
-                     on_error=on_error, patch_operators=needs_operators(config))
+    return load_data(
+        config.data,
+        config.patch,
+        config.cache_dir,
+        progress=progress,
+        workers=workers,
+        on_error=on_error,
+        patch_operators=needs_operators(config),
+    )
 
 
 def needs_operators(config: RunConfig) -> bool:
@@ -50,15 +69,25 @@ def needs_operators(config: RunConfig) -> bool:
     return model_reads or features_read
 
 
-def load_data(data: DataSection, patch: PatchSection, cache_dir: str | None, progress: bool = True,
-              workers: int | None = None, on_error: str | None = None, patch_operators: bool = True):
+def load_data(
+    data: DataSection,
+    patch: PatchSection,
+    cache_dir: str | None,
+    progress: bool = True,
+    workers: int | None = None,
+    on_error: str | None = None,
+    patch_operators: bool = True,
+):
     """Hand ``data.kind`` to :func:`zernet.data.load_dataset` with the patch scales, ``patch.area``,
     ``cache_dir``, ``data.seed``, ``data.on_error`` (or ``on_error`` when given), ``data.val_fraction``/
     ``data.val_count`` (unless null: the loader's default) and ``data.features`` (as ``feature_kind``);
     every other ``data`` key is a loader option passed by name (``root``, ``test``, ...).
     ``patch_operators=False`` builds none (:func:`needs_operators`)."""
-    options: dict[str, Any] = {"seed": data.seed, "on_error": on_error or data.on_error,
-                               "patch_operators": patch_operators}
+    options: dict[str, Any] = {
+        "seed": data.seed,
+        "on_error": on_error or data.on_error,
+        "patch_operators": patch_operators,
+    }
     for key in ("val_fraction", "val_count"):
         if getattr(data, key) is not None:
             options[key] = getattr(data, key)
@@ -68,8 +97,14 @@ def load_data(data: DataSection, patch: PatchSection, cache_dir: str | None, pro
     if workers is not None or "workers" not in options:
         options["workers"] = workers
     try:
-        return load_dataset(data.kind, patch_configs=patch.patch_configs(), area=patch.area, cache_dir=cache_dir,
-                            progress=progress, **options)
+        return load_dataset(
+            data.kind,
+            patch_configs=patch.patch_configs(),
+            area=patch.area,
+            cache_dir=cache_dir,
+            progress=progress,
+            **options,
+        )
     except TypeError as error:
         # An option the loader does not take: a configuration problem under data.
         raise ConfigError(f"data (kind {data.kind}): {error}") from None
@@ -98,14 +133,16 @@ def check_model_config(config: RunConfig, in_channels: int | None = None, out_ch
         # The options the message is about, when it names them; else every option given.
         named = {k: v for k, v in config.model.options.items() if k in str(error)} or config.model.options
         given = ", ".join(f"model.{key}={value!r}" for key, value in named.items()) or "defaults"
-        raise ConfigError(f"model {config.model.name!r} cannot be built from its options ({given}): "
-                          f"{type(error).__name__}: {error}") from None
+        raise ConfigError(
+            f"model {config.model.name!r} cannot be built from its options ({given}): {type(error).__name__}: {error}"
+        ) from None
 
 
 def _is_classification(config: RunConfig) -> bool:
     task = config.data.options.get("task", "segmentation")
     return config.data.kind in ("faust", "segmentation", "synthetic-parts") or (
-        config.data.kind == "synthetic" and task == "segmentation")
+        config.data.kind == "synthetic" and task == "segmentation"
+    )
 
 
 def is_correspondence(dataset, data_kind: str) -> bool:
@@ -146,8 +183,7 @@ def model_spec(model: ModelSection, in_channels: int, out_channels: int, patch_c
             options["n_max"] = n_max
         elif "k" in accepted:
             options["k"] = num_bases(n_max)
-    return {"name": model.name, "in_channels": int(in_channels), "out_channels": int(out_channels),
-            "options": options}
+    return {"name": model.name, "in_channels": int(in_channels), "out_channels": int(out_channels), "options": options}
 
 
 def build_model_from_spec(spec: Mapping[str, Any]) -> torch.nn.Module:

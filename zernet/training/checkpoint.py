@@ -19,8 +19,16 @@ import torch
 from zernet.io_utils import atomic_save_torch, plain, snapshot_file
 from zernet.training.schedule import rng_state
 
-__all__ = ["CHECKPOINT_FORMAT", "RunRecord", "make_checkpoint", "save_epoch_checkpoints", "load_checkpoint",
-           "load_resume_checkpoint", "checkpoint_path", "cpu_state_dict"]
+__all__ = [
+    "CHECKPOINT_FORMAT",
+    "RunRecord",
+    "make_checkpoint",
+    "save_epoch_checkpoints",
+    "load_checkpoint",
+    "load_resume_checkpoint",
+    "checkpoint_path",
+    "cpu_state_dict",
+]
 
 CHECKPOINT_FORMAT = "zernet-checkpoint-1"
 
@@ -29,20 +37,21 @@ CHECKPOINT_FORMAT = "zernet-checkpoint-1"
 class RunRecord:
     """The parts of every checkpoint of a run that do not change from epoch to epoch."""
 
-    config: dict                 # RunConfig.to_dict()
-    model_spec: dict             # see zernet.training.build.model_spec
-    task: str                    # classification | regression
+    config: dict  # RunConfig.to_dict()
+    model_spec: dict  # see zernet.training.build.model_spec
+    task: str  # classification | regression
     num_classes: int | None
     correspondence: bool
-    target_stats: dict | None    # see zernet.training.targets.target_stats
-    target_exponent: float       # area exponent of the regression target (predict returns a surface's own units)
+    target_stats: dict | None  # see zernet.training.targets.target_stats
+    target_exponent: float  # area exponent of the regression target (predict returns a surface's own units)
     feature_stats: dict | None
-    preprocess: dict             # see zernet.training.build.preprocess_spec
+    preprocess: dict  # see zernet.training.build.preprocess_spec
     template_faces: torch.Tensor | None = None  # correspondence: (F, 3) faces of the template (refinement)
 
 
 def cpu_state_dict(module_or_optimizer) -> dict:
     """A state dict with every tensor copied to the CPU, so the checkpoint loads on any machine."""
+
     def to_cpu(value):
         if isinstance(value, torch.Tensor):
             return value.detach().to("cpu", copy=True)
@@ -57,8 +66,7 @@ def cpu_state_dict(module_or_optimizer) -> dict:
     return to_cpu(module_or_optimizer.state_dict())
 
 
-def make_checkpoint(record: RunRecord, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
-                    state: dict) -> dict:
+def make_checkpoint(record: RunRecord, model: torch.nn.Module, optimizer: torch.optim.Optimizer, state: dict) -> dict:
     """The checkpoint after an epoch: ``record``, the weights, the optimiser, the loop ``state``, RNG states."""
     return {
         "format": CHECKPOINT_FORMAT,
@@ -106,8 +114,10 @@ def load_checkpoint(path: str | Path) -> dict:
         except Exception as error:
             damaged = f"? ({type(error).__name__}: {error})"
         if damaged is not None:
-            raise ValueError(f"{path}: not a readable zernet checkpoint (stored record {damaged} fails its CRC "
-                             "check: the file is corrupt)")
+            raise ValueError(
+                f"{path}: not a readable zernet checkpoint (stored record {damaged} fails its CRC "
+                "check: the file is corrupt)"
+            )
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # truncated, corrupt, or holding objects weights_only refuses
@@ -156,6 +166,8 @@ def load_resume_checkpoint(run_dir: Path) -> tuple[dict, str | None]:
             raise FileNotFoundError(f"cannot resume: {last} does not exist (no epoch has finished yet?)")
         raise ValueError(f"cannot resume {run_dir}: no usable checkpoint: " + "; ".join(problems))
     checkpoint, path = max(candidates, key=lambda item: item[0]["state"]["epoch"])
-    note = (f"{problems[0]}; resuming from {path} (after epoch {checkpoint['state']['epoch']}) instead, "
-            "repeating the epochs after it")
+    note = (
+        f"{problems[0]}; resuming from {path} (after epoch {checkpoint['state']['epoch']}) instead, "
+        "repeating the epochs after it"
+    )
     return checkpoint, note

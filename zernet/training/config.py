@@ -82,23 +82,30 @@ class ConfigError(ValueError):
 class Rule:
     """What one configuration value may be; :meth:`check` raises a :class:`ConfigError` naming the key."""
 
-    kind: str                        # "int" | "number" | "str" | "bool" | "int_list" | "str_list" | "names" | "path"
-                                     # | "indices" (a list of integers or "START:STOP")
-    optional: bool = False           # None allowed
-    minimum: float | None = None     # value >= minimum
-    positive: bool = False           # value > 0
-    below: float | None = None       # value < below
+    kind: str  # "int" | "number" | "str" | "bool" | "int_list" | "str_list" | "names" | "path"
+    # | "indices" (a list of integers or "START:STOP")
+    optional: bool = False  # None allowed
+    minimum: float | None = None  # value >= minimum
+    positive: bool = False  # value > 0
+    below: float | None = None  # value < below
     choices: tuple[str, ...] = ()
 
     def expected(self) -> str:
         if self.choices:
             text = f"one of {', '.join(self.choices)}"
         else:
-            text = {"int": "an integer", "number": "a number", "str": "a string", "bool": "true or false",
-                    "int_list": "a list of integers", "str_list": "a list of strings",
-                    "names": "a name or a list of names", "path": "a folder path",
-                    "indices": "a list of integers or a quoted range 'START:STOP' (YAML reads an unquoted "
-                               "10:20 as the number 620)"}[self.kind]
+            text = {
+                "int": "an integer",
+                "number": "a number",
+                "str": "a string",
+                "bool": "true or false",
+                "int_list": "a list of integers",
+                "str_list": "a list of strings",
+                "names": "a name or a list of names",
+                "path": "a folder path",
+                "indices": "a list of integers or a quoted range 'START:STOP' (YAML reads an unquoted "
+                "10:20 as the number 620)",
+            }[self.kind]
         if self.minimum is not None:
             text += f" >= {self.minimum}"
         if self.positive:
@@ -131,14 +138,18 @@ class Rule:
                 return False
             return True
         if self.kind == "names":
-            return isinstance(value, str) or (isinstance(value, (list, tuple))
-                                              and all(isinstance(v, (str, int)) for v in value))
+            return isinstance(value, str) or (
+                isinstance(value, (list, tuple)) and all(isinstance(v, (str, int)) for v in value)
+            )
         if self.kind == "int" and not _is_int(value):
             return False
         if self.kind == "number" and not (_is_number(value) and math.isfinite(value)):
             return False
-        return ((self.minimum is None or value >= self.minimum) and (not self.positive or value > 0)
-                and (self.below is None or value < self.below))
+        return (
+            (self.minimum is None or value >= self.minimum)
+            and (not self.positive or value > 0)
+            and (self.below is None or value < self.below)
+        )
 
 
 def _is_int(value) -> bool:
@@ -208,17 +219,29 @@ class DataSection(_Section):
 
     NAME: ClassVar[str] = "data"
     OPTION_RULES: ClassVar[dict[str, Rule]] = {
-        "features": Rule("str"), "root": Rule("path"), "meshes": Rule("path"), "labels": Rule("path", optional=True),
-        "task": Rule("str"), "field": Rule("str", optional=True), "rotate": Rule("bool"), "repair": Rule("bool"),
-        "n_shapes": Rule("int", minimum=1), "n_vertices": Rule("int", minimum=1, optional=True),
-        "num_classes": Rule("int", minimum=1), "test_fraction": Rule("number", minimum=0, below=1, optional=True),
-        "class_names": Rule("str_list", optional=True), "label_kind": Rule("str", choices=("auto", "vertex", "face")),
-        "test": Rule("names", optional=True), "train_indices": Rule("indices"), "test_indices": Rule("indices"),
-        "target_exponent": Rule("number"), "workers": Rule("int", minimum=0, optional=True),
+        "features": Rule("str"),
+        "root": Rule("path"),
+        "meshes": Rule("path"),
+        "labels": Rule("path", optional=True),
+        "task": Rule("str"),
+        "field": Rule("str", optional=True),
+        "rotate": Rule("bool"),
+        "repair": Rule("bool"),
+        "n_shapes": Rule("int", minimum=1),
+        "n_vertices": Rule("int", minimum=1, optional=True),
+        "num_classes": Rule("int", minimum=1),
+        "test_fraction": Rule("number", minimum=0, below=1, optional=True),
+        "class_names": Rule("str_list", optional=True),
+        "label_kind": Rule("str", choices=("auto", "vertex", "face")),
+        "test": Rule("names", optional=True),
+        "train_indices": Rule("indices"),
+        "test_indices": Rule("indices"),
+        "target_exponent": Rule("number"),
+        "workers": Rule("int", minimum=0, optional=True),
     }
 
     kind: str = _rule("synthetic", "str", choices=DATASET_KINDS)
-    seed: int = _rule(0, "int", minimum=0)                    # seeds the validation split
+    seed: int = _rule(0, "int", minimum=0)  # seeds the validation split
     val_fraction: float | None = _rule(None, "number", minimum=0, below=1, optional=True)
     val_count: int | None = _rule(None, "int", minimum=0, optional=True)  # overrides val_fraction
     # A shape that fails to load or preprocess: stop before training, listing every failure (raise), or
@@ -235,9 +258,12 @@ class DataSection(_Section):
             options = dict(self.options)
             strict = options.pop("strict")
             Rule("bool").check("data.strict", strict)
-            warnings.warn(f"data.strict is deprecated: use data.on_error: {'raise' if strict else 'skip'} "
-                          "(strict: true is on_error: raise, strict: false is on_error: skip)", FutureWarning,
-                          stacklevel=2)
+            warnings.warn(
+                f"data.strict is deprecated: use data.on_error: {'raise' if strict else 'skip'} "
+                "(strict: true is on_error: raise, strict: false is on_error: skip)",
+                FutureWarning,
+                stacklevel=2,
+            )
             object.__setattr__(self, "options", options)
             object.__setattr__(self, "on_error", "raise" if strict else "skip")
         super().__post_init__()
@@ -245,8 +271,10 @@ class DataSection(_Section):
             raise ConfigError("data.area is not a data option: the target area is patch.area")
         unknown = sorted(set(self.options) - set(data_option_names(self.kind)))
         if unknown:
-            raise ConfigError(f"unknown key data.{unknown[0]} for data kind {self.kind!r} (known: "
-                              f"{', '.join(sorted(set(data_option_names(self.kind)) | set(self._core_names())))})")
+            raise ConfigError(
+                f"unknown key data.{unknown[0]} for data kind {self.kind!r} (known: "
+                f"{', '.join(sorted(set(data_option_names(self.kind)) | set(self._core_names())))})"
+            )
 
 
 @dataclass(frozen=True)
@@ -256,13 +284,15 @@ class PatchSection(_Section):
     NAME: ClassVar[str] = "patch"
 
     area: float | None = _rule(None, "number", positive=True, optional=True)  # None: the data set's default
-    scales: list[dict[str, Any]] = field(default_factory=list)               # []: the data set's default
+    scales: list[dict[str, Any]] = field(default_factory=list)  # []: the data set's default
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if not isinstance(self.scales, (list, tuple)):
-            raise ConfigError("patch.scales must be a list of patch settings, one per scale (e.g. [{r0: 5.5}]), "
-                              f"or [] for the data set's default, got {self.scales!r}")
+            raise ConfigError(
+                "patch.scales must be a list of patch settings, one per scale (e.g. [{r0: 5.5}]), "
+                f"or [] for the data set's default, got {self.scales!r}"
+            )
         object.__setattr__(self, "scales", [copy.deepcopy(scale) for scale in self.scales])
         known = {f.name for f in dataclasses.fields(PatchConfig)}
         for i, scale in enumerate(self.scales):
@@ -270,8 +300,9 @@ class PatchSection(_Section):
                 raise ConfigError(f"patch.scales.{i} must be a mapping of PatchConfig fields, got {scale!r}")
             extra = set(scale) - known
             if extra:
-                raise ConfigError(f"unknown key patch.scales.{i}.{sorted(extra)[0]} "
-                                  f"(known: {', '.join(sorted(known))})")
+                raise ConfigError(
+                    f"unknown key patch.scales.{i}.{sorted(extra)[0]} (known: {', '.join(sorted(known))})"
+                )
             if "r0" not in scale:
                 raise ConfigError(f"patch.scales.{i}.r0 (the patch radius) is required")
             try:
@@ -290,9 +321,12 @@ class ModelSection(_Section):
 
     NAME: ClassVar[str] = "model"
     OPTION_RULES: ClassVar[dict[str, Rule]] = {
-        "widths": Rule("int_list"), "dropout": Rule("number", minimum=0, below=1),
-        "angular_resolution": Rule("int", minimum=1), "pooling": Rule("str"),
-        "n_max": Rule("int", minimum=0), "k": Rule("int", minimum=1),
+        "widths": Rule("int_list"),
+        "dropout": Rule("number", minimum=0, below=1),
+        "angular_resolution": Rule("int", minimum=1),
+        "pooling": Rule("str"),
+        "n_max": Rule("int", minimum=0),
+        "k": Rule("int", minimum=1),
     }
 
     name: str = "zernet"
@@ -319,14 +353,14 @@ class TrainSection(_Section):
     # epoch budget (resume), so the schedule stays that of the whole run.
     lr_schedule_epochs: int | None = _rule(None, "int", minimum=1, optional=True)
     weight_decay: float = _rule(0.0, "number")
-    loss: str = _rule("auto", "str", choices=LOSSES)                   # auto: cross_entropy / mse by task
-    standardize_targets: bool = _rule(True, "bool")     # regression: train on (y - mean) / std
+    loss: str = _rule("auto", "str", choices=LOSSES)  # auto: cross_entropy / mse by task
+    standardize_targets: bool = _rule(True, "bool")  # regression: train on (y - mean) / std
     target_transform: str = _rule("none", "str", choices=TARGET_TRANSFORMS)  # log: the loss sees relative errors
-    standardize_features: bool = _rule(False, "bool")   # (x - mean) / std per input channel
+    standardize_features: bool = _rule(False, "bool")  # (x - mean) / std per input channel
     patience: int | None = _rule(20, "int", minimum=1, optional=True)  # epochs without a better val metric
     seed: int = _rule(0, "int", minimum=0)
-    shapes_per_step: int = _rule(1, "int", minimum=1)   # surfaces concatenated into one optimiser step
-    device: str = _rule("auto", "str")                  # auto (cuda if available) | cpu | cuda | cuda:1 ...
+    shapes_per_step: int = _rule(1, "int", minimum=1)  # surfaces concatenated into one optimiser step
+    device: str = _rule("auto", "str")  # auto (cuda if available) | cpu | cuda | cuda:1 ...
     threads: int | None = _rule(None, "int", minimum=1, optional=True)  # torch CPU threads
     grad_clip: float | None = _rule(None, "number", positive=True, optional=True)
     # bfloat16: linear layers under torch.autocast (convolutions stay float32); ~3x faster matmuls on CPUs
@@ -344,8 +378,8 @@ class EvalSection(_Section):
 
     NAME: ClassVar[str] = "eval"
 
-    renders: int = _rule(3, "int", minimum=0)   # test shapes rendered (prediction, truth, error)
-    plots: bool = _rule(True, "bool")           # write plots at all
+    renders: int = _rule(3, "int", minimum=0)  # test shapes rendered (prediction, truth, error)
+    plots: bool = _rule(True, "bool")  # write plots at all
     # Correspondence: the predicted probabilities averaged over this many rings of mesh neighbours
     # (zernet.training.refine); a number, or candidates of which the best on the validation split is used.
     refine_rings: list[int] = _rule((0,), "int_list")
@@ -356,12 +390,18 @@ class EvalSection(_Section):
         super().__post_init__()
         object.__setattr__(self, "refine_rings", list(self.refine_rings))  # a plain list in YAML and JSON
         if not self.refine_rings or min(self.refine_rings) < 0:
-            raise ConfigError(f"eval.refine_rings must be a non-empty list of integers >= 0, got "
-                              f"{list(self.refine_rings)!r}")
+            raise ConfigError(
+                f"eval.refine_rings must be a non-empty list of integers >= 0, got {list(self.refine_rings)!r}"
+            )
 
 
-_SECTIONS = {"data": DataSection, "patch": PatchSection, "model": ModelSection, "train": TrainSection,
-             "eval": EvalSection}
+_SECTIONS = {
+    "data": DataSection,
+    "patch": PatchSection,
+    "model": ModelSection,
+    "train": TrainSection,
+    "eval": EvalSection,
+}
 _DEFAULT_CACHE_DIR = ".zernet-cache"
 
 
@@ -374,7 +414,7 @@ class RunConfig:
     model: ModelSection = field(default_factory=ModelSection)
     train: TrainSection = field(default_factory=TrainSection)
     eval: EvalSection = field(default_factory=EvalSection)
-    cache_dir: str | None = _DEFAULT_CACHE_DIR   # preprocessed patch operators, reused across runs
+    cache_dir: str | None = _DEFAULT_CACHE_DIR  # preprocessed patch operators, reused across runs
 
     def __post_init__(self) -> None:
         for name, section_type in _SECTIONS.items():
@@ -392,8 +432,10 @@ class RunConfig:
         unknown = set(config) - set(known)
         if unknown:
             raise ConfigError(f"unknown config section {sorted(unknown)[0]!r} (known: {', '.join(sorted(known))})")
-        sections = {name: section_type.from_dict({} if config.get(name) is None else config[name])
-                    for name, section_type in _SECTIONS.items()}
+        sections = {
+            name: section_type.from_dict({} if config.get(name) is None else config[name])
+            for name, section_type in _SECTIONS.items()
+        }
         cache_dir = config.get("cache_dir")
         return cls(**sections, cache_dir=_DEFAULT_CACHE_DIR if cache_dir is None else cache_dir)
 

@@ -30,15 +30,24 @@ __all__ = ["Objective", "train_one_epoch", "validate"]
 class Objective:
     """What the model learns and how its outputs are read: the task, the loss and the scaling statistics."""
 
-    task: str                      # classification | regression
-    loss: str                      # see zernet.training.losses.resolve_loss
+    task: str  # classification | regression
+    loss: str  # see zernet.training.losses.resolve_loss
     target_stats: dict | None
     feature_stats: dict | None
 
 
-def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.Optimizer, shapes,
-                    train_idx: Sequence[int], epoch: int, train: TrainSection, objective: Objective,
-                    ctx: DistributedContext, progress: bool) -> dict:
+def train_one_epoch(
+    net: torch.nn.Module,
+    model: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    shapes,
+    train_idx: Sequence[int],
+    epoch: int,
+    train: TrainSection,
+    objective: Objective,
+    ctx: DistributedContext,
+    progress: bool,
+) -> dict:
     """Run the optimiser steps of ``epoch`` over the training shapes; returns its history entry so far
     (``epoch``, ``train_loss`` and, for classification, ``train_accuracy``), summed over the ranks.
 
@@ -63,14 +72,28 @@ def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: tor
 
     def step_batch(numbered_group):
         step, group = numbered_group
-        records = augment_records([shapes[i] for i in group], train, dataset.feature_kind,
-                                  [c.n_max for c in dataset.patch_configs], epoch, step, directional)
+        records = augment_records(
+            [shapes[i] for i in group],
+            train,
+            dataset.feature_kind,
+            [c.n_max for c in dataset.patch_configs],
+            epoch,
+            step,
+            directional,
+        )
         return Batch(records, device, objective.target_stats, objective.feature_stats, directional, basis_orders)
 
     # The next step's shapes are read (or copied to the device) while this step computes.
     batches = prefetched(step_batch, enumerate(groups, start=1))
-    bar = tqdm(batches, total=len(groups), desc=f"epoch {epoch}/{train.epochs}", unit="step", leave=False,
-               disable=not progress, dynamic_ncols=True)
+    bar = tqdm(
+        batches,
+        total=len(groups),
+        desc=f"epoch {epoch}/{train.epochs}",
+        unit="step",
+        leave=False,
+        disable=not progress,
+        dynamic_ncols=True,
+    )
     for step, batch in enumerate(bar, start=1):
         optimizer.zero_grad(set_to_none=True)
         with precision_autocast(train.precision, device.type):
@@ -103,8 +126,9 @@ def train_one_epoch(net: torch.nn.Module, model: torch.nn.Module, optimizer: tor
 
 
 @torch.no_grad()
-def validate(model: torch.nn.Module, shapes, indices: Sequence[int], device: torch.device,
-             objective: Objective) -> dict:
+def validate(
+    model: torch.nn.Module, shapes, indices: Sequence[int], device: torch.device, objective: Objective
+) -> dict:
     """Mean validation loss and metric (accuracy, or MAPE for regression) over shapes, each counting once
     (``shapes``: a :class:`~zernet.training.residency.ShapeStore`, or any sequence of records)."""
     model.eval()
@@ -114,8 +138,9 @@ def validate(model: torch.nn.Module, shapes, indices: Sequence[int], device: tor
 
     def shape_batch(i):
         record = shapes[i]
-        return record, Batch([record], device, objective.target_stats, objective.feature_stats, directional,
-                             basis_orders)
+        return record, Batch(
+            [record], device, objective.target_stats, objective.feature_stats, directional, basis_orders
+        )
 
     for record, batch in prefetched(shape_batch, indices):
         output = model(batch.features, batch.geometry)

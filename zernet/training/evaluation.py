@@ -46,8 +46,7 @@ def _refined(probabilities: torch.Tensor, record, rings: int) -> np.ndarray:
     return refine_correspondence(probabilities, faces, faces, rings).argmax(dim=1).cpu().numpy()
 
 
-def _score_shape(kind: str, record, pred: np.ndarray, target: np.ndarray, n_classes: int | None,
-                 geodesic_errors=None):
+def _score_shape(kind: str, record, pred: np.ndarray, target: np.ndarray, n_classes: int | None, geodesic_errors=None):
     """(per-shape scores, per-vertex error) of one shape; segmentation also returns its confusion matrix.
     ``geodesic_errors``: the shape's :class:`~zernet.metrics.GeodesicErrors` (correspondence)."""
     if kind == "correspondence":
@@ -62,8 +61,15 @@ def _score_shape(kind: str, record, pred: np.ndarray, target: np.ndarray, n_clas
     return zmetrics.regression_scores(pred, target), errors, None
 
 
-def evaluate_members(members: Sequence[tuple], dataset, indices: Sequence[int], device, progress: bool,
-                     keep: int = 3, refine_rings: int = 0) -> tuple[dict, list[dict]]:
+def evaluate_members(
+    members: Sequence[tuple],
+    dataset,
+    indices: Sequence[int],
+    device,
+    progress: bool,
+    keep: int = 3,
+    refine_rings: int = 0,
+) -> tuple[dict, list[dict]]:
     """Metrics of the model (or ensemble) ``members`` (a list of ``(model, checkpoint)``, see
     :func:`~zernet.training.predict.predict_record`) on the shapes at ``indices`` and the predictions of
     the first ``keep``. A correspondence is scored after refinement over ``refine_rings`` rings
@@ -75,8 +81,7 @@ def evaluate_members(members: Sequence[tuple], dataset, indices: Sequence[int], 
     per_shape: dict[str, dict] = {}
     kept: list[dict] = []
     errors_all, unrefined_errors, confusion, label_counts = [], [], None, None
-    for position, i in enumerate(tqdm(indices, desc="evaluating", unit="shape", leave=False,
-                                      disable=not progress)):
+    for position, i in enumerate(tqdm(indices, desc="evaluating", unit="shape", leave=False, disable=not progress)):
         record = dataset[i]
         if record.target is None:
             raise ValueError(f"shape {record.name} has no ground truth to evaluate against")
@@ -86,8 +91,7 @@ def evaluate_members(members: Sequence[tuple], dataset, indices: Sequence[int], 
         if refine_rings:
             unrefined_errors.append(geodesics(pred, target))
             pred = _refined(torch.from_numpy(probabilities).to(device), record, refine_rings)
-        per_shape[record.name], errors, shape_confusion = _score_shape(kind, record, pred, target, n_classes,
-                                                                       geodesics)
+        per_shape[record.name], errors, shape_confusion = _score_shape(kind, record, pred, target, n_classes, geodesics)
         if kind == "correspondence":
             errors_all.append(errors)
         elif kind == "segmentation":
@@ -95,8 +99,9 @@ def evaluate_members(members: Sequence[tuple], dataset, indices: Sequence[int], 
             counts = np.bincount(target, minlength=n_classes)
             label_counts = counts if label_counts is None else label_counts + counts
         if position < keep:
-            kept.append({"name": record.name, "surface": record.surface, "prediction": pred, "target": target,
-                         "error": errors})
+            kept.append(
+                {"name": record.name, "surface": record.surface, "prediction": pred, "target": target, "error": errors}
+            )
 
     result: dict[str, Any] = {"task": task, "kind": kind, "n_shapes": len(indices)}
     if kind == "correspondence":
@@ -122,8 +127,9 @@ def evaluate_members(members: Sequence[tuple], dataset, indices: Sequence[int], 
     return result, kept
 
 
-def select_refine_rings(members: Sequence[tuple], dataset, candidates: Sequence[int], device,
-                        progress: bool) -> tuple[int, dict | None]:
+def select_refine_rings(
+    members: Sequence[tuple], dataset, candidates: Sequence[int], device, progress: bool
+) -> tuple[int, dict | None]:
     """The refinement rings to use and how they were chosen: the only candidate, or (correspondence) the one
     whose exact accuracy on the ``val`` split is highest, the fewest rings on a tie.
 
@@ -139,8 +145,10 @@ def select_refine_rings(members: Sequence[tuple], dataset, candidates: Sequence[
         return candidates[0], None
     indices = dataset.splits.get("val", [])
     if not indices:
-        raise ConfigError(f"eval.refine_rings lists several candidates ({candidates}) but the data set has no "
-                          "validation split to choose among them: give one number")
+        raise ConfigError(
+            f"eval.refine_rings lists several candidates ({candidates}) but the data set has no "
+            "validation split to choose among them: give one number"
+        )
     hits = {rings: 0 for rings in candidates}
     total = 0
     for i in tqdm(indices, desc="choosing refine rings", unit="shape", leave=False, disable=not progress):
@@ -160,22 +168,27 @@ def select_refine_rings(members: Sequence[tuple], dataset, candidates: Sequence[
 def _training_mean_baseline(stats: dict, dataset, indices: Sequence[int]) -> dict:
     """The honest reference: predicting the training mean (of the trained units) everywhere."""
     mean = float(unstandardise(torch.zeros(1), stats))
-    constant = [zmetrics.regression_scores(np.full(len(dataset.target(i)), mean), dataset.target(i))
-                for i in indices]
-    return {"training_mean_MAPE": float(np.mean([c["MAPE"] for c in constant])),
-            "training_mean_RRMSE": float(np.mean([c["RRMSE"] for c in constant]))}
+    constant = [zmetrics.regression_scores(np.full(len(dataset.target(i)), mean), dataset.target(i)) for i in indices]
+    return {
+        "training_mean_MAPE": float(np.mean([c["MAPE"] for c in constant])),
+        "training_mean_RRMSE": float(np.mean([c["RRMSE"] for c in constant])),
+    }
 
 
 def summary_line(metrics: dict) -> str:
     """The headline scores of a metrics dictionary and its baselines, on one line."""
     summary = metrics.get("summary", {})
-    keys = {"correspondence": ("accuracy", "within_0.025", "within_0.05", "mean_geodesic_error"),
-            "segmentation": ("accuracy", "mean_class_accuracy", "mean_iou"),
-            "regression": ("MAPE", "RRMSE", "PCC", "HR10", "HR20", "HR30")}.get(metrics.get("kind"), ())
+    keys = {
+        "correspondence": ("accuracy", "within_0.025", "within_0.05", "mean_geodesic_error"),
+        "segmentation": ("accuracy", "mean_class_accuracy", "mean_iou"),
+        "regression": ("MAPE", "RRMSE", "PCC", "HR10", "HR20", "HR30"),
+    }.get(metrics.get("kind"), ())
     parts = [f"{key} {summary[key]:.4f}" for key in keys if key in summary]
     if "unrefined_summary" in metrics:
-        parts.append(f"(refined over {metrics['refine_rings']} rings; unrefined accuracy "
-                     f"{metrics['unrefined_summary']['accuracy']:.4f})")
+        parts.append(
+            f"(refined over {metrics['refine_rings']} rings; unrefined accuracy "
+            f"{metrics['unrefined_summary']['accuracy']:.4f})"
+        )
     for key, value in metrics.get("baseline", {}).items():
         parts.append(f"(baseline {key} {value:.4f})")
     return ", ".join(parts)
@@ -183,6 +196,7 @@ def summary_line(metrics: dict) -> str:
 
 def check_ensemble(paths: Sequence[Path], checkpoints: Sequence[dict]) -> None:
     """Ensemble members must predict the same thing from the same inputs: say which one differs and how."""
+
     def data_section(checkpoint):
         return {k: v for k, v in checkpoint["config"]["data"].items() if k != "root"}
 
@@ -198,16 +212,28 @@ def check_ensemble(paths: Sequence[Path], checkpoints: Sequence[dict]) -> None:
 
     first = checkpoints[0]
     for path, checkpoint in zip(paths[1:], checkpoints[1:]):
-        for what, value in (("task", lambda c: c["task"]), ("number of classes", lambda c: c["num_classes"]),
-                            ("preprocessing", lambda c: c["preprocess"]), ("data section", data_section)):
+        for what, value in (
+            ("task", lambda c: c["task"]),
+            ("number of classes", lambda c: c["num_classes"]),
+            ("preprocessing", lambda c: c["preprocess"]),
+            ("data section", data_section),
+        ):
             if value(checkpoint) != value(first):
-                raise ConfigError(f"cannot ensemble {path} with {paths[0]}: their {what} differs "
-                                  f"({difference(value(checkpoint), value(first))})")
+                raise ConfigError(
+                    f"cannot ensemble {path} with {paths[0]}: their {what} differs "
+                    f"({difference(value(checkpoint), value(first))})"
+                )
 
 
-def evaluate(run_dir_or_checkpoint, dataset=None, split: str = "test", progress: bool = True,
-             device: str | None = None, on_error: str | None = None,
-             refine_rings: int | Sequence[int] | None = None) -> dict:
+def evaluate(
+    run_dir_or_checkpoint,
+    dataset=None,
+    split: str = "test",
+    progress: bool = True,
+    device: str | None = None,
+    on_error: str | None = None,
+    refine_rings: int | Sequence[int] | None = None,
+) -> dict:
     """Evaluate a trained model (a run folder's ``best.pt``, or any checkpoint file) on one split; given
     several, evaluate their ensemble.
 
@@ -251,16 +277,21 @@ def evaluate(run_dir_or_checkpoint, dataset=None, split: str = "test", progress:
     members = [(model_from_checkpoint(checkpoint, device), checkpoint) for checkpoint in checkpoints]
     if refine_rings is None:
         refine_rings = config.get("eval", {}).get("refine_rings", (0,))  # older runs: no refinement
-    rings, choice = select_refine_rings(members, dataset, [refine_rings] if isinstance(refine_rings, int)
-                                        else refine_rings, device, progress)
+    rings, choice = select_refine_rings(
+        members, dataset, [refine_rings] if isinstance(refine_rings, int) else refine_rings, device, progress
+    )
     metrics, _ = evaluate_members(members, dataset, indices, device, progress, keep=0, refine_rings=rings)
     if choice is not None:
         metrics["refine_choice"] = choice
     best_epochs = [c["state"]["best_epoch"] for c in checkpoints]
     epochs = [c["state"]["epoch"] for c in checkpoints]
-    metrics.update({"split": split, "checkpoint": [str(p) for p in paths] if many else str(paths[0]),
-                    "best_epoch": best_epochs if many else best_epochs[0],
-                    "epochs_trained": epochs if many else epochs[0],
-                    "skipped": [{"name": name, "reason": reason}
-                                for name, reason in getattr(dataset, "failures", {}).items()]})
+    metrics.update(
+        {
+            "split": split,
+            "checkpoint": [str(p) for p in paths] if many else str(paths[0]),
+            "best_epoch": best_epochs if many else best_epochs[0],
+            "epochs_trained": epochs if many else epochs[0],
+            "skipped": [{"name": name, "reason": reason} for name, reason in getattr(dataset, "failures", {}).items()],
+        }
+    )
     return metrics

@@ -80,9 +80,11 @@ def initialise_from(model: torch.nn.Module, source: InitSource) -> dict:
     if missing or unexpected:
         name = (missing or unexpected)[0]
         side = "the new model has" if missing else "the checkpoint has"
-        raise ConfigError(f"{prefix}: parameter {name!r} does not fit: {side} it and the other does not "
-                          f"(checkpoint model {source_name!r}, new model {model_name!r}); start from a run of the "
-                          "same model family and widths")
+        raise ConfigError(
+            f"{prefix}: parameter {name!r} does not fit: {side} it and the other does not "
+            f"(checkpoint model {source_name!r}, new model {model_name!r}); start from a run of the "
+            "same model family and widths"
+        )
     copied, reinitialised = {}, []
     for name, value in target.items():
         stored = source.weights[name]
@@ -91,20 +93,30 @@ def initialise_from(model: torch.nn.Module, source: InitSource) -> dict:
         elif name.startswith(HEAD_PREFIX):
             reinitialised.append(name)
         else:
-            raise ConfigError(f"{prefix}: parameter {name!r} has shape {tuple(stored.shape)} in the checkpoint "
-                              f"but {tuple(value.shape)} in the new model (only the output layer may differ: "
-                              "use the same model options, input features and patch degree)")
+            raise ConfigError(
+                f"{prefix}: parameter {name!r} has shape {tuple(stored.shape)} in the checkpoint "
+                f"but {tuple(value.shape)} in the new model (only the output layer may differ: "
+                "use the same model options, input features and patch degree)"
+            )
     model.load_state_dict(copied, strict=False)
-    return {"source": str(source.path), "source_epoch": source.epoch, "source_model": source_name,
-            "source_task": source.task, "source_classes": source.num_classes, "copied": len(copied),
-            "reinitialised": reinitialised}
+    return {
+        "source": str(source.path),
+        "source_epoch": source.epoch,
+        "source_model": source_name,
+        "source_task": source.task,
+        "source_classes": source.num_classes,
+        "copied": len(copied),
+        "reinitialised": reinitialised,
+    }
 
 
 def describe(info: dict) -> str:
     """The ``train.log`` line of an initialisation."""
     fresh = ", ".join(info["reinitialised"]) if info["reinitialised"] else "none"
-    return (f"init-from: {info['copied']} weight tensors from {info['source']} (epoch {info['source_epoch']}, "
-            f"model {info['source_model']}); re-initialised: {fresh}")
+    return (
+        f"init-from: {info['copied']} weight tensors from {info['source']} (epoch {info['source_epoch']}, "
+        f"model {info['source_model']}); re-initialised: {fresh}"
+    )
 
 
 def _registry_name(model: torch.nn.Module) -> str:

@@ -86,9 +86,15 @@ class _Splits:
     test: list[int]
 
 
-def train(config: Mapping[str, Any] | RunConfig | None, run_dir: str | Path, resume: bool = False,
-          progress: bool = True, overwrite: bool = False, workers: int | None = None,
-          init_from: str | Path | None = None) -> dict:
+def train(
+    config: Mapping[str, Any] | RunConfig | None,
+    run_dir: str | Path,
+    resume: bool = False,
+    progress: bool = True,
+    overwrite: bool = False,
+    workers: int | None = None,
+    init_from: str | Path | None = None,
+) -> dict:
     """Train, select the best epoch on validation, evaluate it on the test split and fill ``run_dir``.
 
     Args:
@@ -110,8 +116,10 @@ def train(config: Mapping[str, Any] | RunConfig | None, run_dir: str | Path, res
     run_dir = Path(run_dir)
     checkpoint, resume_note, source = None, None, None
     if resume and init_from is not None:
-        raise ConfigError("--init-from starts a new run from another run's weights; it cannot be combined with "
-                          "--resume (a resumed run continues from its own checkpoint and keeps its init-from)")
+        raise ConfigError(
+            "--init-from starts a new run from another run's weights; it cannot be combined with "
+            "--resume (a resumed run continues from its own checkpoint and keeps its init-from)"
+        )
     if init_from is not None:  # before any preprocessing, so a bad path fails in a second
         source = load_init_source(init_from)
     if resume:
@@ -144,8 +152,9 @@ def _fresh_run_config(config, run_dir: Path, overwrite: bool) -> RunConfig:
         raise ConfigError("train needs a configuration (or resume=True with an existing run folder)")
     config = parse_config(config)
     if (run_dir / "last.pt").exists() and not overwrite:
-        raise ConfigError(f"{run_dir} already holds a run (last.pt); resume it with --resume or choose "
-                          "another --run-dir")
+        raise ConfigError(
+            f"{run_dir} already holds a run (last.pt); resume it with --resume or choose another --run-dir"
+        )
     if is_main():  # in a distributed run only rank 0 touches the run folder
         clear_run_files(run_dir)
     return config
@@ -153,8 +162,13 @@ def _fresh_run_config(config, run_dir: Path, overwrite: bool) -> RunConfig:
 
 #: What may change when a run is resumed: none of it changes the weights still to train (on_error only says
 #: what a shape that fails to load would do; the shapes of a run are cached).
-RESUME_CHANGEABLE = (("train", "epochs"), ("train", "patience"), ("train", "threads"), ("data", "on_error"),
-                     ("data", "residency"))
+RESUME_CHANGEABLE = (
+    ("train", "epochs"),
+    ("train", "patience"),
+    ("train", "threads"),
+    ("data", "on_error"),
+    ("data", "residency"),
+)
 
 
 def merge_resume_config(stored: Mapping[str, Any], given, logger: logging.Logger, trained: int = 0) -> RunConfig:
@@ -169,21 +183,26 @@ def merge_resume_config(stored: Mapping[str, Any], given, logger: logging.Logger
     for section, key in RESUME_CHANGEABLE:
         old, new = getattr(getattr(config, section), key), getattr(getattr(given, section), key)
         if section == "train" and key == "epochs" and new < trained:
-            logger.warning(f"resume: train.epochs {new} is below the {trained} epochs already trained; "
-                           f"keeping {trained}")
+            logger.warning(
+                f"resume: train.epochs {new} is below the {trained} epochs already trained; keeping {trained}"
+            )
             new = trained
         if new != old:
             logger.info(f"resume: {section}.{key} changed from {old} to {new}")
             sections.setdefault(section, {})[key] = new
-    config = dataclasses.replace(config, **{name: dataclasses.replace(getattr(config, name), **changes)
-                                            for name, changes in sections.items()})
+    config = dataclasses.replace(
+        config, **{name: dataclasses.replace(getattr(config, name), **changes) for name, changes in sections.items()}
+    )
     changeable = {f"{section}.{key}" for section, key in RESUME_CHANGEABLE}
-    differing = [key for key in _differing_keys(plain(given.to_dict()), plain(config.to_dict()))
-                 if key not in changeable]
+    differing = [
+        key for key in _differing_keys(plain(given.to_dict()), plain(config.to_dict())) if key not in changeable
+    ]
     if differing:
         allowed = ", ".join(f"{section}.{key}" for section, key in RESUME_CHANGEABLE)
-        logger.warning(f"resume: the given configuration differs from the run's in {', '.join(differing)}; "
-                       f"continuing with the run's own config.yaml (only {allowed} may change on resume)")
+        logger.warning(
+            f"resume: the given configuration differs from the run's in {', '.join(differing)}; "
+            f"continuing with the run's own config.yaml (only {allowed} may change on resume)"
+        )
     return config
 
 
@@ -195,34 +214,71 @@ def _differing_keys(a, b, prefix: str = "") -> list[str]:
     return [k for key in keys for k in _differing_keys(a.get(key), b.get(key), f"{prefix}{key}.")]
 
 
-def _run(config: RunConfig, run_dir: Path, checkpoint: dict | None, progress: bool, logger: logging.Logger,
-         workers: int | None, ctx: DistributedContext, source: InitSource | None = None) -> dict:
+def _run(
+    config: RunConfig,
+    run_dir: Path,
+    checkpoint: dict | None,
+    progress: bool,
+    logger: logging.Logger,
+    workers: int | None,
+    ctx: DistributedContext,
+    source: InitSource | None = None,
+) -> dict:
     """Build, fit, select, test."""
     if config.train.threads:
         torch.set_num_threads(int(config.train.threads))
-    logger.info(("resuming" if checkpoint else "starting") + f" run in {run_dir} on {ctx.device} "
-                f"({torch.get_num_threads()} CPU threads"
-                + (f", {ctx.world_size} ranks, {ctx.backend})" if ctx.distributed else ")"))
+    logger.info(
+        ("resuming" if checkpoint else "starting") + f" run in {run_dir} on {ctx.device} "
+        f"({torch.get_num_threads()} CPU threads"
+        + (f", {ctx.world_size} ranks, {ctx.backend})" if ctx.distributed else ")")
+    )
     dataset, splits, preprocess_seconds = _load_dataset(config, progress, workers, ctx, logger)
     record, objective = _describe_run(config, dataset, splits, checkpoint, logger)
     model, optimizer, state = _build_model(record.model_spec, config.train, checkpoint, ctx.device, logger, source)
-    logger.info(f"model {record.model_spec['name']} ({sum(p.numel() for p in model.parameters()):,} parameters), "
-                f"loss {objective.loss}, lr {config.train.lr} ({config.train.lr_schedule}), "
-                f"{config.train.shapes_per_step} shape(s) per step")
-    shapes = ShapeStore(dataset, splits.train + splits.val, config.data.residency, ctx.device,
-                        model_directional_order(model), model_basis_orders(model), progress)
+    logger.info(
+        f"model {record.model_spec['name']} ({sum(p.numel() for p in model.parameters()):,} parameters), "
+        f"loss {objective.loss}, lr {config.train.lr} ({config.train.lr_schedule}), "
+        f"{config.train.shapes_per_step} shape(s) per step"
+    )
+    shapes = ShapeStore(
+        dataset,
+        splits.train + splits.val,
+        config.data.residency,
+        ctx.device,
+        model_directional_order(model),
+        model_basis_orders(model),
+        progress,
+    )
     logger.info(shapes.describe())
     monitor = Monitor.for_task(objective.task)
     with flush_denormals():  # tiny softmax gradients would otherwise slow late epochs down by 2-3x
-        _fit(model, optimizer, state, shapes, splits, record, objective, monitor, config.train, ctx, run_dir,
-             progress, logger)
+        _fit(
+            model,
+            optimizer,
+            state,
+            shapes,
+            splits,
+            record,
+            objective,
+            monitor,
+            config.train,
+            ctx,
+            run_dir,
+            progress,
+            logger,
+        )
     del shapes  # the held operators are not needed for the test
     if not ctx.is_main:
         # Rank 0 alone evaluates the selected model on the test split and writes metrics.json.
-        return {"rank": ctx.rank, "epochs_trained": state["epoch"], "best_epoch": state["best_epoch"],
-                "stop_reason": state["stop_reason"]}
-    metrics, predictions = _test(model, state, dataset, splits, monitor, config.eval, run_dir, ctx.device, progress,
-                                 logger)
+        return {
+            "rank": ctx.rank,
+            "epochs_trained": state["epoch"],
+            "best_epoch": state["best_epoch"],
+            "stop_reason": state["stop_reason"],
+        }
+    metrics, predictions = _test(
+        model, state, dataset, splits, monitor, config.eval, run_dir, ctx.device, progress, logger
+    )
     metrics["preprocess_seconds"] = preprocess_seconds
     metrics["skipped"] = [{"name": name, "reason": reason} for name, reason in dataset.failures.items()]
     return _report(metrics, predictions, state["history"], dataset, config, run_dir, logger)
@@ -240,12 +296,15 @@ def _load_dataset(config: RunConfig, progress: bool, workers, ctx: DistributedCo
             _log_file_only(logger, f"stopped before training: {failure_listing(error.failures, error.total)}")
             raise
     seconds = time.perf_counter() - started
-    splits = _Splits(list(dataset.splits["train"]), list(dataset.splits.get("val", [])),
-                     list(dataset.splits.get("test", [])))
+    splits = _Splits(
+        list(dataset.splits["train"]), list(dataset.splits.get("val", [])), list(dataset.splits.get("test", []))
+    )
     if not splits.train:
         raise ConfigError("the data set has no training shapes")
-    logger.info(f"data: {config.data.kind}, {dataset.task}, {len(splits.train)} train / {len(splits.val)} val / "
-                f"{len(splits.test)} test shapes (loaded in {seconds:.1f} s)")
+    logger.info(
+        f"data: {config.data.kind}, {dataset.task}, {len(splits.train)} train / {len(splits.val)} val / "
+        f"{len(splits.test)} test shapes (loaded in {seconds:.1f} s)"
+    )
     if ctx.is_main:  # reported once, not by every rank of a distributed run
         _report_data(dataset, splits, config.data.kind, logger)
     return dataset, splits, seconds
@@ -258,8 +317,10 @@ def _report_data(dataset, splits: _Splits, kind: str, logger) -> None:
     if not splits.val:
         logger.warning("no validation shapes: the last epoch is kept as the model and early stopping is off")
     if not splits.test:
-        logger.warning("no test shapes: the final scores are of the validation split, on which the model is "
-                       "chosen, and are labelled val")
+        logger.warning(
+            "no test shapes: the final scores are of the validation split, on which the model is "
+            "chosen, and are labelled val"
+        )
     _check_class_count(dataset, kind, logger)
 
 
@@ -281,8 +342,10 @@ def _check_class_count(dataset, kind: str, logger) -> None:
     missing = [c for c in range(int(dataset.num_classes)) if c not in seen]
     if missing:
         shown = ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else "")
-        logger.warning(f"data.num_classes is {dataset.num_classes} but no shape has a vertex of class {shown}: "
-                       "their per-class scores are null in metrics.json")
+        logger.warning(
+            f"data.num_classes is {dataset.num_classes} but no shape has a vertex of class {shown}: "
+            "their per-class scores are null in metrics.json"
+        )
 
 
 def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict | None, logger):
@@ -298,14 +361,23 @@ def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict 
     features = _feature_scaling(config.train, dataset, splits, checkpoint, logger)
     correspondence = is_correspondence(dataset, config.data.kind)
     # Correspondence by vertex index: every shape has the template's connectivity, the first one's included.
-    template_faces = (torch.as_tensor(first.surface.faces, dtype=torch.int64)
-                      if correspondence and first.surface.faces is not None else None)
+    template_faces = (
+        torch.as_tensor(first.surface.faces, dtype=torch.int64)
+        if correspondence and first.surface.faces is not None
+        else None
+    )
     record = RunRecord(
-        config=config.to_dict(), model_spec=spec, task=task,
+        config=config.to_dict(),
+        model_spec=spec,
+        task=task,
         num_classes=None if dataset.num_classes is None else int(dataset.num_classes),
-        correspondence=correspondence, target_stats=targets,
-        target_exponent=float(dataset.info.get("target_exponent") or 0.0), feature_stats=features,
-        preprocess=preprocess_spec(dataset), template_faces=template_faces)
+        correspondence=correspondence,
+        target_stats=targets,
+        target_exponent=float(dataset.info.get("target_exponent") or 0.0),
+        feature_stats=features,
+        preprocess=preprocess_spec(dataset),
+        template_faces=template_faces,
+    )
     return record, Objective(task, loss_name, targets, features)
 
 
@@ -315,8 +387,10 @@ def _target_scaling(train: TrainSection, task: str, dataset, splits: _Splits, ch
     if task != "regression" or not (train.standardize_targets or train.target_transform != "none"):
         return None
     stats = target_stats(dataset, splits.train, train.target_transform, train.standardize_targets)
-    logger.info(f"targets: transform {stats['transform']}, standardised with training mean "
-                f"{stats['mean']:.6g}, std {stats['std']:.6g}")
+    logger.info(
+        f"targets: transform {stats['transform']}, standardised with training mean "
+        f"{stats['mean']:.6g}, std {stats['std']:.6g}"
+    )
     return stats
 
 
@@ -330,8 +404,9 @@ def _feature_scaling(train: TrainSection, dataset, splits: _Splits, checkpoint, 
     return stats
 
 
-def _build_model(spec: dict, train: TrainSection, checkpoint: dict | None, device, logger,
-                 source: InitSource | None = None):
+def _build_model(
+    spec: dict, train: TrainSection, checkpoint: dict | None, device, logger, source: InitSource | None = None
+):
     """The model, its Adam optimiser and the loop state: fresh from ``train.seed`` (then, with ``source``,
     taking another run's weights), or as checkpointed."""
     # Seed right before the model is built, so its initialisation depends only on train.seed.
@@ -348,16 +423,29 @@ def _build_model(spec: dict, train: TrainSection, checkpoint: dict | None, devic
         optimizer.load_state_dict(checkpoint["optimizer"])
         state = checkpoint["state"]
         set_rng_state(checkpoint["rng"])
-        logger.info(f"resumed after epoch {state['epoch']} (best {state['best_metric']} at epoch "
-                    f"{state['best_epoch']})")
+        logger.info(
+            f"resumed after epoch {state['epoch']} (best {state['best_metric']} at epoch {state['best_epoch']})"
+        )
     if state.get("init_from"):
         logger.info(describe_init(state["init_from"]))
     return model, optimizer, state
 
 
-def _fit(model, optimizer, state: dict, shapes: ShapeStore, splits: _Splits, record: RunRecord,
-         objective: Objective, monitor: Monitor, train: TrainSection, ctx: DistributedContext, run_dir: Path,
-         progress: bool, logger) -> None:
+def _fit(
+    model,
+    optimizer,
+    state: dict,
+    shapes: ShapeStore,
+    splits: _Splits,
+    record: RunRecord,
+    objective: Objective,
+    monitor: Monitor,
+    train: TrainSection,
+    ctx: DistributedContext,
+    run_dir: Path,
+    progress: bool,
+    logger,
+) -> None:
     """Train epoch by epoch until early stopping or the budget; checkpoint after every epoch."""
     # DistributedDataParallel in a distributed run (averages the gradients over the ranks), else the model
     # itself. Only the training forward goes through it; validation, checkpoints and evaluation use `model`.
@@ -366,12 +454,12 @@ def _fit(model, optimizer, state: dict, shapes: ShapeStore, splits: _Splits, rec
     while not state["stopped"] and state["epoch"] < train.epochs:
         epoch = state["epoch"] + 1
         started = time.perf_counter()
-        entry = train_one_epoch(net, model, optimizer, shapes, splits.train, epoch, train, objective, ctx,
-                                progress)
+        entry = train_one_epoch(net, model, optimizer, shapes, splits.train, epoch, train, objective, ctx, progress)
         if splits.val:
             # Split over the ranks and recombined exactly: every rank sees the same metric and stops alike.
-            entry.update(ctx.mean_over_shards(
-                lambda part: validate(model, shapes, part, ctx.device, objective), splits.val))
+            entry.update(
+                ctx.mean_over_shards(lambda part: validate(model, shapes, part, ctx.device, objective), splits.val)
+            )
         entry["seconds"] = time.perf_counter() - started
         improved = record_epoch(state, entry, monitor, train.epochs, train.patience, bool(splits.val))
         checkpoint = make_checkpoint(record, model, optimizer, state)
@@ -381,12 +469,24 @@ def _fit(model, optimizer, state: dict, shapes: ShapeStore, splits: _Splits, rec
         if state["stopped"] and state["stop_reason"] != BUDGET:
             logger.info(f"stopping after epoch {epoch}: {state['stop_reason']}")
     best_text = "n/a" if state["best_metric"] is None else f"{state['best_metric']:.4g}"
-    logger.info(f"training done: {state['epoch']} epochs in {state['train_seconds']:.1f} s; best epoch "
-                f"{state['best_epoch']} ({monitor.name} {best_text})")
+    logger.info(
+        f"training done: {state['epoch']} epochs in {state['train_seconds']:.1f} s; best epoch "
+        f"{state['best_epoch']} ({monitor.name} {best_text})"
+    )
 
 
-def _test(model, state: dict, dataset, splits: _Splits, monitor: Monitor, evaluation: EvalSection, run_dir: Path,
-          device, progress: bool, logger) -> tuple[dict, list[dict]]:
+def _test(
+    model,
+    state: dict,
+    dataset,
+    splits: _Splits,
+    monitor: Monitor,
+    evaluation: EvalSection,
+    run_dir: Path,
+    device,
+    progress: bool,
+    logger,
+) -> tuple[dict, list[dict]]:
     """The selected model (best.pt) on the test split (the validation split if there is none); a
     correspondence refined as ``evaluation.refine_rings`` says."""
     best = load_checkpoint(run_dir / "best.pt")
@@ -398,45 +498,60 @@ def _test(model, state: dict, dataset, splits: _Splits, monitor: Monitor, evalua
     members = [(model, best)]
     candidates = evaluation.refine_rings
     if len(candidates) > 1 and not splits.val:
-        logger.warning(f"no validation split to choose eval.refine_rings among {list(candidates)}: using "
-                       f"{min(candidates)}")
+        logger.warning(
+            f"no validation split to choose eval.refine_rings among {list(candidates)}: using {min(candidates)}"
+        )
         candidates = [min(candidates)]
     rings, choice = select_refine_rings(members, dataset, candidates, device, progress)
     metrics, predictions = evaluate_members(members, dataset, indices, device, progress, refine_rings=rings)
     if choice is not None:
         metrics["refine_choice"] = choice
-        logger.info(f"refine rings {rings}, chosen on the validation split (exact accuracy by rings: "
-                    + ", ".join(f"{k}: {v:.4f}" for k, v in choice["accuracy"].items()) + ")")
+        logger.info(
+            f"refine rings {rings}, chosen on the validation split (exact accuracy by rings: "
+            + ", ".join(f"{k}: {v:.4f}" for k, v in choice["accuracy"].items())
+            + ")"
+        )
     if best.get("correspondence") and best.get("refine_rings") != rings:
         best["refine_rings"] = rings  # what `predict` applies to a new surface
         atomic_save_torch(best, run_dir / "best.pt")
-    metrics.update({
-        "split": split,
-        "checkpoint": "best.pt",
-        "best_epoch": state["best_epoch"],
-        "epochs_trained": state["epoch"],
-        "stop_reason": state["stop_reason"],
-        "selection": {"metric": monitor.name, "value": state["best_metric"]},
-        "train_seconds": state["train_seconds"],
-    })
+    metrics.update(
+        {
+            "split": split,
+            "checkpoint": "best.pt",
+            "best_epoch": state["best_epoch"],
+            "epochs_trained": state["epoch"],
+            "stop_reason": state["stop_reason"],
+            "selection": {"metric": monitor.name, "value": state["best_metric"]},
+            "train_seconds": state["train_seconds"],
+        }
+    )
     if state.get("init_from"):
         metrics["init_from"] = state["init_from"]
     return metrics, predictions
 
 
-def _report(metrics: dict, predictions: list[dict], history: list[dict], dataset, config: RunConfig,
-            run_dir: Path, logger) -> dict:
+def _report(
+    metrics: dict, predictions: list[dict], history: list[dict], dataset, config: RunConfig, run_dir: Path, logger
+) -> dict:
     """Plots (if ``eval.plots``) and ``metrics.json``; returns the metrics."""
     if config.eval.plots:
         try:
-            metrics["plots"] = write_plots(run_dir, history, metrics, predictions,
-                                           getattr(dataset, "info", {}).get("class_names"), config.eval.renders,
-                                           logger)
+            metrics["plots"] = write_plots(
+                run_dir,
+                history,
+                metrics,
+                predictions,
+                getattr(dataset, "info", {}).get("class_names"),
+                config.eval.renders,
+                logger,
+            )
         except Exception as error:  # a plotting problem must not throw away a finished training run
             logger.warning(f"plots failed: {type(error).__name__}: {error}")
             metrics["plots"] = []
     write_json(run_dir / "metrics.json", metrics)
-    logger.info(f"{metrics['split']} metrics: {summary_line(metrics)}"
-                + (f" ({len(metrics['skipped'])} shapes skipped)" if metrics.get("skipped") else ""))
+    logger.info(
+        f"{metrics['split']} metrics: {summary_line(metrics)}"
+        + (f" ({len(metrics['skipped'])} shapes skipped)" if metrics.get("skipped") else "")
+    )
     logger.info(f"wrote {run_dir / 'metrics.json'}")
     return metrics

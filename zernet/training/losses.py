@@ -26,8 +26,9 @@ def resolve_loss(loss: str, task: str) -> str:
     return loss
 
 
-def compute_loss(name: str, output: torch.Tensor, target: torch.Tensor,
-                 target_stats: dict | None = None) -> torch.Tensor:
+def compute_loss(
+    name: str, output: torch.Tensor, target: torch.Tensor, target_stats: dict | None = None
+) -> torch.Tensor:
     """Training loss; ``output`` and ``target`` are in the trained units (see
     :func:`zernet.training.targets.standardise`).
 
@@ -59,5 +60,6 @@ def check_loss_targets(name: str, dataset, indices: Sequence[int]) -> None:
         target = np.asarray(dataset.target(i)).ravel()
         if not np.all(target != 0):
             bad = int(np.flatnonzero(target == 0)[0])
-            raise ConfigError(f"train.loss relative_l1 divides by the target, but shape {dataset.names[i]} "
-                              f"has 0 at vertex {bad}")
+            raise ConfigError(
+                f"train.loss relative_l1 divides by the target, but shape {dataset.names[i]} has 0 at vertex {bad}"
+            )

@@ -35,8 +35,14 @@ def predict_record(members: Sequence[tuple], record, device) -> tuple[np.ndarray
     outputs = []
     for model, checkpoint in members:
         model.eval()
-        batch = Batch([record], device, None, checkpoint.get("feature_stats"), model_directional_order(model),
-                      model_basis_orders(model))
+        batch = Batch(
+            [record],
+            device,
+            None,
+            checkpoint.get("feature_stats"),
+            model_directional_order(model),
+            model_basis_orders(model),
+        )
         output = model(batch.features, batch.geometry).float()
         if task == "classification":
             outputs.append(torch.softmax(output, dim=1))
@@ -55,9 +61,17 @@ def model_from_checkpoint(checkpoint: dict, device: torch.device) -> torch.nn.Mo
     return model
 
 
-def predict(checkpoint: str | Path, surface, probabilities: bool = False, device: str | None = None,
-            cache_dir: str | Path | None = None, progress: bool = False, refine_rings: int | None = None,
-            backend: str | None = None, scale: float | None = None):
+def predict(
+    checkpoint: str | Path,
+    surface,
+    probabilities: bool = False,
+    device: str | None = None,
+    cache_dir: str | Path | None = None,
+    progress: bool = False,
+    refine_rings: int | None = None,
+    backend: str | None = None,
+    scale: float | None = None,
+):
     """Per-vertex predictions of a trained model on a new surface: a mesh or a point cloud, whatever the
     training shapes were.
 
@@ -130,12 +144,16 @@ def predict(checkpoint: str | Path, surface, probabilities: bool = False, device
 def _refined_probabilities(checkpoint: dict, record, probabilities: np.ndarray, rings: int) -> np.ndarray:
     """Correspondence refinement of a new surface's probabilities, against the template the run stored."""
     if not checkpoint.get("correspondence"):
-        raise ValueError("refine_rings applies to correspondence models only; this one predicts "
-                         + ("values" if checkpoint["task"] == "regression" else "segmentation classes"))
+        raise ValueError(
+            "refine_rings applies to correspondence models only; this one predicts "
+            + ("values" if checkpoint["task"] == "regression" else "segmentation classes")
+        )
     template = checkpoint.get("template_faces")
     if template is None:
-        raise ValueError("this checkpoint stores no template mesh (it was written before zernet refined "
-                         "correspondences): predict with refine_rings=0, or train the run again")
+        raise ValueError(
+            "this checkpoint stores no template mesh (it was written before zernet refined "
+            "correspondences): predict with refine_rings=0, or train the run again"
+        )
     if record.surface.faces is None:
         raise ValueError(f"{record.name}: refining a correspondence needs a triangle mesh, not a point cloud")
     return refine_correspondence(probabilities, record.surface.faces, np.asarray(template), rings)

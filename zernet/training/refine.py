@@ -61,14 +61,23 @@ def ring_average_tensor(faces: np.ndarray, n_vertices: int, rings: int, device) 
     """:func:`ring_average` as a torch float32 CSR matrix on ``device``, built once per (faces, rings,
     device) and kept (the last :data:`_KEPT` of them)."""
     faces = np.ascontiguousarray(faces, dtype=np.int64)
-    key = (hashlib.sha1(faces.tobytes()).hexdigest(), faces.shape, int(n_vertices), int(rings), str(torch.device(device)))
+    key = (
+        hashlib.sha1(faces.tobytes()).hexdigest(),
+        faces.shape,
+        int(n_vertices),
+        int(rings),
+        str(torch.device(device)),
+    )
     if key not in _RING_AVERAGES:
         matrix = ring_average(faces, n_vertices, rings)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-            tensor = torch.sparse_csr_tensor(torch.from_numpy(matrix.indptr.astype(np.int64)),
-                                             torch.from_numpy(matrix.indices.astype(np.int64)),
-                                             torch.from_numpy(matrix.data), size=matrix.shape)
+            tensor = torch.sparse_csr_tensor(
+                torch.from_numpy(matrix.indptr.astype(np.int64)),
+                torch.from_numpy(matrix.indices.astype(np.int64)),
+                torch.from_numpy(matrix.data),
+                size=matrix.shape,
+            )
         _RING_AVERAGES[key] = tensor.to(device)
         while len(_RING_AVERAGES) > _KEPT:
             _RING_AVERAGES.pop(next(iter(_RING_AVERAGES)))
@@ -80,8 +89,7 @@ _KEPT = 8
 _RING_AVERAGES: dict[tuple, torch.Tensor] = {}
 
 
-def refine_correspondence(probabilities, shape_faces: np.ndarray, template_faces: np.ndarray,
-                          rings: int):
+def refine_correspondence(probabilities, shape_faces: np.ndarray, template_faces: np.ndarray, rings: int):
     """The probabilities averaged over the ``rings``-ring of the shape's vertex and of the template's.
 
     Args:
@@ -97,8 +105,9 @@ def refine_correspondence(probabilities, shape_faces: np.ndarray, template_faces
         input's kind: a tensor on its device, or a numpy array.
     """
     as_numpy = not isinstance(probabilities, torch.Tensor)
-    scores = torch.as_tensor(np.asarray(probabilities, dtype=np.float32) if as_numpy else probabilities,
-                             dtype=torch.float32)
+    scores = torch.as_tensor(
+        np.asarray(probabilities, dtype=np.float32) if as_numpy else probabilities, dtype=torch.float32
+    )
     if scores.dim() != 2:
         raise ValueError(f"probabilities must have shape (N, M), got {tuple(scores.shape)}")
     if rings < 0:

@@ -44,8 +44,14 @@ from tqdm.auto import tqdm
 from zernet.training.batch import with_directional
 from zernet.training.config import RESIDENCY_LEVELS
 
-__all__ = ["RESIDENCY_LEVELS", "MEMORY_FRACTION", "ShapeStore", "choose_residency", "available_memory",
-           "prepared_bytes"]
+__all__ = [
+    "RESIDENCY_LEVELS",
+    "MEMORY_FRACTION",
+    "ShapeStore",
+    "choose_residency",
+    "available_memory",
+    "prepared_bytes",
+]
 
 #: The share of the free device memory (or available RAM) that ``auto`` lets the held operators take; the
 #: rest is for activations, the optimiser and everything else.
@@ -71,8 +77,9 @@ def prepared_bytes(record) -> int:
     return sum(int(getattr(op, "prepared_nbytes", 0)) for op in record.geometry.operators)
 
 
-def choose_residency(level: str, shape_bytes: int, n_shapes: int, device: torch.device,
-                     free: dict[str, int] | None = None) -> tuple[str, str]:
+def choose_residency(
+    level: str, shape_bytes: int, n_shapes: int, device: torch.device, free: dict[str, int] | None = None
+) -> tuple[str, str]:
     """``(level, reason)``: ``level`` itself unless it is ``auto`` (module docstring). ``free`` (bytes per
     ``"device"`` / ``"host"``) stands in for :func:`available_memory`."""
     if level not in RESIDENCY_LEVELS:
@@ -109,9 +116,17 @@ class ShapeStore:
         held_bytes: bytes of the prepared operators held; ``seconds``: time taken to read and prepare them.
     """
 
-    def __init__(self, dataset, indices: Sequence[int], level: str, device: torch.device,
-                 directional_order: int | None = None, basis_orders: Sequence[tuple] = (),
-                 progress: bool = False, free: dict[str, int] | None = None):
+    def __init__(
+        self,
+        dataset,
+        indices: Sequence[int],
+        level: str,
+        device: torch.device,
+        directional_order: int | None = None,
+        basis_orders: Sequence[tuple] = (),
+        progress: bool = False,
+        free: dict[str, int] | None = None,
+    ):
         self.dataset = dataset
         self.device = torch.device(device)
         self.directional_order = directional_order
@@ -119,14 +134,16 @@ class ShapeStore:
         indices = list(dict.fromkeys(int(i) for i in indices))
         started = time.perf_counter()
         first = self._prepared(dataset[indices[0]], torch.device("cpu")) if indices else None
-        self.level, self.reason = choose_residency(level, prepared_bytes(first) if first else 0, len(indices),
-                                                   self.device, free)
+        self.level, self.reason = choose_residency(
+            level, prepared_bytes(first) if first else 0, len(indices), self.device, free
+        )
         self._held: dict[int, object] = {}
         self._copy_stream = None
         if self.level != "stream":
             place = self.device if self.level == "device" else torch.device("cpu")
-            for i in tqdm(indices, desc=f"holding shapes ({self.level})", unit="shape", leave=False,
-                          disable=not progress):
+            for i in tqdm(
+                indices, desc=f"holding shapes ({self.level})", unit="shape", leave=False, disable=not progress
+            ):
                 record = first if i == indices[0] else dataset[i]
                 record = self._prepared(record, place)
                 if self.level == "host" and self.device.type == "cuda":
@@ -160,8 +177,14 @@ class ShapeStore:
 
     def describe(self) -> str:
         """One line for the banner and ``train.log``."""
-        held = (f"; holding {len(self._held)} shapes, {self.held_bytes / 1e9:.2f} GB, read and prepared in "
-                f"{self.seconds:.1f} s") if self._held else ""
+        held = (
+            (
+                f"; holding {len(self._held)} shapes, {self.held_bytes / 1e9:.2f} GB, read and prepared in "
+                f"{self.seconds:.1f} s"
+            )
+            if self._held
+            else ""
+        )
         return f"data residency: {self.level} ({self.reason}{held})"
 
 

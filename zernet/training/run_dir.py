@@ -16,8 +16,18 @@ from tqdm.auto import tqdm
 from zernet.io_utils import atomic_write_bytes, plain, write_json
 from zernet.metrics import regression_scores
 
-__all__ = ["RUN_FILES", "open_log", "close_log", "clear_run_files", "write_config_yaml", "write_json",
-           "write_plots", "epoch_line", "picture_name", "regression_title"]
+__all__ = [
+    "RUN_FILES",
+    "open_log",
+    "close_log",
+    "clear_run_files",
+    "write_config_yaml",
+    "write_json",
+    "write_plots",
+    "epoch_line",
+    "picture_name",
+    "regression_title",
+]
 
 #: The files a fresh run replaces.
 RUN_FILES = ("last.pt", "previous.pt", "best.pt", "metrics.json", "train.log")
@@ -84,8 +94,15 @@ def epoch_line(entry: dict, epochs: int, improved: bool) -> str:
     return ", ".join(parts) + (" *" if improved else "")
 
 
-def write_plots(run_dir: Path, history: list[dict], metrics: dict, kept: list[dict], class_names,
-                renders: int, logger: logging.Logger | None = None) -> list[str]:
+def write_plots(
+    run_dir: Path,
+    history: list[dict],
+    metrics: dict,
+    kept: list[dict],
+    class_names,
+    renders: int,
+    logger: logging.Logger | None = None,
+) -> list[str]:
     """Training curves (the selected epoch marked), the error curve (correspondence) and renders of a few
     shapes of the split the metrics are of, named ``<split>_<shape>.png``; returns the paths."""
     from zernet import viz  # matplotlib is imported when a run draws, not when zernet starts
@@ -95,13 +112,21 @@ def write_plots(run_dir: Path, history: list[dict], metrics: dict, kept: list[di
     split = metrics.get("split", "test")
     written = []
     if history:
-        written.append(viz.plot_training_curves(history, plot_dir / "training_curves.png",
-                                                title=f"training ({metrics['kind']})",
-                                                best_epoch=metrics.get("best_epoch")))
+        written.append(
+            viz.plot_training_curves(
+                history,
+                plot_dir / "training_curves.png",
+                title=f"training ({metrics['kind']})",
+                best_epoch=metrics.get("best_epoch"),
+            )
+        )
     if "error_curve" in metrics:
         curve = metrics["error_curve"]
-        written.append(viz.plot_error_curve({f"zernet ({split})": (curve["radii"], curve["fractions"])},
-                                            plot_dir / "error_curve.png"))
+        written.append(
+            viz.plot_error_curve(
+                {f"zernet ({split})": (curve["radii"], curve["fractions"])}, plot_dir / "error_curve.png"
+            )
+        )
     for item in kept[:renders]:
         path = plot_dir / f"{split}_{picture_name(item['name'], split)}.png"
         written.append(_render_shape(item, metrics["kind"], path, class_names, logger))
@@ -125,16 +150,38 @@ def _render_shape(item: dict, kind: str, path: Path, class_names, logger) -> Pat
         # matched to (prediction) or should be matched to (truth) on the same shape, so a correct map
         # gives two identical pictures.
         height = surface.vertices[:, 1]
-        return viz.render_comparison(surface, height[pred], height[target], error, path,
-                                     error_label="geodesic error", title=f"{item['name']}: matched vertex height",
-                                     error_max=0.1)
+        return viz.render_comparison(
+            surface,
+            height[pred],
+            height[target],
+            error,
+            path,
+            error_label="geodesic error",
+            title=f"{item['name']}: matched vertex height",
+            error_max=0.1,
+        )
     if kind == "segmentation":
         # Labels and the right/wrong mask are both drawn per vertex: one wrong vertex shows in both rows.
-        return viz.render_comparison(surface, pred, target, np.asarray(pred) != np.asarray(target), path,
-                                     error_label="wrong label", class_names=class_names,
-                                     title=f"{item['name']}: {np.mean(pred == target):.1%} correct")
-    return viz.render_comparison(surface, pred, target, np.minimum(error, 1.0), path, error_label="relative error",
-                                 title=regression_title(item["name"], pred, target, logger), error_max=0.5)
+        return viz.render_comparison(
+            surface,
+            pred,
+            target,
+            np.asarray(pred) != np.asarray(target),
+            path,
+            error_label="wrong label",
+            class_names=class_names,
+            title=f"{item['name']}: {np.mean(pred == target):.1%} correct",
+        )
+    return viz.render_comparison(
+        surface,
+        pred,
+        target,
+        np.minimum(error, 1.0),
+        path,
+        error_label="relative error",
+        title=regression_title(item["name"], pred, target, logger),
+        error_max=0.5,
+    )
 
 
 def regression_title(name: str, pred, target, logger: logging.Logger | None = None) -> str:
@@ -144,9 +191,11 @@ def regression_title(name: str, pred, target, logger: logging.Logger | None = No
     mape = regression_scores(pred, target)["MAPE"]
     title = f"{name}: MAPE {mape:.3f}" if np.isfinite(mape) else f"{name}: MAPE undefined (all targets zero)"
     if target.size and target.min() <= 0 <= target.max():
-        note = ("targets cross zero" if target.min() < 0 < target.max() else "targets touch zero")
+        note = "targets cross zero" if target.min() < 0 < target.max() else "targets touch zero"
         title += f" ({note}: relative errors are not meaningful)"
         if logger is not None:
-            logger.warning(f"{name}: {note}; MAPE leaves out the zero targets and is not a meaningful score "
-                           "for such a field (compare RRMSE or MAE)")
+            logger.warning(
+                f"{name}: {note}; MAPE leaves out the zero targets and is not a meaningful score "
+                "for such a field (compare RRMSE or MAE)"
+            )
     return title

@@ -42,7 +42,7 @@ def epoch_order(seed: int, epoch: int, n: int) -> list[int]:
 
 def step_groups(order: Sequence[int], shapes_per_step: int) -> list[list[int]]:
     """Cut an epoch's order into optimiser steps of ``shapes_per_step`` shapes (the last one may be short)."""
-    return [list(order[i:i + shapes_per_step]) for i in range(0, len(order), shapes_per_step)]
+    return [list(order[i : i + shapes_per_step]) for i in range(0, len(order), shapes_per_step)]
 
 
 def seed_everything(seed: int) -> None:
@@ -58,10 +58,18 @@ def rng_state() -> dict:
     py_version, py_state, py_gauss = random.getstate()
     state = {
         "torch": torch.get_rng_state(),
-        "numpy": {"name": np_name, "keys": torch.from_numpy(np_keys.astype(np.int64)), "pos": int(np_pos),
-                  "has_gauss": int(np_has_gauss), "cached_gaussian": float(np_gauss)},
-        "python": {"version": int(py_version), "state": torch.tensor(py_state, dtype=torch.int64),
-                   "gauss_next": py_gauss},
+        "numpy": {
+            "name": np_name,
+            "keys": torch.from_numpy(np_keys.astype(np.int64)),
+            "pos": int(np_pos),
+            "has_gauss": int(np_has_gauss),
+            "cached_gaussian": float(np_gauss),
+        },
+        "python": {
+            "version": int(py_version),
+            "state": torch.tensor(py_state, dtype=torch.int64),
+            "gauss_next": py_gauss,
+        },
     }
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         state["cuda"] = torch.cuda.get_rng_state_all()
@@ -72,10 +80,16 @@ def set_rng_state(state: dict) -> None:
     """Restore the states :func:`rng_state` captured."""
     torch.set_rng_state(state["torch"])
     np_state = state["numpy"]
-    np.random.set_state((np_state["name"], np_state["keys"].numpy().astype(np.uint32), np_state["pos"],
-                         np_state["has_gauss"], np_state["cached_gaussian"]))
+    np.random.set_state(
+        (
+            np_state["name"],
+            np_state["keys"].numpy().astype(np.uint32),
+            np_state["pos"],
+            np_state["has_gauss"],
+            np_state["cached_gaussian"],
+        )
+    )
     py_state = state["python"]
-    random.setstate((py_state["version"], tuple(int(v) for v in py_state["state"].tolist()),
-                     py_state["gauss_next"]))
+    random.setstate((py_state["version"], tuple(int(v) for v in py_state["state"].tolist()), py_state["gauss_next"]))
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])

@@ -19,7 +19,7 @@ BUDGET = "epoch budget"
 class Monitor:
     """The validation metric the model is selected on."""
 
-    name: str                  # val_accuracy | val_loss
+    name: str  # val_accuracy | val_loss
     higher_is_better: bool
 
     @classmethod
@@ -34,8 +34,16 @@ class Monitor:
 
 
 def initial_state() -> dict:
-    return {"epoch": 0, "best_metric": None, "best_epoch": 0, "bad_epochs": 0, "stopped": False,
-            "stop_reason": "", "train_seconds": 0.0, "history": []}
+    return {
+        "epoch": 0,
+        "best_metric": None,
+        "best_epoch": 0,
+        "bad_epochs": 0,
+        "stopped": False,
+        "stop_reason": "",
+        "train_seconds": 0.0,
+        "history": [],
+    }
 
 
 def reopen_if_budget_raised(state: dict, epochs: int) -> None:
@@ -44,8 +52,9 @@ def reopen_if_budget_raised(state: dict, epochs: int) -> None:
         state["stopped"] = False
 
 
-def record_epoch(state: dict, entry: dict, monitor: Monitor, epochs: int, patience: int | None,
-                 has_validation: bool) -> bool:
+def record_epoch(
+    state: dict, entry: dict, monitor: Monitor, epochs: int, patience: int | None, has_validation: bool
+) -> bool:
     """Add the finished epoch's ``entry`` to ``state``; returns whether its model is the best so far.
 
     Without validation the latest model is the model. Training stops after ``patience`` epochs without a

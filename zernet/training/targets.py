@@ -16,8 +16,16 @@ import torch
 
 from zernet.training.config import ConfigError
 
-__all__ = ["target_stats", "feature_stats", "mean_std", "standardise", "unstandardise", "destandardise",
-           "untransform", "standardise_features"]
+__all__ = [
+    "target_stats",
+    "feature_stats",
+    "mean_std",
+    "standardise",
+    "unstandardise",
+    "destandardise",
+    "untransform",
+    "standardise_features",
+]
 
 
 def mean_std(arrays: Iterable, flat_std: float) -> tuple[np.ndarray, np.ndarray]:
@@ -47,8 +55,10 @@ def target_stats(dataset, indices: Sequence[int], transform: str = "none", stand
             return target
         if not np.all(target > 0):
             bad = int(np.flatnonzero(~(target > 0))[0])
-            raise ConfigError(f"train.target_transform log needs positive targets, but shape "
-                              f"{dataset.names[i]} has {float(target[bad])!r} at vertex {bad}")
+            raise ConfigError(
+                f"train.target_transform log needs positive targets, but shape "
+                f"{dataset.names[i]} has {float(target[bad])!r} at vertex {bad}"
+            )
         return np.log(target)
 
     mean, std = mean_std((trained_units(i) for i in indices), flat_std=1e-12)

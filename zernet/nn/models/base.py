@@ -111,7 +111,9 @@ class SurfaceModel(nn.Module):
     def check_features(self, x: Tensor) -> None:
         """``ValueError`` unless ``x`` is ``(N, in_channels)``."""
         if x.dim() != 2 or x.shape[1] != self.in_channels:
-            raise ValueError(f"{self.__class__.__name__} expects x of shape (N, {self.in_channels}), got {tuple(x.shape)}")
+            raise ValueError(
+                f"{self.__class__.__name__} expects x of shape (N, {self.in_channels}), got {tuple(x.shape)}"
+            )
 
 
 class ZerNetBase(SurfaceModel):

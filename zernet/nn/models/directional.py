@@ -85,8 +85,10 @@ class DirectionalZerNet(SurfaceModel):
         if self.final_order is not None and self.final_order < 0:
             raise ValueError(f"final_order must be >= 0, got {final_order}")
         if norm not in (None, "none", "layer"):
-            raise ValueError(f"{type(self).__name__}: norm must be None or 'layer' (batch norm has no "
-                             f"rotation-equivariant form for directional channels), got {norm!r}")
+            raise ValueError(
+                f"{type(self).__name__}: norm must be None or 'layer' (batch norm has no "
+                f"rotation-equivariant form for directional channels), got {norm!r}"
+            )
         self.norm_name = None if norm in (None, "none") else norm
         conv_widths = widths[:-1]
         self.convs = nn.ModuleList()

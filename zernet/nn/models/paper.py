@@ -51,8 +51,11 @@ def ridge_normal_matrix(basis: Tensor, ridge: float, weights=None) -> Tensor:
     """
     gram = basis.transpose(1, 2) @ basis
     k = gram.shape[-1]
-    diagonal = torch.ones(k, dtype=gram.dtype, device=gram.device) if weights is None else \
-        torch.as_tensor(weights, dtype=gram.dtype, device=gram.device)
+    diagonal = (
+        torch.ones(k, dtype=gram.dtype, device=gram.device)
+        if weights is None
+        else torch.as_tensor(weights, dtype=gram.dtype, device=gram.device)
+    )
     return gram + ridge * torch.diag(diagonal)
 
 
@@ -147,8 +150,15 @@ class PaperZernikeConv(RotatedKernelConv):
         k: int | None = None,
         ridge: float | None = None,
     ) -> None:
-        super().__init__(in_channels, out_channels, n_max=n_max, angular_resolution=angular_resolution,
-                         pooling=pooling, bias=bias, k=k)
+        super().__init__(
+            in_channels,
+            out_channels,
+            n_max=n_max,
+            angular_resolution=angular_resolution,
+            pooling=pooling,
+            bias=bias,
+            k=k,
+        )
         if ridge is not None and float(ridge) < 0:
             raise ValueError(f"ridge must be >= 0, got {ridge}")
         self.ridge = None if ridge is None else float(ridge)
@@ -226,11 +236,22 @@ class PaperZerNet(ZerNet):
         - output: ``(N, C_out)``.
     """
 
-    def init_block(self, index: int, in_channels: int, out_channels: int, scale: int = 0,
-                   ridge: float | None = None) -> nn.Module:
+    def init_block(
+        self, index: int, in_channels: int, out_channels: int, scale: int = 0, ridge: float | None = None
+    ) -> nn.Module:
         pooling = self.conv_options["pooling"]
         if pooling not in ("max", "mean"):
-            raise ValueError(f"paper-zernet pools over s rotated kernels: pooling must be 'max' or 'mean', got {pooling!r}")
+            raise ValueError(
+                f"paper-zernet pools over s rotated kernels: pooling must be 'max' or 'mean', got {pooling!r}"
+            )
         self.ridge = ridge
-        return ZernikeBlock(in_channels, out_channels, scales=(scale,), activation=self.activation,
-                            norm=self.norm_name, conv=PaperZernikeConv, ridge=ridge, **self.conv_options)
+        return ZernikeBlock(
+            in_channels,
+            out_channels,
+            scales=(scale,),
+            activation=self.activation,
+            norm=self.norm_name,
+            conv=PaperZernikeConv,
+            ridge=ridge,
+            **self.conv_options,
+        )

@@ -15,8 +15,14 @@ from .directional import DirectionalZerNet
 from .paper import PaperZerNet
 from .zernet import MultiScaleZerNet, ZerNet
 
-__all__ = ["MODEL_REGISTRY", "register_model", "available_models", "build_model", "directional_order",
-           "reads_patch_operators"]
+__all__ = [
+    "MODEL_REGISTRY",
+    "register_model",
+    "available_models",
+    "build_model",
+    "directional_order",
+    "reads_patch_operators",
+]
 
 MODEL_REGISTRY: dict[str, Callable[..., nn.Module]] = {
     "zernet": ZerNet,

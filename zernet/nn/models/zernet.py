@@ -36,8 +36,9 @@ class ZernikeBlock(nn.Module):
     Shapes: ``x`` ``(N, C_in)``, ``operators`` a list of operators -> ``(N, C_out)``.
     """
 
-    def __init__(self, in_channels, out_channels, scales=(0,), activation="relu", norm=None, conv=ZernikeConv,
-                 **conv_options):
+    def __init__(
+        self, in_channels, out_channels, scales=(0,), activation="relu", norm=None, conv=ZernikeConv, **conv_options
+    ):
         super().__init__()
         if conv_options.get("pooling", "max") == "none":
             raise ValueError("model convolution blocks need a pooled output; pooling='none' is for single layers")
@@ -70,8 +71,14 @@ class ZerNet(ZerNetBase):
     """
 
     def init_block(self, index: int, in_channels: int, out_channels: int, scale: int = 0) -> nn.Module:
-        return ZernikeBlock(in_channels, out_channels, scales=(scale,), activation=self.activation,
-                            norm=self.norm_name, **self.conv_options)
+        return ZernikeBlock(
+            in_channels,
+            out_channels,
+            scales=(scale,),
+            activation=self.activation,
+            norm=self.norm_name,
+            **self.conv_options,
+        )
 
 
 class MultiScaleZerNet(ZerNetBase):
@@ -94,11 +101,18 @@ class MultiScaleZerNet(ZerNetBase):
     Shapes: ``x`` ``(N, C_in)``, ``geometry.operators[0..n_scales-1]`` -> ``(N, C_out)``.
     """
 
-    def init_block(self, index: int, in_channels: int, out_channels: int, n_scales: int = 3,
-                   wiring: str = "parallel") -> nn.Module:
+    def init_block(
+        self, index: int, in_channels: int, out_channels: int, n_scales: int = 3, wiring: str = "parallel"
+    ) -> nn.Module:
         if wiring not in ("parallel", "sequential"):
             raise ValueError(f"wiring must be 'parallel' or 'sequential', got {wiring!r}")
         self.n_scales, self.wiring = int(n_scales), wiring
         scales = tuple(range(self.n_scales)) if wiring == "parallel" else (min(index, self.n_scales - 1),)
-        return ZernikeBlock(in_channels, out_channels, scales=scales, activation=self.activation,
-                            norm=self.norm_name, **self.conv_options)
+        return ZernikeBlock(
+            in_channels,
+            out_channels,
+            scales=scales,
+            activation=self.activation,
+            norm=self.norm_name,
+            **self.conv_options,
+        )
