@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import os
 import stat
+import warnings
 
 import numpy as np
 import pytest
@@ -25,6 +26,7 @@ import yaml
 from meshes import icosphere
 
 from zernet.cli import main
+from zernet.training.predict import predict
 
 N_GOOD = 6
 
@@ -279,6 +281,31 @@ def test_predict_repairs_a_mesh_and_answers_every_input_vertex(skipped_run, tmp_
     assert prediction.shape == (len(vertices),) and prediction[-1] == prediction[0]
 
 
+def test_predict_answers_a_scan_with_a_hole_a_second_piece_a_fin_and_half_the_body(skipped_run, tmp_path):
+    """The forms a scanner or a mesh tool leaves: each predicted without an error, one value per vertex."""
+    mesh = trimesh.load(skipped_run["meshes"] / "test" / "shape5.obj", process=False)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    extra = np.vstack([vertices, vertices[faces[0, :2]].mean(axis=0) + [0.0, 0.0, 0.3]])
+    fin = np.array([[faces[0, 0], faces[0, 1], len(vertices)]])  # a third face on an edge
+    piece = icosphere(1, radius=0.3).vertices + [4.0, 0.0, 0.0]  # a separate component
+    forms = {
+        "hole": (vertices, faces[5:]),
+        "fin": (extra, np.vstack([faces, fin])),
+        "pieces": (np.vstack([vertices, piece]), np.vstack([faces, icosphere(1).faces + len(vertices)])),
+        "half": (vertices, faces[vertices[faces].mean(axis=1)[:, 2] > 0]),  # one side, vertices kept
+    }
+    for name, (form_vertices, form_faces) in forms.items():
+        path = tmp_path / f"{name}.ply"
+        path.write_bytes(trimesh.Trimesh(form_vertices, form_faces, process=False).export(file_type="ply"))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the non-manifold edge and the unused vertices are reported
+            # Half the body: scaled like the whole one (the config's patch.area is 100), not to its own area.
+            scale = np.sqrt(100.0 / mesh.area) if name == "half" else None
+            prediction = predict(skipped_run["run"], path, scale=scale)
+        assert prediction.shape == (len(form_vertices),), name
+        assert set(np.unique(prediction)) <= {0, 1}, name
+
+
 def test_a_run_trained_on_meshes_predicts_on_the_cloud_of_a_mesh(skipped_run, tmp_path, capsys):
     mesh = skipped_run["meshes"] / "test" / "shape5.obj"
     vertices = trimesh.load(mesh, process=False).vertices
@@ -294,7 +321,6 @@ def test_a_run_trained_on_meshes_predicts_on_the_cloud_of_a_mesh(skipped_run, tm
 
 def test_predict_with_an_explicit_scale_equals_the_area_normalised_prediction(skipped_run):
     from zernet.geometry import load_surface
-    from zernet.training.predict import predict
 
     surface = load_surface(skipped_run["meshes"] / "test" / "shape5.obj")
     run = skipped_run["run"]
