@@ -22,7 +22,7 @@ from zernet.data.bodies import POSE_MODES as BODY_POSES
 from zernet.data.bodies import TOPOLOGIES as BODY_TOPOLOGIES
 from zernet.data.bodies import write_bodies
 from zernet.distributed import is_main
-from zernet.geometry import SurfaceError, read_surface, repair_surface
+from zernet.geometry import SurfaceError, read_surface
 from zernet.io_utils import atomic_write_bytes, write_json
 from zernet.matching.cli import add_match_command
 from zernet.training import (
@@ -511,12 +511,10 @@ def _cmd_predict(args) -> int:
     path = checkpoint_path(args.run_dir)
     checkpoint = load_checkpoint(path)
     surface = read_surface(args.mesh)
-    repaired = repair_surface(surface)
-    if repaired.describe():
-        print(f"{args.mesh}: {repaired.describe()} (predictions are given back per vertex of the file)")
     result = predict(
         path,
         surface,
+        progress=True,  # says what was repaired
         probabilities=args.probabilities,
         device=args.device,
         refine_rings=args.refine_rings,

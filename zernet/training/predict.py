@@ -83,6 +83,7 @@ def predict(
             they are) and preprocessed like the training shapes (area normalisation, features, patch
             operators; a point cloud is triangulated through its own points for the front backend).
         probabilities: classification only — also return the (N, C) softmax probabilities.
+        progress: print what was repaired (duplicate vertices merged, degenerate faces dropped).
         refine_rings: correspondence only: average the probabilities over this many rings of mesh neighbours
             on the surface and on the template (:mod:`zernet.training.refine`); None: the number the run
             chose on its validation split (0 for runs that chose none).
@@ -104,7 +105,7 @@ def predict(
         surface = read_surface(surface)  # validated and repaired below, with the map back to its vertices
     repaired = repair_surface(surface)
     if progress and repaired.describe():
-        print(f"{surface.name}: {repaired.describe()}")
+        print(f"{surface.name}: {repaired.describe()} (predictions are given back per vertex of the file)")
     patch_configs = [PatchConfig(**c) for c in spec["patch_configs"]]
     if backend is not None:
         patch_configs = [dataclasses.replace(c, backend=backend) for c in patch_configs]
