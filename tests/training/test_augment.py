@@ -18,6 +18,7 @@ from zernet.training.augment import (
     check_augmentation,
     feature_slices,
     random_rotation,
+    smooth_warp,
 )
 from zernet.training.config import TrainSection
 
@@ -97,6 +98,8 @@ def test_no_augmentation_returns_the_records_themselves():
         ("shape", TrainSection(augment_rotation="any"), "rotation-invariant"),
         ("ones+curvature", TrainSection(augment_rotation="vertical"), "rotation-invariant"),
         ("normals", TrainSection(augment_scale=0.1), "no xyz part"),
+        ("normals", TrainSection(augment_anisotropy=0.1), "augment_anisotropy.*no xyz part"),
+        ("shape", TrainSection(augment_warp=0.05), "augment_warp.*no xyz part"),
     ],
 )
 def test_meaningless_augmentation_is_refused(kind, train, message):
@@ -107,6 +110,34 @@ def test_meaningless_augmentation_is_refused(kind, train, message):
 def test_check_accepts_what_changes_something():
     check_augmentation(TrainSection(augment_rotation="any", augment_scale=0.1), "xyz+shape")
     check_augmentation(TrainSection(augment_rotation="any"), "normals")
+
+
+def test_anisotropy_scales_each_axis_by_its_own_factor_and_leaves_the_rest():
+    record = _record()
+    train = TrainSection(augment_anisotropy=0.2, seed=1)
+    assert augmenting(train)
+    (copy,) = augment_records([record], train, "xyz+normals+ones", [3], epoch=1, step=3)
+    factors = copy.features[:, :3] / record.features[:, :3]
+    assert np.allclose(factors, factors[0], atol=1e-5)  # one factor per axis, for every vertex
+    assert np.all((factors[0] >= 0.8) & (factors[0] <= 1.2)) and np.ptp(factors[0]) > 1e-3
+    assert np.array_equal(copy.features[:, 3:], record.features[:, 3:])  # normals and ones untouched
+
+
+def test_warp_is_a_smooth_bounded_displacement():
+    rng = np.random.default_rng(4)
+    xyz = rng.normal(size=(2000, 3))
+    radius = np.sqrt(((xyz - xyz.mean(0)) ** 2).sum(1).mean())
+    moved = smooth_warp(xyz, np.random.default_rng(7), 0.05)
+    displacement = moved - xyz
+    size = np.linalg.norm(displacement, axis=1)
+    assert size.max() <= 0.05 * radius + 1e-12 and size.std() > 0  # bounded, and not a translation
+    # Smooth: displacements differ by at most (amplitude r / 3) * sum_k 2 pi / lambda_k * distance, with
+    # every wavelength >= r, i.e. by at most 2 pi * amplitude times the distance between the points.
+    i, j = rng.integers(0, len(xyz), size=(2, 500))
+    change = np.linalg.norm(displacement[i] - displacement[j], axis=1)
+    distance = np.linalg.norm(xyz[i] - xyz[j], axis=1)
+    assert np.all(change <= 2 * np.pi * 0.05 * distance + 1e-12)
+    np.testing.assert_array_equal(moved, smooth_warp(xyz, np.random.default_rng(7), 0.05))
 
 
 def test_training_with_augmentation_is_reproducible_and_differs(tmp_path, cache_dir):

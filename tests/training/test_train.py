@@ -167,6 +167,19 @@ def test_loss_decreases_on_an_overfittable_task(tmp_path, cache_dir):
     assert metrics["epochs_trained"] == 8
 
 
+def test_keep_epochs_keeps_every_epochs_weights_for_evaluation(tmp_path, cache_dir):
+    run_dir = tmp_path / "run"
+    train(tiny_config(cache_dir, epochs=2, patience=None, keep_epochs=True), run_dir, progress=False, workers=0)
+    kept = sorted((run_dir / "epochs").glob("*.pt"))
+    assert [path.name for path in kept] == ["epoch_001.pt", "epoch_002.pt"]
+    last, second = load_checkpoint(run_dir / "last.pt"), load_checkpoint(kept[1])
+    assert "optimizer" not in second and all(torch.equal(last["model"][k], second["model"][k]) for k in last["model"])
+    first = load_checkpoint(kept[0])
+    assert any(not torch.equal(first["model"][k], second["model"][k]) for k in first["model"])
+    scores = evaluate(kept[1], progress=False)["summary"]["accuracy"]
+    assert scores == pytest.approx(evaluate(run_dir / "last.pt", progress=False)["summary"]["accuracy"])
+
+
 def test_training_flushes_denormals_while_it_optimises(tmp_path, cache_dir, monkeypatch):
     """Denormal floats (late softmax gradients) would run through the CPU's slow path: the epochs read them as
     0, and the flag is off again afterwards (the geometry code is not run under it)."""

@@ -1,4 +1,4 @@
-"""Training-time augmentation of the input features: random rigid rotations and scalings.
+"""Training-time augmentation of the input features: random rotations, scalings and smooth warps.
 
 The patch operators are intrinsic (geodesic polar coordinates on the area-normalised surface), so a rigid
 motion or a uniform scaling of a shape leaves them unchanged: only the input channels that depend on the
@@ -14,6 +14,17 @@ Settings (``train`` section of the run configuration):
     generated bodies), for upright shapes; ``any``: a uniformly distributed rotation of SO(3).
 ``augment_scale``
     ``a`` in ``[0, 1)``: ``xyz`` is multiplied by a factor drawn uniformly from ``[1 - a, 1 + a]`` (0: off).
+``augment_anisotropy``
+    ``a`` in ``[0, 1)``: each axis of ``xyz`` (after the rotation) is multiplied by its own factor drawn
+    uniformly from ``[1 - a, 1 + a]``: a taller, wider or deeper person.
+``augment_warp``
+    ``w`` in ``[0, 1)``: ``xyz`` is displaced by a smooth random field, the sum of three plane waves
+    ``w r / 3 · u_k sin(2π (d_k · x) / λ_k + φ_k)`` (at most ``w r`` together) with ``r`` the shape's RMS distance from its centroid,
+    random unit directions ``u_k``, ``d_k``, wavelengths ``λ_k`` uniform in ``[r, 3r]`` and phases: limbs and
+    torso bend and thicken a little differently, as another person's would.
+
+These change the input channels only: the patch operators, intrinsic to the surface, stay those of the
+shape, so the network sees the same neighbourhoods with the positions of a slightly different body.
 
 Each optimiser step draws one rotation and one factor per shape from a generator seeded by
 ``(train.seed, epoch, step)``, so a run is reproducible and a resumed run continues exactly.
@@ -38,6 +49,7 @@ __all__ = [
     "feature_slices",
     "check_augmentation",
     "random_rotation",
+    "smooth_warp",
     "augment_records",
 ]
 
@@ -48,7 +60,12 @@ SCALING_PARTS = ("xyz",)
 
 def augmenting(train: TrainSection) -> bool:
     """Whether ``train`` asks for any augmentation."""
-    return train.augment_rotation != "none" or train.augment_scale > 0
+    return (
+        train.augment_rotation != "none"
+        or train.augment_scale > 0
+        or train.augment_anisotropy > 0
+        or train.augment_warp > 0
+    )
 
 
 def feature_slices(kind: str, degrees: Sequence[int]) -> dict[str, slice]:
@@ -69,11 +86,12 @@ def check_augmentation(train: TrainSection, kind: str) -> None:
             f"train.augment_rotation={train.augment_rotation} has no effect: the features {kind!r} are "
             "rotation-invariant (rotation changes only the xyz and normals parts); set it to none"
         )
-    if train.augment_scale > 0 and not set(parts) & set(SCALING_PARTS):
-        raise ConfigError(
-            f"train.augment_scale={train.augment_scale} has no effect: the features {kind!r} have no "
-            "xyz part; set it to 0"
-        )
+    for name in ("augment_scale", "augment_anisotropy", "augment_warp"):
+        if getattr(train, name) > 0 and not set(parts) & set(SCALING_PARTS):
+            raise ConfigError(
+                f"train.{name}={getattr(train, name)} has no effect: the features {kind!r} have no xyz part; "
+                "set it to 0"
+            )
 
 
 def random_rotation(rng: np.random.Generator, mode: str) -> np.ndarray:
@@ -102,6 +120,22 @@ def random_rotation(rng: np.random.Generator, mode: str) -> np.ndarray:
             ]
         )
     raise ValueError(f"augment_rotation must be none, vertical or any, got {mode!r}")
+
+
+def _unit_vectors(rng: np.random.Generator, count: int) -> np.ndarray:
+    vectors = rng.normal(size=(count, 3))
+    return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+
+
+def smooth_warp(xyz: np.ndarray, rng: np.random.Generator, amplitude: float) -> np.ndarray:
+    """``xyz`` (N, 3) displaced by the smooth random field of ``augment_warp`` (module docstring)."""
+    centred = xyz - xyz.mean(axis=0)
+    radius = float(np.sqrt((centred**2).sum(axis=1).mean()))
+    moves, directions = _unit_vectors(rng, 3), _unit_vectors(rng, 3)
+    wavelengths = rng.uniform(radius, 3.0 * radius, size=3)
+    phases = rng.uniform(0.0, 2.0 * np.pi, size=3)
+    waves = np.sin(2.0 * np.pi * (centred @ directions.T) / wavelengths + phases)  # (N, 3): one column per wave
+    return xyz + (amplitude * radius / 3.0) * (waves @ moves)
 
 
 def augment_records(
@@ -138,5 +172,12 @@ def augment_records(
         for part in SCALING_PARTS:
             if part in slices:
                 features[:, slices[part]] *= factor
+        # Drawn after the rotation and factor, so runs without them draw exactly as before.
+        if train.augment_anisotropy > 0:
+            axes = rng.uniform(1.0 - train.augment_anisotropy, 1.0 + train.augment_anisotropy, size=3)
+            features[:, slices["xyz"]] *= axes.astype(np.float32)
+        if train.augment_warp > 0:
+            xyz = features[:, slices["xyz"]].astype(np.float64)
+            features[:, slices["xyz"]] = smooth_warp(xyz, rng, train.augment_warp).astype(np.float32)
         out.append(dataclasses.replace(record, features=features))
     return out

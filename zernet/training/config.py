@@ -370,6 +370,13 @@ class TrainSection(_Section):
     # inputs of every training shape (zernet.training.augment); meaningless for rotation-invariant features.
     augment_rotation: str = _rule("none", "str", choices=AUGMENT_ROTATIONS)
     augment_scale: float = _rule(0.0, "number", minimum=0, below=1)
+    # Other people's proportions, on the xyz inputs: each axis scaled by its own factor in [1 - a, 1 + a]
+    # (anisotropy), and a smooth random displacement of amplitude ``warp`` times the shape's RMS radius.
+    augment_anisotropy: float = _rule(0.0, "number", minimum=0, below=1)
+    augment_warp: float = _rule(0.0, "number", minimum=0, below=1)
+    # Also keep every epoch's weights as epochs/epoch_XXX.pt (no optimiser state): learning curves on any
+    # split afterwards (zernet evaluate RUN/epochs/epoch_003.pt); the model is still chosen on validation.
+    keep_epochs: bool = _rule(False, "bool")
 
 
 @dataclass(frozen=True)

@@ -54,6 +54,7 @@ from zernet.training.checkpoint import (
     load_resume_checkpoint,
     make_checkpoint,
     save_epoch_checkpoints,
+    save_epoch_weights,
 )
 from zernet.training.config import ConfigError, EvalSection, RunConfig, TrainSection, parse_config
 from zernet.training.epoch import Objective, train_one_epoch, validate
@@ -465,6 +466,8 @@ def _fit(
         checkpoint = make_checkpoint(record, model, optimizer, state)
         if ctx.is_main:  # only rank 0 writes in a distributed run
             save_epoch_checkpoints(checkpoint, run_dir, improved)
+            if train.keep_epochs:
+                save_epoch_weights(checkpoint, run_dir, epoch)
         logger.info(epoch_line(entry, train.epochs, improved))
         if state["stopped"] and state["stop_reason"] != BUDGET:
             logger.info(f"stopping after epoch {epoch}: {state['stop_reason']}")
