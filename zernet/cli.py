@@ -364,6 +364,14 @@ def _add_bodies_command(sub, parents: list[argparse.ArgumentParser]) -> None:
         "cloud-noisy, partial, or 'all' (default none; under OUT/forms, see docs/BODIES.md)",
     )
     p.add_argument(
+        "--people",
+        type=int,
+        default=None,
+        metavar="P",
+        help="FAUST's structure: P people in COUNT/P poses each, consecutive bodies one person, the test "
+        "bodies whole people (e.g. --count 100 --people 10: 8 people to train on, 2 unseen to test)",
+    )
+    p.add_argument(
         "--forms-split",
         choices=("test", "all"),
         default="test",
@@ -389,6 +397,7 @@ def _cmd_bodies(args) -> int:
         progress=True,
         forms=args.forms,
         forms_split=args.forms_split,
+        people=args.people,
     )
     print(f"{args.count} bodies ({args.topology}, {args.poses} poses) written to {layout.root}; see {layout.readme}")
     if layout.forms is not None:

@@ -1,12 +1,15 @@
 """Seeded bodies of one topology and pose mode: :class:`BodyGenerator`, :class:`Body`, :func:`generate_bodies`.
 
 Body ``i`` of split ``s`` comes from its own random stream ``numpy.random.SeedSequence([seed, s, i])``
-(s = 0 train, 1 test). The topology and every body are cached under ``<cache_dir>/bodies/`` (keys in
+(s = 0 train, 1 test). With ``people``, bodies share phenotypes FAUST's way (a few people in several poses
+each): the people's phenotypes come from the stream ``SeedSequence([seed, 2])`` (:func:`spread_phenotypes`)
+and body ``number`` is person ``number // (count // people)``; poses stay each body's own. The topology and every body are cached under ``<cache_dir>/bodies/`` (keys in
 :meth:`BodyGenerator.body_key`); the anny model is built only on a cache miss.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import importlib.metadata
 import io
@@ -18,7 +21,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from zernet.data.bodies.pose import POSE_MODES, bone_rotations, draw_phenotype, draw_pose
+from zernet.data.bodies.pose import POSE_MODES, bone_rotations, draw_phenotype, draw_pose, spread_phenotypes
 from zernet.data.bodies.topology import TOPOLOGIES, TOPOLOGY_ARRAYS, BodyTopology, build_topology, import_anny
 from zernet.data.dataset import DatasetError
 from zernet.geometry import Surface
@@ -32,6 +35,7 @@ __all__ = [
     "generate_bodies",
     "split_of",
     "check_counts",
+    "person_of",
     "package_version",
     "npz_bytes",
 ]
@@ -40,6 +44,8 @@ __all__ = [
 GENERATOR_VERSION = 1
 #: Split name -> the second element of a body's SeedSequence.
 SPLIT_CODES = {"train": 0, "test": 1}
+# Second element of the SeedSequence of the people's phenotypes (``people=``): a stream no body draws from.
+_PEOPLE_STREAM = 2
 # Rotation by -90 degrees about x: (x, y, z) -> (x, z, -y). anny is z-up facing -y; FAUST's scans (and
 # zernet.viz's default view) are y-up facing +z.
 _Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -72,6 +78,7 @@ class Body:
     parts: np.ndarray
     phenotype: dict = field(default_factory=dict)
     pose: dict = field(default_factory=dict)
+    person: int | None = None  # with ``generate_bodies(people=...)``: whose body this is (same phenotype)
 
     @property
     def correspondence(self) -> np.ndarray:
@@ -138,18 +145,26 @@ class BodyGenerator:
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, SPLIT_CODES[split], int(index)]))
         return draw_phenotype(rng), draw_pose(rng, POSE_MODES[self.poses])
 
-    def body_key(self, index: int, split: str = "train") -> str:
-        """What body ``index`` of ``split`` depends on: topology, poses, seed, split, index, versions."""
-        return f"{self.topology_name}-{self.poses}-seed{self.seed}-{split}{int(index)}-{self.version}"
+    def body_key(self, index: int, split: str = "train", phenotype: dict[str, float] | None = None) -> str:
+        """What body ``index`` of ``split`` depends on: topology, poses, seed, split, index, versions, and a
+        phenotype given instead of the body's own draw."""
+        key = f"{self.topology_name}-{self.poses}-seed{self.seed}-{split}{int(index)}-{self.version}"
+        if phenotype is not None:
+            key += "-phenotype-" + ",".join(f"{name}={value!r}" for name, value in sorted(phenotype.items()))
+        return key
 
-    def body(self, index: int, split: str = "train", name: str | None = None) -> Body:
-        """Body ``index`` of ``split`` (named ``name``, default ``<split>_<index>``), from the cache if there."""
-        phenotype, pose = self.draws(index, split)
+    def body(
+        self, index: int, split: str = "train", name: str | None = None, phenotype: dict[str, float] | None = None
+    ) -> Body:
+        """Body ``index`` of ``split`` (named ``name``, default ``<split>_<index>``), from the cache if there;
+        ``phenotype`` replaces the body's own phenotype draw (its pose stays its own)."""
+        drawn, pose = self.draws(index, split)
+        given, phenotype = phenotype, drawn if phenotype is None else dict(phenotype)
         topology = self.topology()
         name = name or f"{split}_{index:03d}"
         path = None
         if self.cache is not None:
-            digest = hashlib.sha256(self.body_key(index, split).encode()).hexdigest()[:24]
+            digest = hashlib.sha256(self.body_key(index, split, given).encode()).hexdigest()[:24]
             path = self.cache / self.topology_name / (digest + ".npz")
         if path is not None and path.is_file():
             with np.load(path) as stored:
@@ -180,10 +195,25 @@ def split_of(number: int, count: int, n_test: int) -> tuple[str, int]:
     return ("train", number) if number < n_train else ("test", number - n_train)
 
 
-def check_counts(count: int, n_test: int) -> None:
-    """DatasetError unless ``count >= 1`` and ``0 <= n_test < count``."""
+def check_counts(count: int, n_test: int, people: int | None = None) -> None:
+    """DatasetError unless ``count >= 1``, ``0 <= n_test < count`` and, with ``people``, the bodies split into
+    that many people of equal pose counts with the test bodies whole people."""
     if count < 1 or not 0 <= n_test < count:
         raise DatasetError(f"bodies: need count >= 1 and 0 <= n_test < count, got count={count}, n_test={n_test}")
+    if people is None:
+        return
+    if people < 1 or count % people:
+        raise DatasetError(f"bodies: {count} bodies do not split into {people} people with equally many poses")
+    if n_test % (count // people):
+        raise DatasetError(
+            f"bodies: the {n_test} test bodies must be whole people ({count // people} poses each), so that "
+            "the test people are never seen in training"
+        )
+
+
+def person_of(number: int, count: int, people: int) -> int:
+    """The person of body ``number`` of ``count`` bodies of ``people`` people: consecutive bodies, one person."""
+    return number // (count // people)
 
 
 def generate_bodies(
@@ -194,13 +224,24 @@ def generate_bodies(
     n_test: int = 20,
     cache_dir: str | os.PathLike | None = ".zernet-cache",
     progress: bool = False,
+    people: int | None = None,
 ) -> list[Body]:
-    """``count`` bodies named ``body_000`` ...: the first ``count - n_test`` train, the rest test."""
-    check_counts(count, n_test)
+    """``count`` bodies named ``body_000`` ...: the first ``count - n_test`` train, the rest test. With
+    ``people``, consecutive bodies are one person's poses (:func:`person_of`; FAUST's structure: 100 bodies
+    of 10 people, the last 2 people the test split), each body with its ``person``."""
+    check_counts(count, n_test, people)
     generator = BodyGenerator(topology, poses, seed, cache_dir)
     generator.topology()  # builds the model if needed: a missing extra is reported before any progress bar
+    phenotypes = None
+    if people is not None:
+        phenotypes = spread_phenotypes(np.random.default_rng(np.random.SeedSequence([seed, _PEOPLE_STREAM])), people)
     bodies = []
     for number in tqdm(range(count), desc=f"bodies ({topology})", unit="body", disable=not progress):
         split, index = split_of(number, count, n_test)
-        bodies.append(generator.body(index, split, name=f"body_{number:03d}"))
+        if phenotypes is None:
+            bodies.append(generator.body(index, split, name=f"body_{number:03d}"))
+            continue
+        person = person_of(number, count, people)
+        body = generator.body(index, split, name=f"body_{number:03d}", phenotype=phenotypes[person])
+        bodies.append(dataclasses.replace(body, person=person))
     return bodies

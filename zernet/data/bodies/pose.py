@@ -19,6 +19,7 @@ __all__ = [
     "UP",
     "OUTWARD",
     "draw_phenotype",
+    "spread_phenotypes",
     "draw_pose",
     "rotation_matrix",
     "bone_rotations",
@@ -70,6 +71,20 @@ def _sides(bone_pattern: str) -> tuple[str, ...]:
 def draw_phenotype(rng: np.random.Generator) -> dict[str, float]:
     """One phenotype: every value of :data:`PHENOTYPE_RANGES` drawn uniformly, in its order."""
     return {key: float(rng.uniform(low, high)) for key, (low, high) in PHENOTYPE_RANGES.items()}
+
+
+def spread_phenotypes(rng: np.random.Generator, count: int) -> list[dict[str, float]]:
+    """``count`` phenotypes spread over every range of :data:`PHENOTYPE_RANGES` (a Latin hypercube): each
+    value's range is cut into ``count`` equal strata and every stratum is used once, in an order drawn
+    independently per value. A few people then differ as much as the ranges allow (both sexes, the youngest
+    and oldest adults, thin and heavy, short and tall), where independent draws often bunch up."""
+    if count < 1:
+        raise ValueError(f"need at least one person, got {count}")
+    columns = {}
+    for key, (low, high) in PHENOTYPE_RANGES.items():
+        strata = (rng.permutation(count) + rng.uniform(size=count)) / count
+        columns[key] = low + (high - low) * strata
+    return [{key: float(values[person]) for key, values in columns.items()} for person in range(count)]
 
 
 def draw_pose(rng: np.random.Generator, scale: float) -> dict[str, float]:
