@@ -1,6 +1,6 @@
 """Geodesic polar coordinates of each backend against exact polyhedral geodesics, on realistic surfaces.
 
-The reference is MMP (``zernet.geometry.exact``: the samples inserted into the mesh as vertices, initial
+The reference is MMP (``zernet.geometry.polar.exact``: the samples inserted into the mesh as vertices, initial
 directions from the exact paths), on random centre vertices. Surfaces: a posed generated human body
 (``zernet.data.bodies``, fingers, armpits and crotch), scaled to area 15000 with r0 = 5.5 and 12,000
 samples as in the paper's FAUST settings, plus any mesh passed with ``--mesh PATH`` (scaled to
@@ -59,7 +59,7 @@ from zernet.geometry import (
     sample_surface,
     tangent_frames,
 )
-from zernet.geometry.exact import ExactGeodesics
+from zernet.geometry.polar.exact import ExactGeodesics
 from zernet.io_utils import atomic_write_bytes
 from zernet.operators import PatchConfig, assemble_operator, build_patch_operator
 

@@ -9,7 +9,7 @@ Surfaces:
 * the aneurysm meshes of ``--aneurysms DIR`` (default ``data/aneurysm``, your copy) when that folder
   exists (area 100, r0 = 0.6 as in the paper's regression experiment, 12,000 samples).
 
-Accuracy is measured against exact polyhedral geodesics (MMP, :mod:`zernet.geometry.exact`, the samples
+Accuracy is measured against exact polyhedral geodesics (MMP, :mod:`zernet.geometry.polar.exact`, the samples
 inserted as vertices) on ``--centres`` random vertices, with the columns of ``bench_geodesics.py``: kept
 pairs from beyond 1.1 r0, true pairs dropped, radius error median / p95 (% of r0), angle error p95 (rad,
 r > 0.1 r0, after each centre's constant offset). The build time is the whole

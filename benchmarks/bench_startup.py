@@ -1,6 +1,6 @@
 """Start-up time of the ``zernet`` command against ``import torch`` (issue 34): medians of repeated runs.
 
-    .venv/bin/python benchmarks/bench_startup.py [--repeats 5]
+    .venv/bin/python benchmarks/bench_startup.py [--repeats 5]   # writes benchmarks/results/bench_startup.json
 
 Each command runs in a fresh interpreter, alternating with the reference so that a busy machine slows both
 alike; wall time and the child's CPU time (user + system, less sensitive to other jobs on a shared machine)
@@ -23,6 +23,7 @@ COMMANDS = {
     "zernet --help": [sys.executable, "-m", "zernet.cli", "--help"],
     "zernet predict --help": [sys.executable, "-m", "zernet.cli", "predict", "--help"],
 }
+RESULTS = Path(__file__).resolve().parent / "results" / "bench_startup.json"
 
 
 def run_once(command: list[str]) -> tuple[float, float]:
@@ -38,7 +39,7 @@ def run_once(command: list[str]) -> tuple[float, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", default=None, help="write the medians as JSON here")
+    parser.add_argument("--out", default=str(RESULTS), help="write the medians as JSON here (default: %(default)s)")
     args = parser.parse_args()
     walls = {name: [] for name in COMMANDS}
     cpus = {name: [] for name in COMMANDS}

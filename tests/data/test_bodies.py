@@ -20,7 +20,7 @@ from zernet.data.bodies import (
     part_of_bone,
     write_bodies,
 )
-from zernet.data.bodies_pose import JOINTS, bone_rotations, rotation_matrix
+from zernet.data.bodies.pose import JOINTS, bone_rotations, rotation_matrix
 from zernet.data.faust import load_faust
 from zernet.data.options import LoaderOptions
 from zernet.data.segmentation import HUMAN_PART_NAMES, load_segmentation, read_labels

@@ -1,4 +1,4 @@
-"""Bodies in the forms scans come in (zernet.data.bodies_forms, write_forms, `zernet bodies --forms`).
+"""Bodies in the forms scans come in (zernet.data.bodies.forms, write_forms, `zernet bodies --forms`).
 
 Small procedural meshes (an ellipsoid with 8 height bands as its "parts") stand in for bodies, so only the
 command-line test needs anny.
@@ -26,8 +26,8 @@ from zernet.data.bodies import (
     resolve_forms,
     write_forms,
 )
-from zernet.data.bodies_forms import duplicate_face_count
-from zernet.data.bodies_generator import Body
+from zernet.data.bodies.forms import duplicate_face_count
+from zernet.data.bodies.generator import Body
 from zernet.data.options import LoaderOptions
 from zernet.data.segmentation import load_segmentation, read_labels
 from zernet.geometry import load_surface

@@ -10,7 +10,7 @@ import pytest
 from zernet.cli import main
 from zernet.data import DatasetError
 from zernet.data.bodies import generate_bodies
-from zernet.data.bodies_pose import PHENOTYPE_RANGES
+from zernet.data.bodies.pose import PHENOTYPE_RANGES
 
 COARSE = "coarse-369"
 

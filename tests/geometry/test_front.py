@@ -10,7 +10,7 @@ from meshes import cylinder_mesh, grid_mesh
 from test_polar import hairpin_mesh
 
 from zernet.geometry import Surface, compute_polar, sample_surface, tangent_frames
-from zernet.geometry.front import front_polar
+from zernet.geometry.polar.front import front_polar
 
 
 def wrap(angle):
@@ -123,7 +123,7 @@ def test_point_clouds_are_refused_with_the_name():
 # ---------------------------------------------------------------------- the exact reference
 def test_exact_reference_matches_analytic_plane_and_sphere():
     pytest.importorskip("pygeodesic")
-    from zernet.geometry.exact import ExactGeodesics
+    from zernet.geometry.polar.exact import ExactGeodesics
 
     vertices, faces = grid_mesh(9, 9, spacing=0.5, jitter=0.1, seed=4)
     plane = Surface(vertices, faces)
@@ -153,7 +153,7 @@ def test_exact_reference_matches_analytic_plane_and_sphere():
 
 def test_front_agrees_with_the_exact_reference_on_a_fold():
     pytest.importorskip("pygeodesic")
-    from zernet.geometry.exact import ExactGeodesics
+    from zernet.geometry.polar.exact import ExactGeodesics
 
     vertices, faces, _ = hairpin_mesh(length=3.0, gap=0.4, width=2.0, spacing=0.25)
     surface = Surface(vertices, faces)
@@ -176,7 +176,7 @@ def test_front_agrees_with_the_exact_reference_on_a_fold():
 def test_fan_angles_scale_the_corner_angles_around_a_cone_apex():
     # A cone apex with total angle 5 (not 2π): intrinsic angles are corner angles × 2π / 5, and mapping
     # an edge's intrinsic angle back gives that edge's tangent-plane angle.
-    from zernet.geometry.fans import tangent_angle_of, vertex_fans
+    from zernet.geometry.polar.fans import tangent_angle_of, vertex_fans
 
     around = 10
     phi = np.linspace(0, 2 * np.pi, around, endpoint=False)
@@ -232,7 +232,7 @@ def test_faces_with_edges_longer_than_r0_keep_their_samples():
 def test_a_flipped_face_falls_back_to_tangent_angles_and_plane_angles_stay_exact():
     # A flat grid with one face's orientation flipped: the fans of its corners are no single ordered walk
     # and fall back to tangent-plane wedges; on a plane every angle must still be the exact planar angle.
-    from zernet.geometry.fans import vertex_fans
+    from zernet.geometry.polar.fans import vertex_fans
 
     vertices, faces = grid_mesh(9, 9, spacing=0.5, jitter=0.1, seed=5)
     faces = faces.copy()

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from zernet.data.bodies_forms import closest_points
+from zernet.data.bodies.forms import closest_points
 from zernet.geometry import Surface
 from zernet.matching.bodies import LocatedForm, ground_truth_map
 from zernet.matching.match import candidate_alignments

@@ -18,7 +18,7 @@ arguments particular to the kind's loader (:data:`DATASET_KINDS`):
   n_vertices, area.
 - ``"segmentation"``: :func:`~zernet.data.segmentation.load_segmentation` — meshes (required), labels,
   num_classes, class_names, label_base, label_kind, test, test_fraction, area.
-- ``"bodies"``: :func:`~zernet.data.bodies_dataset.load_bodies` — generated human bodies (extra
+- ``"bodies"``: :func:`~zernet.data.bodies.dataset.load_bodies` — generated human bodies (extra
   ``zernet[bodies]``), no files written: task ("segmentation" | "correspondence"), count, n_test, topology,
   poses, body_seed, area.
 - ``"aneurysm"``: :func:`~zernet.data.regression.load_aneurysm` — root (required), field, test, area.
@@ -38,7 +38,7 @@ import inspect
 import warnings
 from collections.abc import Callable
 
-from zernet.data.bodies_dataset import load_bodies
+from zernet.data.bodies.dataset import load_bodies
 from zernet.data.dataset import DatasetError, ShapeDataset, ShapeRecord, carve_validation
 from zernet.data.faust import load_faust
 from zernet.data.features import FEATURE_PARTS, compute_features, default_features

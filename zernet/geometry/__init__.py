@@ -10,8 +10,10 @@ Modules, each with one job:
 - :mod:`~zernet.geometry.validate` — :func:`validate_surface`, :func:`repair_surface` and the checks.
 - :mod:`~zernet.geometry.cloud_mesh` — :func:`mesh_from_cloud`: triangles through a cloud's own points.
 - :mod:`~zernet.geometry.sampling` — :func:`normalize_area`, :class:`SurfaceSamples`, :func:`sample_surface`.
-- :mod:`~zernet.geometry.polar` — :func:`compute_polar`, :func:`tangent_frames`, :func:`transport_angles`,
-  with the backends in :mod:`~zernet.geometry.polar_fast` and :mod:`~zernet.geometry.polar_accurate`.
+- :mod:`~zernet.geometry.polar` (a package) — :func:`compute_polar`, :func:`tangent_frames`,
+  :func:`transport_angles`, with the backends in :mod:`~zernet.geometry.polar.front` (and its vertex fans,
+  :mod:`~zernet.geometry.polar.fans`), :mod:`~zernet.geometry.polar.fast`, :mod:`~zernet.geometry.polar.accurate`,
+  and the exact reference in :mod:`~zernet.geometry.polar.exact`.
 - :mod:`~zernet.geometry.membrane` — :func:`membrane_stress`.
 """
 

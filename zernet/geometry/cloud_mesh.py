@@ -1,6 +1,6 @@
 """A triangle mesh through the points of a cloud, so that point clouds get surface distances.
 
-The front propagation (:mod:`zernet.geometry.front`) measures geodesic distance over triangles; a point
+The front propagation (:mod:`zernet.geometry.polar.front`) measures geodesic distance over triangles; a point
 cloud has none. :func:`triangulate_cloud` builds them from the points alone, keeping every point as a
 vertex (so per-point features and predictions stay one per point):
 

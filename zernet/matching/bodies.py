@@ -3,13 +3,13 @@ the ground truth that relates any two of them.
 
 Every generated body shares one topology, so a point given in barycentric coordinates of a template
 triangle is the same anatomical point on every body. Each vertex of a form is located on its own body by
-its closest point (:func:`zernet.data.bodies_forms.closest_points`: a triangle and barycentric weights), so
+its closest point (:func:`zernet.data.bodies.forms.closest_points`: a triangle and barycentric weights), so
 the true image of a source vertex on another body is that triangle and those weights evaluated on the
 target body's vertices; its true target vertex is the target-form vertex nearest to that point
 (:func:`ground_truth_map`). This is finer than the nearest template vertex, whose spacing on coarse
 topologies would put an error floor of about half an edge under every measurement.
 
-Forms come from :func:`zernet.data.bodies_forms.make_forms` (remeshing by MeshLab, noisy clouds), one per
+Forms come from :func:`zernet.data.bodies.forms.make_forms` (remeshing by MeshLab, noisy clouds), one per
 body, drawn from a per-body stream, and are cached under ``<cache_dir>/matching/forms/``.
 """
 
@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from zernet.data.bodies_forms import closest_points, make_forms
-from zernet.data.bodies_generator import SPLIT_CODES, BodyGenerator
+from zernet.data.bodies.forms import closest_points, make_forms
+from zernet.data.bodies.generator import SPLIT_CODES, BodyGenerator
 from zernet.geometry import Surface
 from zernet.io_utils import atomic_write_bytes
 

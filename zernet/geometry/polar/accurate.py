@@ -13,7 +13,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 import potpourri3d as pp3d
 
-from zernet.geometry.polar_fast import ball_pairs
+from zernet.geometry.polar.fast import ball_pairs
 from zernet.geometry.sampling import SurfaceSamples
 from zernet.geometry.surface import Surface
 from zernet.threads import available_cores

@@ -10,7 +10,7 @@ Three backends (their speed and accuracy against exact geodesics are measured by
 :func:`resolve_backend`) is ``"front"``; a point cloud gets it through a triangulation of its own points
 (:mod:`zernet.geometry.cloud_mesh`), built before the polar coordinates by the operator builder.
 
-``"fast"`` (:mod:`zernet.geometry.polar_fast`)
+``"fast"`` (:mod:`zernet.geometry.polar.fast`)
     One k-d tree ball query of the samples around all vertices, then closed-form corrections, all
     vectorised:
 
@@ -25,10 +25,10 @@ Three backends (their speed and accuracy against exact geodesics are measured by
       ``s u + (s²/6) κ_n dN(u) + O(s⁴)`` and ``κ_n s² / 2 ≈ d·n_p``, ``s dN(u) ≈ n_j − n_p``; removing the
       term leaves the initial direction to fourth order (exact to 1e-5 rad on a cylinder at r = R/2).
     * sheets: a sample is kept only if it is connected to ``p`` through the surface inside a slightly
-      enlarged ball — see :func:`zernet.geometry.polar_fast.same_sheet`. This rejects the other side of a
+      enlarged ball — see :func:`zernet.geometry.polar.fast.same_sheet`. This rejects the other side of a
       thin part, touching limbs and other connected components, which a Euclidean ball would wrongly include.
 
-``"accurate"`` (:mod:`zernet.geometry.polar_accurate`)
+``"accurate"`` (:mod:`zernet.geometry.polar.accurate`)
     potpourri3d's vector-heat logarithmic map (``MeshVectorHeatSolver.compute_log_map``, strategy
     ``AffineLocal``; ``PointCloudHeatSolver.compute_log_map`` for point clouds), one solve per vertex,
     in parallel worker processes. Mesh samples get the log map by barycentric interpolation of the three
@@ -38,12 +38,12 @@ Three backends (their speed and accuracy against exact geodesics are measured by
     lengths instead (distance is continuous across the cut) and only the angle from the vectors.
     Samples on other connected components (potpourri returns NaN there) are dropped.
 
-``"front"`` (the default, :mod:`zernet.geometry.front`)
+``"front"`` (the default, :mod:`zernet.geometry.polar.front`)
     Local front propagation from every vertex over the triangles, bounded by ``r0`` (the geodesic polar
     coordinates update of Melvær and Reimers 2012), compiled with numba: distances are surface distances,
     so the far side of a fold (between fingers, across an armpit or the crotch) is never reached through
     the air, and a thin tube is measured the shorter way round. The angle is carried along the front as
-    an intrinsic fan angle (:mod:`zernet.geometry.fans`) and mapped back to the tangent plane.
+    an intrinsic fan angle (:mod:`zernet.geometry.polar.fans`) and mapped back to the tangent plane.
 
 All backends consider only samples within Euclidean distance ``r0`` (geodesic distance is never
 shorter) and keep those with radius ``<= r0``.
@@ -60,9 +60,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from zernet.geometry.front import front_polar
-from zernet.geometry.polar_accurate import accurate_polar
-from zernet.geometry.polar_fast import fast_polar
+from zernet.geometry.polar.accurate import accurate_polar
+from zernet.geometry.polar.fast import fast_polar
+from zernet.geometry.polar.front import front_polar
 from zernet.geometry.sampling import SurfaceSamples
 from zernet.geometry.surface import Surface
 

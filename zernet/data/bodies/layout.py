@@ -7,7 +7,7 @@ Layout (also described by the README.txt written into the output folder)::
     out_dir/segmentation/labels/class_names.txt             (one part name per line, label order)
     out_dir/correspondence/training/registrations/tr_reg_XXX.ply  (the same meshes, FAUST's names)
 
-and, with ``forms`` (:mod:`zernet.data.bodies_forms`), for the test bodies (``forms_split="test"``) or all::
+and, with ``forms`` (:mod:`zernet.data.bodies.forms`), for the test bodies (``forms_split="test"``) or all::
 
     out_dir/forms/<form>/meshes/{train,test}/body_XXX.ply          (a mesh, or a point cloud: no faces)
     out_dir/forms/<form>/labels/{train,test}/body_XXX.txt          (one 0-based part per vertex or point)
@@ -28,8 +28,8 @@ import numpy as np
 import trimesh
 from tqdm.auto import tqdm
 
-from zernet.data.bodies_forms import BodyForm, check_form_dependencies, make_forms, resolve_forms
-from zernet.data.bodies_generator import GENERATOR_VERSION, SPLIT_CODES, Body, generate_bodies, package_version
+from zernet.data.bodies.forms import BodyForm, check_form_dependencies, make_forms, resolve_forms
+from zernet.data.bodies.generator import GENERATOR_VERSION, SPLIT_CODES, Body, generate_bodies, package_version
 from zernet.data.dataset import DatasetError
 from zernet.data.segmentation import HUMAN_PART_NAMES
 from zernet.io_utils import atomic_write_bytes, write_json
@@ -47,7 +47,7 @@ class FormsLayout:
     """Where :func:`write_forms` put the forms of the bodies (module docstring), and what they hold.
 
     ``summary[form][body_name]``: ``n_vertices`` (vertices or points), ``n_faces`` (None for a cloud) and the
-    form's details (:class:`~zernet.data.bodies_forms.BodyForm`), also written to ``details``."""
+    form's details (:class:`~zernet.data.bodies.forms.BodyForm`), also written to ``details``."""
 
     root: Path
     forms: tuple[str, ...]
@@ -110,7 +110,7 @@ def write_bodies(
     forms_split: str = "test",
     people: int | None = None,
 ) -> BodiesLayout:
-    """Generate bodies (:func:`~zernet.data.bodies_generator.generate_bodies`) and write them in the layout
+    """Generate bodies (:func:`~zernet.data.bodies.generator.generate_bodies`) and write them in the layout
     of the module docstring; with ``forms`` (names, a comma-separated string or ``"all"``), also those forms
     of the test bodies (``forms_split="test"``) or of every body (``"all"``), by :func:`write_forms`. With
     ``people``, the bodies are that many people in several poses each (FAUST's structure) and
@@ -167,9 +167,9 @@ def write_forms(
     split: str = "test",
     progress: bool = False,
 ) -> FormsLayout:
-    """Write the forms (:func:`~zernet.data.bodies_forms.make_forms`) of ``bodies`` under ``out_dir/forms``.
+    """Write the forms (:func:`~zernet.data.bodies.forms.make_forms`) of ``bodies`` under ``out_dir/forms``.
 
-    ``bodies`` are in :func:`~zernet.data.bodies_generator.generate_bodies` order (the train bodies, then the
+    ``bodies`` are in :func:`~zernet.data.bodies.generator.generate_bodies` order (the train bodies, then the
     test ones); ``split="test"`` makes forms of the test bodies only, ``"all"`` of every body. The forms of
     body ``i`` of split ``s`` come from the stream ``numpy.random.SeedSequence([seed, s, i, 1])`` (s = 0
     train, 1 test): the same for a given seed and body whatever ``count`` and the other forms asked for.
@@ -233,7 +233,7 @@ split: --set data.train_indices=0:{layout.n_train} data.test_indices={layout.n_t
 """ + ("" if layout.forms is None else _forms_readme(layout.forms))
 
 
-# What each form is, for the README.txt (docs/BODIES.md and zernet.data.bodies_forms say more).
+# What each form is, for the README.txt (docs/BODIES.md and zernet.data.bodies.forms say more).
 _FORM_TEXT = {
     "remeshed": "remeshed isotropically (MeshLab), its own triangulation and vertex count per body, vertices on "
     "the surface",

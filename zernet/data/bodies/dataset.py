@@ -1,7 +1,7 @@
 """The data kind ``"bodies"``: generated human bodies trained on directly, without writing files first.
 
 ``load_dataset("bodies", task="segmentation", count=40, topology="coarse-615", n_test=8, ...)`` generates
-(or reads from the body cache) ``count`` bodies with :class:`~zernet.data.bodies_generator.BodyGenerator`,
+(or reads from the body cache) ``count`` bodies with :class:`~zernet.data.bodies.generator.BodyGenerator`,
 then preprocesses them like any other shape: each body's patch operators are cached under ``cache_dir``
 with a key made of everything the body depends on (generator and anny versions, topology, poses, seed,
 split, index) and the task, so a second run neither poses bodies nor rebuilds operators.
@@ -28,7 +28,7 @@ from functools import partial
 import numpy as np
 from tqdm.auto import tqdm
 
-from zernet.data.bodies_generator import BodyGenerator, check_counts, split_of
+from zernet.data.bodies.generator import BodyGenerator, check_counts, split_of
 from zernet.data.dataset import DatasetError, ShapeDataset
 from zernet.data.faust import FAUST_AREA, faust_patch_configs
 from zernet.data.options import LoaderOptions

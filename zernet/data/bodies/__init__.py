@@ -75,17 +75,17 @@ by the generator version, the anny version, the topology, the pose mode, the see
 index, and written atomically. The anny model (whose first build takes a minute or more: it builds its
 own cache and compiles kernels) is built only when something is missing from that cache.
 
-This module is the public API; the work is done in ``bodies_pose`` (phenotype and pose draws, bone
-rotations), ``bodies_topology`` (shared connectivity, part labels, the only anny import),
-``bodies_generator`` (seeded, cached bodies), ``bodies_layout`` (files the loaders read) and ``bodies_forms``
+This module is the public API; the work is done in ``pose`` (phenotype and pose draws, bone
+rotations), ``topology`` (shared connectivity, part labels, the only anny import),
+``generator`` (seeded, cached bodies), ``layout`` (files the loaders read) and ``forms``
 (a body as scans come: remeshed, decimated, point clouds, one-sided; ground truth per vertex). The data kind
-``"bodies"`` (:mod:`zernet.data.bodies_dataset`) trains on generated bodies without writing files.
+``"bodies"`` (:mod:`zernet.data.bodies.dataset`) trains on generated bodies without writing files.
 """
 
 from __future__ import annotations
 
-from zernet.data.bodies_dataset import load_bodies
-from zernet.data.bodies_forms import (
+from zernet.data.bodies.dataset import load_bodies
+from zernet.data.bodies.forms import (
     FORMS,
     BodyForm,
     closest_points,
@@ -99,10 +99,10 @@ from zernet.data.bodies_forms import (
     remeshed_form,
     resolve_forms,
 )
-from zernet.data.bodies_generator import GENERATOR_VERSION, Body, BodyGenerator, generate_bodies
-from zernet.data.bodies_layout import FORM_SPLITS, BodiesLayout, FormsLayout, write_bodies, write_forms
-from zernet.data.bodies_pose import POSE_MODES
-from zernet.data.bodies_topology import MISSING_EXTRA_MESSAGE, PART_BONES, TOPOLOGIES, BodyTopology, part_of_bone
+from zernet.data.bodies.generator import GENERATOR_VERSION, Body, BodyGenerator, generate_bodies
+from zernet.data.bodies.layout import FORM_SPLITS, BodiesLayout, FormsLayout, write_bodies, write_forms
+from zernet.data.bodies.pose import POSE_MODES
+from zernet.data.bodies.topology import MISSING_EXTRA_MESSAGE, PART_BONES, TOPOLOGIES, BodyTopology, part_of_bone
 
 __all__ = [
     "GENERATOR_VERSION",

@@ -4,7 +4,7 @@ From every vertex ``p`` a front is propagated over the triangles, in order of in
 Dijkstra's algorithm), until it passes ``r0``: the geodesic polar coordinates update of Melvær and
 Reimers (2012, "Geodesic polar coordinates on polygonal meshes"), a close relative of the discrete
 exponential map of Schmidt, Grimm and Wyvill (2006). Each vertex carries a distance ``U`` and an
-*intrinsic* angle ``θ`` (:mod:`zernet.geometry.fans`: corner angles accumulated around ``p`` and scaled
+*intrinsic* angle ``θ`` (:mod:`zernet.geometry.polar.fans`: corner angles accumulated around ``p`` and scaled
 to 2π, so the angle is linear in the unfolded angle across every wedge and exact on a cone):
 
 * the one-ring of ``p`` is exact: ``U`` is the edge length and ``θ`` the fan angle of the edge;
@@ -19,7 +19,7 @@ to 2π, so the angle is linear in the unfolded angle across every wedge and exac
 Then every sample in a triangle whose corners the front reached gets its ``(r, θ)`` the same way from
 the unfolded triangle at the edge whose virtual source is nearest (or the path through a corner), and its
 intrinsic angle is turned into the tangent-plane angle of the same direction
-(:func:`zernet.geometry.fans.tangent_angle_of`); a sample in a triangle around ``p`` gets the straight
+(:func:`zernet.geometry.polar.fans.tangent_angle_of`); a sample in a triangle around ``p`` gets the straight
 segment (exact). Because the front only moves across shared edges, it never jumps to the far side of a
 fold, to a touching limb or to another connected component, and it stops at open boundaries. The front
 runs until every triangle that can hold a sample within ``r0`` has all its corners final, whatever the
@@ -35,7 +35,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from zernet.geometry.fans import tangent_angle_of, vertex_fans
+from zernet.geometry.polar.fans import tangent_angle_of, vertex_fans
 from zernet.geometry.sampling import SurfaceSamples
 from zernet.geometry.surface import Surface, SurfaceError
 from zernet.threads import available_cores, thread_map
@@ -252,7 +252,7 @@ def _propagate(
     far_edge, reach_at, r0, extension, distance, angle, final, exact, touched, heap_key, heap_vertex,
 ):  # fmt: skip
     """Run the front from vertex ``p``; fills ``distance``, ``angle`` (intrinsic, see
-    :mod:`zernet.geometry.fans`), ``final`` for the touched vertices and returns their count and the
+    :mod:`zernet.geometry.polar.fans`), ``final`` for the touched vertices and returns their count and the
     (maybe grown) heap.
 
     Stopping rule: a sample ``x`` of face ``f`` within ``r0`` has every corner ``c`` within

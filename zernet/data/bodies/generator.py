@@ -21,8 +21,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from zernet.data.bodies_pose import POSE_MODES, bone_rotations, draw_phenotype, draw_pose, spread_phenotypes
-from zernet.data.bodies_topology import TOPOLOGIES, TOPOLOGY_ARRAYS, BodyTopology, build_topology, import_anny
+from zernet.data.bodies.pose import POSE_MODES, bone_rotations, draw_phenotype, draw_pose, spread_phenotypes
+from zernet.data.bodies.topology import TOPOLOGIES, TOPOLOGY_ARRAYS, BodyTopology, build_topology, import_anny
 from zernet.data.dataset import DatasetError
 from zernet.geometry import Surface
 from zernet.io_utils import atomic_write_bytes
