@@ -11,10 +11,11 @@ import torch
 import yaml
 from tiny_configs import tiny_config
 
+import zernet.training.init_from as init_from_module
 from zernet.cli import main
 from zernet.training import ConfigError, load_checkpoint, train
 from zernet.training.build import build_model_from_spec
-from zernet.training.init_from import initialise_from, load_init_source
+from zernet.training.init_from import export_backbone, initialise_from, load_init_source, pretrained_names
 
 
 @pytest.fixture(scope="module")
@@ -146,3 +147,40 @@ def test_cli_init_from(source_run, tmp_path, cache_dir, capsys):
     # A missing source fails before any preprocessing.
     assert main(["train", str(config), "--run-dir", str(tmp_path / "x"), "--init-from", str(tmp_path / "nope")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_a_backbone_starts_every_weight_but_a_fresh_output_layer(source_run, tmp_path, cache_dir):
+    """Shipped weights hold no output layer: it starts fresh even where its shape agrees (another template
+    of the same size must not take the source's classes), from the configuration's ``train.init_from``."""
+    info = export_backbone(source_run, tmp_path / "backbone.pt")
+    stored = load_checkpoint(tmp_path / "backbone.pt")
+    assert "optimizer" not in stored and not any(name.startswith("output.") for name in stored["model"])
+    assert all(value.dtype == torch.float16 for value in stored["model"].values() if value.is_floating_point())
+    assert info["tensors"] == len(stored["model"])
+
+    config = tiny_config(cache_dir, epochs=1, lr=1e-12)
+    config["train"]["init_from"] = str(tmp_path / "backbone.pt")
+    train(config, tmp_path / "tuned", progress=False, workers=0)
+    tuned = load_checkpoint(tmp_path / "tuned" / "best.pt")
+    source = load_checkpoint(source_run / "best.pt")["model"]
+    assert sorted(tuned["state"]["init_from"]["reinitialised"]) == ["output.bias", "output.weight"]
+    for name, value in tuned["model"].items():
+        if name.startswith("output."):  # same shape as the source's, yet fresh
+            assert not torch.allclose(value, source[name], atol=1e-3), name
+        else:  # float16 storage: equal to the source's weights to half precision
+            assert torch.allclose(value, source[name], rtol=1e-3, atol=1e-3), name
+
+
+def test_shipped_weights_are_found_by_name_and_unknown_names_listed(source_run, tmp_path, monkeypatch):
+    monkeypatch.setattr(init_from_module, "_pretrained_folder", lambda: tmp_path)
+    export_backbone(source_run, tmp_path / "creatures.pt")
+    assert pretrained_names() == ["creatures"]
+    assert load_init_source("pretrained:creatures").path == tmp_path / "creatures.pt"
+    with pytest.raises(FileNotFoundError, match="no weights named 'bodies'.*shipped: pretrained:creatures"):
+        load_init_source("pretrained:bodies")
+
+
+def test_the_shipped_weights_load():
+    for name in pretrained_names():
+        source = load_init_source(f"pretrained:{name}")
+        assert source.weights and not any(key.startswith("output.") for key in source.weights)

@@ -377,6 +377,10 @@ class TrainSection(_Section):
     # Also keep every epoch's weights as epochs/epoch_XXX.pt (no optimiser state): learning curves on any
     # split afterwards (zernet evaluate RUN/epochs/epoch_003.pt); the model is still chosen on validation.
     keep_epochs: bool = _rule(False, "bool")
+    # Where the weights start (zernet.training.init_from): null (fresh), a run folder or checkpoint file, or
+    # "pretrained:NAME" for weights shipped with zernet (zernet/pretrained/); `zernet train --init-from`
+    # overrides it. A resumed run continues from its own weights whatever this says.
+    init_from: str | None = _rule(None, "str", optional=True)
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,13 @@ own. :func:`load_init_source` reads the other run's selected checkpoint (a run f
   Zernike degree) is a :class:`~zernet.training.config.ConfigError` naming the first parameter that does not
   fit: silently training a half-initialised model would look like a working fine-tune.
 
+Weights shipped with zernet are named ``pretrained:NAME`` (:data:`PRETRAINED_PREFIX`): the file
+``zernet/pretrained/NAME.pt`` with its provenance beside it (``NAME.json``). They hold a *backbone*: every
+tensor but the output layer's (:func:`export_backbone`), so the output layer always starts fresh for the new
+task and template, also when its shape happens to agree (a template of another vertex order would otherwise
+be taken silently). A run starts from them with ``train.init_from: pretrained:NAME`` in its configuration
+(or ``--init-from pretrained:NAME``).
+
 The optimiser, the learning-rate schedule, the epoch count and the RNG states start afresh: only weights are
 taken. What was taken is returned as a plain dictionary, which the loop keeps in its state (so a resumed run
 still reports it), writes to ``train.log`` and to ``metrics.json`` (``init_from``).
@@ -19,17 +26,39 @@ still reports it), writes to ``train.log`` and to ``metrics.json`` (``init_from`
 
 from __future__ import annotations
 
+import importlib.resources
 from pathlib import Path
 
 import torch
 
+from zernet.io_utils import atomic_save_torch
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
 from zernet.training.config import ConfigError
 
-__all__ = ["HEAD_PREFIX", "InitSource", "load_init_source", "initialise_from", "describe"]
+__all__ = [
+    "HEAD_PREFIX",
+    "PRETRAINED_PREFIX",
+    "InitSource",
+    "pretrained_names",
+    "load_init_source",
+    "initialise_from",
+    "export_backbone",
+    "describe",
+]
 
 #: Parameters under this prefix form the output layer, re-initialised when its shape differs.
 HEAD_PREFIX = "output."
+#: ``pretrained:NAME`` names weights shipped in ``zernet/pretrained/NAME.pt``.
+PRETRAINED_PREFIX = "pretrained:"
+
+
+def _pretrained_folder() -> Path:
+    return Path(str(importlib.resources.files("zernet") / "pretrained"))
+
+
+def pretrained_names() -> list[str]:
+    """The names of the weights shipped with zernet (``pretrained:NAME``)."""
+    return sorted(path.stem for path in _pretrained_folder().glob("*.pt"))
 
 
 class InitSource:
@@ -51,6 +80,12 @@ def load_init_source(run: str | Path) -> InitSource:
     Raises FileNotFoundError (no such folder or file, or a folder without best.pt) or ValueError (not a
     readable zernet checkpoint), both reported by the CLI as one line with exit code 2.
     """
+    if str(run).startswith(PRETRAINED_PREFIX):
+        name = str(run)[len(PRETRAINED_PREFIX) :]
+        run = _pretrained_folder() / f"{name}.pt"
+        if not run.is_file():
+            shipped = ", ".join(PRETRAINED_PREFIX + known for known in pretrained_names()) or "none"
+            raise FileNotFoundError(f"init-from: no weights named {name!r} ship with zernet (shipped: {shipped})")
     run = Path(run).expanduser()
     if not run.exists():
         raise FileNotFoundError(f"--init-from: {run} does not exist (give a run folder or a .pt checkpoint)")
@@ -75,7 +110,10 @@ def initialise_from(model: torch.nn.Module, source: InitSource) -> dict:
     source_name = source.model_spec.get("name")
     model_name = _registry_name(model)
     prefix = f"--init-from {source.path}"
-    missing = [name for name in target if name not in source.weights]
+    backbone = not any(name.startswith(HEAD_PREFIX) for name in source.weights)  # shipped: no output layer
+    missing = [
+        name for name in target if name not in source.weights and not (backbone and name.startswith(HEAD_PREFIX))
+    ]
     unexpected = [name for name in source.weights if name not in target]
     if missing or unexpected:
         name = (missing or unexpected)[0]
@@ -87,8 +125,10 @@ def initialise_from(model: torch.nn.Module, source: InitSource) -> dict:
         )
     copied, reinitialised = {}, []
     for name, value in target.items():
-        stored = source.weights[name]
-        if tuple(stored.shape) == tuple(value.shape):
+        stored = source.weights.get(name)
+        if stored is None:  # a backbone's output layer: fresh
+            reinitialised.append(name)
+        elif tuple(stored.shape) == tuple(value.shape):
             copied[name] = stored.to(dtype=value.dtype)
         elif name.startswith(HEAD_PREFIX):
             reinitialised.append(name)
@@ -107,6 +147,27 @@ def initialise_from(model: torch.nn.Module, source: InitSource) -> dict:
         "source_classes": source.num_classes,
         "copied": len(copied),
         "reinitialised": reinitialised,
+    }
+
+
+def export_backbone(run: str | Path, path: str | Path) -> dict:
+    """Write the backbone of ``run``'s selected model (a run folder or checkpoint file) to ``path``: a
+    checkpoint of every weight but the output layer's, in float16 (half the size; a model starting from it
+    trains in its own precision), with the run's configuration and model spec and without its optimiser.
+    Returns what was written: ``{"tensors": n, "parameters": p, "bytes": b}``."""
+    source = load_checkpoint(checkpoint_path(Path(run).expanduser()))
+    weights = {
+        name: value.half() if value.is_floating_point() else value
+        for name, value in source["model"].items()
+        if not name.startswith(HEAD_PREFIX)
+    }
+    kept = {key: value for key, value in source.items() if key not in ("optimizer", "rng", "model")}
+    kept["model"] = weights
+    atomic_save_torch(kept, Path(path))
+    return {
+        "tensors": len(weights),
+        "parameters": int(sum(value.numel() for value in weights.values())),
+        "bytes": Path(path).stat().st_size,
     }
 
 

@@ -109,7 +109,8 @@ def train(
             finished run is never clobbered by accident).
         workers: processes for preprocessing (None: the data module's default).
         init_from: start from the weights of another run (its folder, i.e. its best.pt, or a checkpoint
-            file); see :mod:`zernet.training.init_from`. Not with ``resume`` (a resumed run has weights).
+            file) or shipped ones (``"pretrained:NAME"``); see :mod:`zernet.training.init_from`. Overrides
+            the configuration's ``train.init_from``. Not with ``resume`` (a resumed run has weights).
 
     Returns:
         The test metrics (also written to ``run_dir/metrics.json``).
@@ -121,11 +122,13 @@ def train(
             "--init-from starts a new run from another run's weights; it cannot be combined with "
             "--resume (a resumed run continues from its own checkpoint and keeps its init-from)"
         )
-    if init_from is not None:  # before any preprocessing, so a bad path fails in a second
-        source = load_init_source(init_from)
     if resume:
         checkpoint, resume_note = load_resume_checkpoint(run_dir)
     else:
+        config = None if config is None else parse_config(config)
+        init_from = config.train.init_from if init_from is None and config is not None else init_from
+        if init_from is not None:  # before the run folder is touched, so a bad path fails in a second
+            source = load_init_source(init_from)
         config = _fresh_run_config(config, run_dir, overwrite)
     run_dir.mkdir(parents=True, exist_ok=True)
     logger = open_log(run_dir, main=is_main())

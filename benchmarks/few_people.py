@@ -1,0 +1,320 @@
+"""The paper's correspondence experiment with FAUST's structure, on generated bodies: few people, new people.
+
+FAUST is 10 people in 10 poses each; trained on 8 of them, a model is tested on the 2 others. This benchmark
+builds the same structure from generated bodies (``zernet bodies DIR --people 10``: 100 bodies, body ``i`` is
+person ``i // 10``, the people's phenotypes spread over the body model's ranges) and, in one run:
+
+1. checks how different the people are: the rest-pose height of each, and the mean distance between two
+   people's rest poses at the same template vertex (after centring), against 10 bodies whose phenotypes are
+   drawn independently (what ``zernet bodies`` without ``--people`` gives);
+2. trains each recipe of ``--recipes`` (``RECIPES`` below) with ``configs/faust_single_scale.yaml``: 72
+   training bodies of people 0-7, 8 validation bodies carved from them by the FAUST loader, the 20 test bodies
+   of people 8 and 9; a recipe that starts from pretrained weights first trains (once) on ``--pretrain-count``
+   bodies of other, independently drawn people (``zernet bodies --seed 1``), which share no phenotype with the
+   ten;
+3. keeps every epoch's weights (``train.keep_epochs``) and scores each on the test people: exact accuracy
+   unrefined and refined (the ring count the run chose on validation), the share within 1 % of the diameter
+   and beyond 10 % of it, with the validation accuracy the run saw; the error curve of the selected model;
+4. writes ``benchmarks/results/few_people.{json,md,png}``.
+
+Recipes are compared on validation; the test columns are reported, never used to choose.
+
+    .venv/bin/python benchmarks/few_people.py --topology faust --recipes shipped regularised pretrained
+    .venv/bin/python benchmarks/few_people.py --topology coarse-1229 --epochs 8 --threads 1   # minutes
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from zernet.data.bodies import BodyGenerator, write_bodies  # noqa: E402
+from zernet.data.bodies.pose import draw_phenotype  # noqa: E402
+from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
+from zernet.training import build_dataset, evaluate, load_checkpoint, load_config, parse_config, train  # noqa: E402
+
+RESULTS = ROOT / "benchmarks" / "results"
+CONFIG = ROOT / "configs" / "faust_single_scale.yaml"
+N_PEOPLE, N_POSES = 10, 10
+N_VERTICES = {"faust": 6890, "coarse-1229": 1229, "coarse-615": 615, "coarse-369": 369}
+#: Recipe -> (train overrides, whether it starts from the weights pretrained on other people).
+RECIPES = {
+    "shipped": ({}, False),
+    # The regularisation tried on real FAUST (issue 36): dropout, rotations about the vertical, scaling.
+    "regularised": (
+        {"model.dropout": 0.25, "train.augment_rotation": "vertical", "train.augment_scale": 0.1},
+        False,
+    ),
+    # Other people's proportions on the inputs: per-axis scaling and a smooth warp of xyz.
+    "proportions": ({"train.augment_anisotropy": 0.1, "train.augment_warp": 0.05}, False),
+    "pretrained": ({"train.lr": 4e-3}, True),
+    "pretrained+proportions": (
+        {"train.lr": 4e-3, "train.augment_anisotropy": 0.1, "train.augment_warp": 0.05},
+        True,
+    ),
+}
+
+
+def people_bodies(root: Path, topology: str, seed: int, cache_dir: str) -> Path:
+    """The 10 x 10 people bodies under ``root`` (written once); returns the FAUST-layout folder."""
+    if not (root / "people.json").is_file():
+        write_bodies(root, N_PEOPLE * N_POSES, seed, topology, "varied", 20, cache_dir, progress=True, people=N_PEOPLE)
+    return root / "correspondence"
+
+
+def other_bodies(root: Path, topology: str, seed: int, count: int, cache_dir: str) -> Path:
+    """``count`` bodies of independently drawn people (seed ``seed + 1``), 2 of them test, written once."""
+    if not (root / "README.txt").is_file():
+        write_bodies(root, count, seed + 1, topology, "varied", 2, cache_dir, progress=True)
+    return root / "correspondence"
+
+
+def diversity(root: Path, topology: str, seed: int, cache_dir: str) -> dict:
+    """How different the people are (module docstring, step 1), in centimetres, in their rest poses."""
+    people = json.loads((root / "people.json").read_text())["phenotypes"]
+    rest = BodyGenerator(topology, "rest", seed, cache_dir)
+
+    def summary(phenotypes: list[dict]) -> dict:
+        shapes = [rest.body(0, "train", phenotype=phenotype).vertices for phenotype in phenotypes]
+        heights = [100 * float(np.ptp(vertices[:, 1])) for vertices in shapes]
+        centred = [vertices - vertices.mean(axis=0) for vertices in shapes]
+        distances = [
+            100 * float(np.linalg.norm(a - b, axis=1).mean()) for i, a in enumerate(centred) for b in centred[i + 1 :]
+        ]
+        return {
+            "heights_cm": [round(h, 1) for h in heights],
+            "height_range_cm": round(max(heights) - min(heights), 1),
+            "pair_distance_cm": {
+                "min": round(min(distances), 2),
+                "median": round(float(np.median(distances)), 2),
+                "max": round(max(distances), 2),
+            },
+        }
+
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 99]))
+    independent = [draw_phenotype(rng) for _ in range(N_PEOPLE)]
+    return {
+        "people": summary([people[str(person)] for person in range(N_PEOPLE)]),
+        "independent draws": summary(independent),
+    }
+
+
+def recipe_config(data_root: Path, recipe: str, epochs: int | None, threads: int | None, n_vertices: int) -> dict:
+    config = load_config(CONFIG)
+    config["data"].update({"root": str(data_root), "n_vertices": n_vertices})
+    config["train"].update({"threads": threads, "keep_epochs": True})
+    if epochs is not None:
+        config["train"]["epochs"] = epochs
+    config["eval"].update({"renders": 0})
+    for key, value in RECIPES[recipe][0].items():
+        section, name = key.split(".")
+        config[section][name] = value
+    return config
+
+
+def pretrain(data_root: Path, run_dir: Path, epochs: int | None, threads: int | None, n_vertices: int) -> Path:
+    """The weights pretrained on other people (trained once, then reused)."""
+    if not (run_dir / "best.pt").is_file():
+        config = recipe_config(data_root, "shipped", epochs, threads, n_vertices)
+        count = len(list(data_root.glob("training/registrations/tr_reg_*.ply")))
+        config["data"].update({"train_indices": f"0:{count - 2}", "test_indices": f"{count - 2}:{count}"})
+        config["train"]["keep_epochs"] = False
+        train(config, run_dir, progress=False, overwrite=True)
+    return run_dir
+
+
+def epoch_scores(run_dir: Path, dataset, rings: int) -> list[dict]:
+    """Test scores of every kept epoch (unrefined and refined over the run's chosen ``rings``), kept in
+    ``RUN/epochs/test_scores.json`` so that a later invocation only adds recipes."""
+    stored = run_dir / "epochs" / "test_scores.json"
+    if stored.is_file():
+        return json.loads(stored.read_text())
+    rows = []
+    for path in sorted((run_dir / "epochs").glob("epoch_*.pt")):
+        result = evaluate(path, dataset=dataset, split="test", progress=False, refine_rings=[rings])
+        refined, unrefined = result["summary"], result.get("unrefined_summary", result["summary"])
+        rows.append(
+            {
+                "epoch": int(path.stem.split("_")[1]),
+                "test_exact_unrefined": unrefined["accuracy"],
+                "test_exact_refined": refined["accuracy"],
+                "test_within_1pct_refined": refined["within_0.01"],
+                "test_beyond_10pct_unrefined": 1.0 - unrefined["within_0.1"],
+                "test_beyond_10pct_refined": 1.0 - refined["within_0.1"],
+            }
+        )
+    write_json(stored, rows)
+    return rows
+
+
+def run_recipe(name: str, data_root: Path, runs: Path, pretrained: Path | None, args) -> dict:
+    run_dir = runs / name
+    config = recipe_config(data_root, name, args.epochs, args.threads, N_VERTICES[args.topology])
+    started = time.perf_counter()
+    if not (run_dir / "metrics.json").is_file():
+        train(config, run_dir, progress=False, overwrite=True, init_from=pretrained)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    history = load_checkpoint(run_dir / "last.pt")["state"]["history"]
+    rings = int(metrics.get("refine_rings", 0))
+    dataset = build_dataset(parse_config(config), progress=False)
+    per_epoch = epoch_scores(run_dir, dataset, rings)
+    for row, entry in zip(per_epoch, history):
+        row.update({"train_accuracy": entry.get("train_accuracy"), "val_accuracy": entry.get("val_accuracy")})
+    unrefined = metrics.get("unrefined_summary", metrics["summary"])
+    return {
+        "recipe": name,
+        "overrides": RECIPES[name][0],
+        "pretrained": pretrained is not None,
+        "best_epoch": metrics["best_epoch"],
+        "val_accuracy_best": max(entry.get("val_accuracy", 0.0) for entry in history),
+        "refine_rings": rings,
+        "test": {
+            "exact_unrefined": unrefined["accuracy"],
+            "exact_refined": metrics["summary"]["accuracy"],
+            "within_1pct_refined": metrics["summary"]["within_0.01"],
+            "beyond_10pct_unrefined": 1.0 - unrefined["within_0.1"],
+            "beyond_10pct_refined": 1.0 - metrics["summary"]["within_0.1"],
+        },
+        "error_curve": metrics.get("error_curve"),
+        "per_epoch": per_epoch,
+        "seconds": time.perf_counter() - started,
+    }
+
+
+def markdown(result: dict) -> str:
+    people, independent = result["diversity"]["people"], result["diversity"]["independent draws"]
+    lines = [
+        "# few_people: correspondence on 8 people, tested on 2 unseen ones (FAUST's structure, generated)",
+        "",
+        f"{result['topology']} bodies ({result['n_vertices']} vertices), 10 people x 10 poses "
+        f"(`zernet bodies --people 10`, seed {result['seed']}); 72 train / 8 validation (people 0-7) / 20 test "
+        f"(people 8-9); `configs/faust_single_scale.yaml`, {result['epochs']} epochs; command `{result['command']}`.",
+        "",
+        "How different the people are (rest poses): heights "
+        f"{min(people['heights_cm']):.0f}-{max(people['heights_cm']):.0f} cm (independent draws "
+        f"{min(independent['heights_cm']):.0f}-{max(independent['heights_cm']):.0f} cm); mean distance between two "
+        f"people at the same template vertex: median {people['pair_distance_cm']['median']} cm, least "
+        f"{people['pair_distance_cm']['min']} cm (independent draws: {independent['pair_distance_cm']['median']} / "
+        f"{independent['pair_distance_cm']['min']} cm).",
+        "",
+        "| recipe | best val exact | test exact (unrefined) | test exact (refined) | within 1 % | beyond 10 % "
+        "(unrefined / refined) | rings |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for entry in result["recipes"]:
+        test = entry["test"]
+        lines.append(
+            f"| {entry['recipe']} | {entry['val_accuracy_best']:.3f} (epoch {entry['best_epoch']}) | "
+            f"{100 * test['exact_unrefined']:.1f} % | {100 * test['exact_refined']:.1f} % | "
+            f"{100 * test['within_1pct_refined']:.1f} % | {100 * test['beyond_10pct_unrefined']:.2f} / "
+            f"{100 * test['beyond_10pct_refined']:.2f} % | {entry['refine_rings']} |"
+        )
+    for entry in result["recipes"]:
+        lines += [
+            "",
+            f"Per epoch, {entry['recipe']}:",
+            "",
+            "| epoch | train acc | val exact | test exact unrefined | refined | beyond 10 % unrefined |",
+            "|---|---|---|---|---|---|",
+        ]
+        for row in entry["per_epoch"]:
+            lines.append(
+                f"| {row['epoch']} | {row.get('train_accuracy') or 0:.3f} | {row.get('val_accuracy') or 0:.3f} | "
+                f"{100 * row['test_exact_unrefined']:.1f} % | {100 * row['test_exact_refined']:.1f} % | "
+                f"{100 * row['test_beyond_10pct_unrefined']:.2f} % |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def plot(result: dict, path: Path) -> None:
+    figure, (curves, epochs) = plt.subplots(1, 2, figsize=(11, 4))
+    for entry in result["recipes"]:
+        if entry["error_curve"]:
+            curve = entry["error_curve"]
+            curves.plot(curve["radii"], curve["fractions"], label=entry["recipe"])
+        rows = entry["per_epoch"]
+        line = epochs.plot([r["epoch"] for r in rows], [r["test_exact_refined"] for r in rows], label=entry["recipe"])
+        epochs.plot(
+            [r["epoch"] for r in rows], [r.get("val_accuracy") or np.nan for r in rows], "--", color=line[0].get_color()
+        )
+    curves.set(xlabel="geodesic error / diameter", ylabel="fraction of test vertices", xlim=(0, 0.1), ylim=(0, 1))
+    curves.set_title("error curve, test people (selected epoch, refined)")
+    epochs.set(xlabel="epoch", ylabel="exact accuracy", ylim=(0, 1))
+    epochs.set_title("test people (solid, refined) and validation (dashed)")
+    for axes in (curves, epochs):
+        axes.grid(alpha=0.3)
+        axes.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--topology", default="faust", choices=sorted(N_VERTICES))
+    parser.add_argument("--data", type=Path, default=ROOT / "data" / "people", help="the people bodies' folder")
+    parser.add_argument("--others", type=Path, default=ROOT / "data" / "others", help="the pretraining bodies")
+    parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "few_people")
+    parser.add_argument("--recipes", nargs="+", default=["shipped", "pretrained"], choices=sorted(RECIPES))
+    parser.add_argument("--epochs", type=int, default=None, help="override the recipe's epochs (default: its own)")
+    parser.add_argument("--pretrain-count", type=int, default=100, help="bodies of other people to pretrain on")
+    parser.add_argument("--pretrain-epochs", type=int, default=None)
+    parser.add_argument(
+        "--pretrain-topology",
+        default=None,
+        choices=sorted(N_VERTICES),
+        help="topology of the pretraining bodies (default --topology): the patch operators are intrinsic at a "
+        "fixed area, so convolutions learnt on coarser bodies apply to finer ones",
+    )
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--cache-dir", default=".zernet-cache")
+    parser.add_argument("--output", type=Path, default=RESULTS / "few_people", help="path without suffix")
+    args = parser.parse_args()
+
+    data_root = people_bodies(args.data, args.topology, args.seed, args.cache_dir)
+    pretrained = None
+    if any(RECIPES[name][1] for name in args.recipes):
+        topology = args.pretrain_topology or args.topology
+        others = other_bodies(args.others, topology, args.seed, args.pretrain_count, args.cache_dir)
+        pretrained = pretrain(others, args.runs / "pretrain", args.pretrain_epochs, args.threads, N_VERTICES[topology])
+    result = {
+        "topology": args.topology,
+        "n_vertices": N_VERTICES[args.topology],
+        "seed": args.seed,
+        "epochs": args.epochs or load_config(CONFIG)["train"]["epochs"],
+        "pretraining": None
+        if pretrained is None
+        else {
+            "topology": args.pretrain_topology or args.topology,
+            "bodies": args.pretrain_count,
+            "epochs": args.pretrain_epochs or load_config(CONFIG)["train"]["epochs"],
+        },
+        "command": "benchmarks/few_people.py " + " ".join(sys.argv[1:]),
+        "diversity": diversity(args.data, args.topology, args.seed, args.cache_dir),
+        "recipes": [],
+    }
+    for name in args.recipes:
+        print(f"recipe {name} ...", flush=True)
+        result["recipes"].append(run_recipe(name, data_root, args.runs, pretrained if RECIPES[name][1] else None, args))
+        write_json(args.output.with_suffix(".json"), result)
+    text = markdown(result)
+    atomic_write_bytes(args.output.with_suffix(".md"), text.encode())
+    plot(result, args.output.with_suffix(".png"))
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
