@@ -8,7 +8,7 @@ a CUDA machine) and matplotlib's pyplot takes half a second: neither may be paid
 import subprocess
 import sys
 
-HEAVY = ("torch_geometric", "matplotlib", "torch._dynamo", "anny")
+HEAVY = ("torch_geometric", "matplotlib", "torch._dynamo", "anny", "trimesh")
 
 
 def test_cli_import_leaves_heavy_optional_libraries_out():

@@ -46,7 +46,6 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from zernet.data.dataset import DatasetError, ShapeDataset
 from zernet.data.options import LoaderOptions
@@ -189,6 +188,8 @@ def load_labelled_mesh(
 
 def _read_as_stored(mesh_path: str) -> Surface:
     """A mesh exactly as stored (vertex and face order kept, no validation yet)."""
+    import trimesh  # here, not at start-up
+
     options = {"maintain_order": True} if mesh_path.lower().endswith(".obj") else {}
     try:
         mesh = trimesh.load(mesh_path, process=False, force="mesh", **options)

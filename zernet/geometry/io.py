@@ -11,7 +11,6 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 import scipy.io
-import trimesh
 
 from zernet.geometry.surface import Surface, SurfaceError
 from zernet.geometry.validate import merge_coincident, validate_surface
@@ -101,6 +100,8 @@ def _select_fields(surface: Surface, wanted: list[str]) -> Surface:
 # ====================================================================== PLY, OBJ, OFF, STL
 def _load_trimesh(name: str, extension: str) -> Surface:
     """Read PLY/OBJ/OFF/STL with trimesh, keeping the file's vertex order."""
+    import trimesh  # here, not at start-up
+
     options = {"maintain_order": True} if extension == ".obj" else {}
     try:
         loaded = trimesh.load(name, process=False, **options)

@@ -25,7 +25,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import trimesh
 from tqdm.auto import tqdm
 
 from zernet.data.bodies.forms import BodyForm, check_form_dependencies, make_forms, resolve_forms
@@ -83,11 +82,15 @@ class BodiesLayout:
 
 
 def _ply_bytes(body: Body) -> bytes:
+    import trimesh  # here, not at start-up
+
     return trimesh.Trimesh(body.vertices, body.faces, process=False).export(file_type="ply")
 
 
 def _form_ply_bytes(form: BodyForm) -> bytes:
     """A form as PLY: a mesh exactly as made (nothing merged or dropped), or vertices only for a cloud."""
+    import trimesh  # here, not at start-up
+
     if form.faces is None:
         return trimesh.PointCloud(form.vertices).export(file_type="ply")
     return trimesh.Trimesh(form.vertices, form.faces, process=False, validate=False).export(file_type="ply")

@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
 from zernet.data.dataset import DatasetError
@@ -122,6 +121,8 @@ class BodyTopology:
 
 def largest_component(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """(kept template vertices in template order, faces renumbered onto them) of the largest component."""
+    import trimesh  # here, not at start-up
+
     mesh = trimesh.Trimesh(np.zeros((n_vertices, 3)), faces, process=False)
     components = trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(len(faces)), min_len=1)
     kept_faces = faces[np.sort(max(components, key=len))]
@@ -138,6 +139,8 @@ def closest_barycentric(
 
     Candidates are the triangles around the ``neighbours`` nearest mesh vertices, exact among those.
     """
+    import trimesh  # here, not at start-up
+
     _, nearest = cKDTree(vertices).query(points, k=neighbours)
     vertex_faces = trimesh.Trimesh(vertices, faces, process=False).vertex_faces  # (V, max degree), -1 padded
     candidates = vertex_faces[nearest].reshape(len(points), -1)
