@@ -230,7 +230,6 @@ def select_refinement(
     hits = {rings: 0 for rings in candidates}
     spectral_hits = {radius: 0 for radius in radii}
     total = 0
-    shapes = []  # (record, probabilities, target): read once for both choices
     for i in tqdm(indices, desc="choosing the refinement", unit="shape", leave=False, disable=not progress):
         record = dataset[i]
         pred, probabilities = predict_record(members, record, device)
@@ -240,8 +239,6 @@ def select_refinement(
         for rings in candidates:
             refined = pred if rings == 0 else _refined(probabilities, record, rings)
             hits[rings] += int(np.sum(refined == target))
-        if len(radii) > 1:
-            shapes.append((record, probabilities.cpu(), target))
     accuracy = {rings: hits[rings] / total for rings in candidates}
     chosen = max(candidates, key=lambda rings: (accuracy[rings], -rings))
     choice: dict[str, Any] = {
@@ -252,10 +249,12 @@ def select_refinement(
     radius = radii[0]
     if len(radii) > 1:
         refiner = _refiner(members[0][1])
-        for record, probabilities, target in tqdm(
-            shapes, desc="choosing the global refinement", unit="shape", leave=False, disable=not progress
-        ):
-            scores = _ring_scores(probabilities.to(device), record, chosen)
+        # Predicted again rather than kept: a FAUST-size shape's probabilities take 190 MB.
+        for i in tqdm(indices, desc="choosing the global refinement", unit="shape", leave=False, disable=not progress):
+            record = dataset[i]
+            target = np.asarray(record.target)
+            _, probabilities = predict_record(members, record, device)
+            scores = _ring_scores(torch.from_numpy(probabilities).to(device), record, chosen)
             for candidate in radii:
                 refined = refiner.refine(scores, record.surface, candidate)
                 spectral_hits[candidate] += int(np.sum(refined == target))

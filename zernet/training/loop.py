@@ -524,7 +524,7 @@ def _test(
         if "spectral_accuracy" in choice:
             logger.info(
                 f"global refinement radius {radius:g}, chosen on the validation split after {rings} rings "
-                "(exact accuracy by radius, 0: off: "
+                "(exact accuracy by radius, 0 = off: "
                 + ", ".join(f"{k}: {v:.4f}" for k, v in choice["spectral_accuracy"].items())
                 + ")"
             )

@@ -19,11 +19,12 @@ body decides (the body's left-right symmetry, which the eigenfunctions alone can
 the network's map), so ``S`` sends the region to the right side, and ``T`` takes the most probable vertex
 there; each later round adds frequencies, so ``S`` comes closer and the radius catches fewer wrong vertices.
 Unlike plain ZoomOut, whose point map after the first round no longer reads the network, every round keeps
-the network's answer where it lies near the spectral one: measured on the validation bodies of a coarse run
-(``docs/RECIPES.md``), ZoomOut from 20 to 80 eigenpairs left 0.42 % of its vertices beyond 10 % of the
-diameter against 0 for this scheme; on an ellipsoid with a mirrored cap of 5-16 % of its vertices
-(``tests/training/test_spectral_refine.py``), a single projection of the map kept part of the flip, this
-scheme repairs it. A vertex whose scores near ``S(i)`` are all below 1e-6 takes ``S(i)`` itself.
+the network's answer where it lies near the spectral one: on the validation bodies of a coarse run, ZoomOut's
+own map (20 to 80 eigenpairs) left 0.42 % of the vertices beyond 10 % of the diameter; with these rounds none
+was left there (``docs/RECIPES.md``). On an ellipsoid with a mirrored cap of 9.5 % of its vertices, a single
+projection of the map still sends part of the cap across; the rounds repair caps of 5-16 %
+(``tests/training/test_spectral_refine.py``). A vertex whose scores near ``S(i)`` are all below 1e-6 takes
+``S(i)`` itself.
 
 The radius is chosen on validation shapes (``eval.refine_spectral``; 0 turns the step off) after the ring
 count. It needs the template's geometry: a run stores the vertices of its first training shape beside the
