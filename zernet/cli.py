@@ -242,6 +242,16 @@ def _add_evaluate_command(sub, parents: list[argparse.ArgumentParser]) -> None:
         help="correspondence: average the predicted probabilities over N rings of mesh neighbours; "
         "several: the best on the validation split (default: the run's eval.refine_rings)",
     )
+    p.add_argument(
+        "--refine-spectral",
+        type=float,
+        nargs="+",
+        default=None,
+        metavar="R",
+        help="correspondence, after the rings: keep the prediction within R (a fraction of the template's "
+        "geodesic diameter) of a spectral map read from it, which repairs flipped regions; 0: off; several: "
+        "chosen with the rings on the validation split (default: the run's eval.refine_spectral)",
+    )
     p.add_argument("--device", default=None, help="override the run's device (cpu, cuda, ...)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_evaluate)
@@ -295,6 +305,14 @@ def _add_predict_command(sub, parents: list[argparse.ArgumentParser]) -> None:
         metavar="N",
         help="correspondence: average the probabilities over N rings of mesh neighbours (default: "
         "what the run chose on its validation split; 0: off)",
+    )
+    p.add_argument(
+        "--refine-spectral",
+        type=float,
+        default=None,
+        metavar="R",
+        help="correspondence, after the rings: keep the prediction within R (a fraction of the template's "
+        "geodesic diameter) of a spectral map read from it (default: what the run chose; 0: off)",
     )
     p.add_argument("--device", default=None, help="override the run's device (cpu, cuda, ...)")
     p.set_defaults(func=_cmd_predict)
@@ -493,6 +511,7 @@ def _cmd_evaluate(args) -> int:
         device=args.device,
         on_error="skip" if args.skip_bad else "raise",
         refine_rings=args.refine_rings,
+        refine_spectral=args.refine_spectral,
     )
     what = f"ensemble of {len(args.run_dir)}, " if len(args.run_dir) > 1 else ""
     skipped = f"; {len(metrics['skipped'])} shapes skipped" if metrics.get("skipped") else ""
@@ -527,6 +546,7 @@ def _cmd_predict(args) -> int:
         probabilities=args.probabilities,
         device=args.device,
         refine_rings=args.refine_rings,
+        refine_spectral=args.refine_spectral,
         backend=args.backend,
         scale=args.scale,
     )

@@ -18,7 +18,7 @@ from zernet.matching.fmap import (
     resolvent_mask,
     zoomout,
 )
-from zernet.matching.spectral import heat_kernel_signature, laplacian_eigenbasis
+from zernet.operators.spectral import heat_kernel_signature, laplacian_eigenbasis
 
 
 def bumpy_ellipsoid() -> Surface:

@@ -55,7 +55,7 @@ TODAYS_FORMAT = {
         "augment_rotation": "none",
         "augment_scale": 0.0,
     },
-    "eval": {"renders": 3, "plots": True, "refine_rings": [0]},
+    "eval": {"renders": 3, "plots": True, "refine_rings": [0], "refine_spectral": [0.0]},
     "cache_dir": ".zernet-cache",
 }
 

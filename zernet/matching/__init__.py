@@ -1,6 +1,6 @@
 """Correspondence between two surfaces: learned descriptors, functional maps, ZoomOut.
 
-- :mod:`~zernet.matching.spectral` — the Laplace-Beltrami eigenbasis (robust-laplacian, eigsh), cached.
+- :mod:`~zernet.operators.spectral` — the Laplace-Beltrami eigenbasis (robust-laplacian, eigsh), cached, and ZoomOut.
 - :mod:`~zernet.matching.fmap` — the differentiable functional-map layer, point maps, ZoomOut, confidence.
 - :mod:`~zernet.matching.shapes` — a surface made ready for matching (:func:`prepare_shape`).
 - :mod:`~zernet.matching.model` — the descriptor model, its spec and file format, the shipped model.
@@ -14,7 +14,7 @@ The method is explained in ``docs/MATCHING.md``.
 from zernet.matching.fmap import cycle_confidence, fmap_from_pointmap, functional_map, pointmap_from_fmap, zoomout
 from zernet.matching.match import MatchResult, match_shapes, match_surfaces
 from zernet.matching.model import PRETRAINED_MODEL, DescriptorModel, MatchingSpec, load_matching_model
-from zernet.matching.spectral import SpectralBasis, laplacian_eigenbasis
+from zernet.operators.spectral import SpectralBasis, laplacian_eigenbasis
 
 __all__ = [
     "SpectralBasis",

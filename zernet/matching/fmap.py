@@ -1,4 +1,6 @@
-r"""Functional maps: the differentiable layer, point maps from functional maps and back, ZoomOut, confidence.
+r"""Functional maps: the differentiable layer and the confidence; point maps from functional maps and back and
+ZoomOut are re-exported from :mod:`zernet.operators.spectral`, where they live (the correspondence refinement
+of :mod:`zernet.training` uses them too, and training sits below matching).
 
 Convention (as in pyFM and DiffusionNet): a functional map ``C_xy`` (k_y, k_x) carries a function on a
 surface X, given by its spectral coefficients on X, to a function on Y. A point map ``T: Y -> X`` (one X
@@ -22,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from zernet.matching.spectral import SpectralBasis
+from zernet.operators.spectral import fmap_from_pointmap, nearest_rows, pointmap_from_fmap, zoomout
 
 __all__ = [
     "resolvent_mask",
@@ -81,66 +83,6 @@ def functional_map(
     lhs = gram.unsqueeze(0) + regularisation * torch.diag_embed(mask)  # (k_y, k_x, k_x)
     rhs = coefficients_y @ coefficients_x.T  # rows B_i Aᵀ: (k_y, k_x)
     return torch.linalg.solve(lhs, rhs.unsqueeze(-1)).squeeze(-1)
-
-
-def fmap_from_pointmap(
-    pointmap_yx: np.ndarray,
-    basis_x: SpectralBasis,
-    basis_y: SpectralBasis,
-    k_x: int | None = None,
-    k_y: int | None = None,
-) -> np.ndarray:
-    """``C_xy = Φ_yᵀ M_y Φ_x[T]`` (k_y, k_x) of a point map ``T: Y -> X`` given as (N_y,) X indices."""
-    k_x = basis_x.k if k_x is None else k_x
-    k_y = basis_y.k if k_y is None else k_y
-    pulled_back = basis_x.eigenvectors[np.asarray(pointmap_yx), :k_x]  # (N_y, k_x)
-    return basis_y.eigenvectors[:, :k_y].T @ (basis_y.mass[:, None] * pulled_back)
-
-
-def nearest_rows(queries: np.ndarray, points: np.ndarray, chunk: int = 2048) -> np.ndarray:
-    """(M,) int64 index of the row of ``points`` (N, k) nearest to each row of ``queries`` (M, k).
-
-    Brute force by matrix products in chunks (``‖p‖² - 2 q·p`` per chunk of queries): in the 30-80
-    dimensions of a spectral embedding a k-d tree prunes almost nothing, and this was 1.4-2.9x faster than
-    ``scipy.spatial.cKDTree`` at 6,000 x 7,000 points (k = 30, 80; one thread), with the same answers."""
-    queries_t = torch.as_tensor(np.ascontiguousarray(queries, dtype=np.float64))
-    points_t = torch.as_tensor(np.ascontiguousarray(points, dtype=np.float64))
-    squared = (points_t * points_t).sum(dim=1)
-    nearest = [
-        (squared[None, :] - 2 * queries_t[start : start + chunk] @ points_t.T).argmin(dim=1)
-        for start in range(0, len(queries_t), chunk)
-    ]
-    return torch.cat(nearest).numpy().astype(np.int64) if nearest else np.zeros(0, dtype=np.int64)
-
-
-def pointmap_from_fmap(fmap_xy: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis) -> np.ndarray:
-    """The point map ``T: Y -> X`` (N_y,) int64 of ``C_xy`` (k_y, k_x): for each Y vertex, the X vertex
-    nearest to ``Φ_y[y] C_xy`` in the spectral embedding ``Φ_x[:, :k_x]`` (:func:`nearest_rows`)."""
-    k_y, k_x = fmap_xy.shape
-    embedding_y = basis_y.eigenvectors[:, :k_y] @ fmap_xy  # (N_y, k_x)
-    return nearest_rows(embedding_y, basis_x.eigenvectors[:, :k_x])
-
-
-def zoomout(
-    pointmap_yx: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis, k_start: int, k_end: int, step: int = 1
-) -> tuple[np.ndarray, np.ndarray]:
-    """ZoomOut (Melzi et al. 2019): refine a point map ``T: Y -> X`` by spectral upsampling.
-
-    From ``k = k_start`` to ``k_end`` by ``step``: the k × k functional map of the current point map, then
-    the point map of that functional map. Each round adds frequencies the previous map fixes only coarsely,
-    which removes noise from an initial map whose low frequencies are right (a learned one, or a rigid
-    alignment). ``k_end`` is capped at both bases' sizes.
-
-    Returns:
-        (pointmap (N_y,) int64, C_xy (k, k) of the last round).
-    """
-    k_end = min(k_end, basis_x.k, basis_y.k)
-    pointmap = np.asarray(pointmap_yx, dtype=np.int64)
-    fmap = fmap_from_pointmap(pointmap, basis_x, basis_y, k_start, k_start)
-    for k in range(k_start, k_end + 1, step):
-        fmap = fmap_from_pointmap(pointmap, basis_x, basis_y, k, k)
-        pointmap = pointmap_from_fmap(fmap, basis_x, basis_y)
-    return pointmap, fmap
 
 
 def cycle_confidence(

@@ -18,8 +18,8 @@ import torch
 
 from zernet.data import prepare_record
 from zernet.geometry import Surface
-from zernet.matching.spectral import SpectralBasis, heat_kernel_signature, laplacian_eigenbasis
 from zernet.operators import Geometry, PatchConfig
+from zernet.operators.spectral import SpectralBasis, heat_kernel_signature, laplacian_eigenbasis
 
 __all__ = ["MatchShape", "prepare_shape", "input_features", "matching_feature_channels", "rotating_columns"]
 

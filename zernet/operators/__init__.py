@@ -7,6 +7,8 @@ the :class:`Geometry` a model receives.
 - ``directional.py``: :class:`DirectionalOperator` and :func:`build_directional_operator`.
 - ``harmonic_csr.py``: the compiled kernels that write a directional operator's matrix and its transpose.
 - ``batch.py``: :class:`Geometry`, one surface or a block-diagonal batch.
+- ``spectral.py``: the Laplace-Beltrami eigenbasis (cached) and point maps from functional maps and back,
+  ZoomOut (imported from there: scipy's eigensolver and robust-laplacian load only when used).
 """
 
 from .batch import Geometry

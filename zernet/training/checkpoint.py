@@ -49,6 +49,9 @@ class RunRecord:
     feature_stats: dict | None
     preprocess: dict  # see zernet.training.build.preprocess_spec
     template_faces: torch.Tensor | None = None  # correspondence: (F, 3) faces of the template (refinement)
+    # correspondence: (M, 3) float32 vertices of the template, the first training shape as preprocessed
+    # (area-normalised): the geometry of the global refinement (training.spectral_refine); older: absent
+    template_vertices: torch.Tensor | None = None
 
 
 def cpu_state_dict(module_or_optimizer) -> dict:
@@ -82,6 +85,7 @@ def make_checkpoint(record: RunRecord, model: torch.nn.Module, optimizer: torch.
         "feature_stats": record.feature_stats,
         "preprocess": record.preprocess,
         "template_faces": record.template_faces,
+        "template_vertices": record.template_vertices,
         "model": cpu_state_dict(model),
         "optimizer": cpu_state_dict(optimizer),
         "state": copy.deepcopy(state),

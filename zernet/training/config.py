@@ -82,7 +82,7 @@ class ConfigError(ValueError):
 class Rule:
     """What one configuration value may be; :meth:`check` raises a :class:`ConfigError` naming the key."""
 
-    kind: str  # "int" | "number" | "str" | "bool" | "int_list" | "str_list" | "names" | "path"
+    kind: str  # "int" | "number" | "str" | "bool" | "int_list" | "number_list" | "str_list" | "names" | "path"
     # | "indices" (a list of integers or "START:STOP")
     optional: bool = False  # None allowed
     minimum: float | None = None  # value >= minimum
@@ -100,6 +100,7 @@ class Rule:
                 "str": "a string",
                 "bool": "true or false",
                 "int_list": "a list of integers",
+                "number_list": "a list of numbers",
                 "str_list": "a list of strings",
                 "names": "a name or a list of names",
                 "path": "a folder path",
@@ -129,6 +130,8 @@ class Rule:
             return isinstance(value, str)
         if self.kind == "int_list":
             return isinstance(value, (list, tuple)) and all(_is_int(v) for v in value)
+        if self.kind == "number_list":
+            return isinstance(value, (list, tuple)) and all(_is_number(v) and math.isfinite(v) for v in value)
         if self.kind == "str_list":
             return isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value)
         if self.kind == "indices":
@@ -394,15 +397,27 @@ class EvalSection(_Section):
     # Correspondence: the predicted probabilities averaged over this many rings of mesh neighbours
     # (zernet.training.refine); a number, or candidates of which the best on the validation split is used.
     refine_rings: list[int] = _rule((0,), "int_list")
+    # Correspondence, after the rings: the global refinement (zernet.training.spectral_refine), the prediction
+    # kept within this radius (a fraction of the template's geodesic diameter) of a spectral map read from it;
+    # 0 turns it off. A number, or candidates of which the best on the validation split (after the rings) is used.
+    refine_spectral: list[float] = _rule((0.0,), "number_list")
 
     def __post_init__(self) -> None:
         if _is_int(self.refine_rings):
             object.__setattr__(self, "refine_rings", [self.refine_rings])
+        if _is_number(self.refine_spectral):
+            object.__setattr__(self, "refine_spectral", [self.refine_spectral])
         super().__post_init__()
         object.__setattr__(self, "refine_rings", list(self.refine_rings))  # a plain list in YAML and JSON
+        object.__setattr__(self, "refine_spectral", [float(v) for v in self.refine_spectral])
         if not self.refine_rings or min(self.refine_rings) < 0:
             raise ConfigError(
                 f"eval.refine_rings must be a non-empty list of integers >= 0, got {list(self.refine_rings)!r}"
+            )
+        if not self.refine_spectral or not all(0 <= v <= 1 for v in self.refine_spectral):
+            raise ConfigError(
+                "eval.refine_spectral must be a non-empty list of numbers in [0, 1] (radii as fractions of the "
+                f"template's geodesic diameter; 0: off), got {list(self.refine_spectral)!r}"
             )
 
 

@@ -1,9 +1,12 @@
 """Scoring a trained model or an ensemble on a split: metrics, baselines, the correspondence refinement
 chosen on validation, and the one-line summary.
 
-A correspondence is refined on the run's device (torch sparse products, :mod:`zernet.training.refine`),
-and its geodesic errors are measured once per test shape for the unrefined and the refined map together
-(:class:`zernet.metrics.GeodesicErrors`: the diameter once, each distinct vertex pair once)."""
+A correspondence is refined on the run's device: the ring average (torch sparse products,
+:mod:`zernet.training.refine`), then optionally the global step (:mod:`zernet.training.spectral_refine`:
+the prediction kept within reach of a spectral map, which repairs flipped regions), both chosen on the
+validation split. The geodesic errors of a test shape are measured once for the unrefined, the
+ring-refined and the refined map together (:class:`zernet.metrics.GeodesicErrors`: the diameter once, each
+distinct vertex pair once)."""
 
 from __future__ import annotations
 
@@ -24,9 +27,18 @@ from zernet.training.config import ConfigError
 from zernet.training.predict import model_from_checkpoint, predict_record
 from zernet.training.refine import refine_correspondence
 from zernet.training.runtime import resolve_device
+from zernet.training.spectral_refine import check_radii, spectral_refiner, template_of
 from zernet.training.targets import unstandardise
 
-__all__ = ["evaluate", "evaluate_members", "select_refine_rings", "check_ensemble", "summary_line"]
+__all__ = [
+    "evaluate",
+    "evaluate_members",
+    "select_refinement",
+    "select_refine_rings",
+    "global_refinement_unavailable",
+    "check_ensemble",
+    "summary_line",
+]
 
 
 def _kind(checkpoint: dict) -> str:
@@ -36,14 +48,41 @@ def _kind(checkpoint: dict) -> str:
     return "correspondence" if checkpoint.get("correspondence", False) else "segmentation"
 
 
-def _refined(probabilities: torch.Tensor, record, rings: int) -> np.ndarray:
-    """The refined map, computed where ``probabilities`` are (the run's device). Correspondence by vertex
-    index: every shape has the template's connectivity, so the record's faces serve for both the shape and
-    the template."""
+def _ring_scores(probabilities: torch.Tensor, record, rings: int) -> torch.Tensor:
+    """The probabilities averaged over ``rings`` rings, where they are (the run's device). Correspondence by
+    vertex index: every shape has the template's connectivity, so the record's faces serve for both the shape
+    and the template."""
     faces = record.surface.faces
     if faces is None:
         raise ValueError(f"shape {record.name}: refining a correspondence needs a triangle mesh")
-    return refine_correspondence(probabilities, faces, faces, rings).argmax(dim=1).cpu().numpy()
+    return refine_correspondence(probabilities, faces, faces, rings) if rings else probabilities
+
+
+def _refined(probabilities: torch.Tensor, record, rings: int) -> np.ndarray:
+    """The map refined over ``rings`` rings (:func:`_ring_scores`)."""
+    return _ring_scores(probabilities, record, rings).argmax(dim=1).cpu().numpy()
+
+
+def global_refinement_unavailable(checkpoint: dict) -> str | None:
+    """Why a checkpoint cannot be refined globally (:mod:`zernet.training.spectral_refine`), or None if it
+    can: it must be a correspondence model that stores its template's geometry."""
+    if _kind(checkpoint) != "correspondence":
+        return None  # nothing to refine: the candidates are ignored, as refine_rings is
+    if template_of(checkpoint) is None:
+        return (
+            "the checkpoint stores no template geometry (template_vertices: written before the global "
+            "refinement existed), so eval.refine_spectral is unavailable and left off; train the run again to use it"
+        )
+    return None
+
+
+def _refiner(checkpoint: dict):
+    """The checkpoint's :class:`~zernet.training.spectral_refine.SpectralRefiner`; ConfigError without a
+    template geometry."""
+    reason = global_refinement_unavailable(checkpoint)
+    if reason is not None:
+        raise ConfigError(reason)
+    return spectral_refiner(*template_of(checkpoint))
 
 
 def _score_shape(kind: str, record, pred: np.ndarray, target: np.ndarray, n_classes: int | None, geodesic_errors=None):
@@ -69,18 +108,23 @@ def evaluate_members(
     progress: bool,
     keep: int = 3,
     refine_rings: int = 0,
+    refine_spectral: float = 0.0,
 ) -> tuple[dict, list[dict]]:
     """Metrics of the model (or ensemble) ``members`` (a list of ``(model, checkpoint)``, see
     :func:`~zernet.training.predict.predict_record`) on the shapes at ``indices`` and the predictions of
     the first ``keep``. A correspondence is scored after refinement over ``refine_rings`` rings
-    (:mod:`zernet.training.refine`; other tasks ignore it), and its unrefined scores are kept beside."""
+    (:mod:`zernet.training.refine`) and then, if ``refine_spectral`` > 0, by the global step within that
+    radius (:mod:`zernet.training.spectral_refine`); other tasks ignore both. The unrefined scores are kept
+    beside (``unrefined_summary``), and with both steps the ring-refined ones (``ring_refined_summary``)."""
     checkpoint = members[0][1]
     task, kind = checkpoint["task"], _kind(checkpoint)
     refine_rings = refine_rings if kind == "correspondence" else 0
+    refine_spectral = check_radii(refine_spectral)[0] if kind == "correspondence" else 0.0
+    refiner = _refiner(checkpoint) if refine_spectral else None
     n_classes = None if checkpoint.get("num_classes") is None else int(checkpoint["num_classes"])
     per_shape: dict[str, dict] = {}
     kept: list[dict] = []
-    errors_all, unrefined_errors, confusion, label_counts = [], [], None, None
+    errors_all, unrefined_errors, ring_errors, confusion, label_counts = [], [], [], None, None
     for position, i in enumerate(tqdm(indices, desc="evaluating", unit="shape", leave=False, disable=not progress)):
         record = dataset[i]
         if record.target is None:
@@ -88,9 +132,14 @@ def evaluate_members(
         pred, probabilities = predict_record(members, record, device)
         target = np.asarray(record.target)
         geodesics = zmetrics.GeodesicErrors(record.surface) if kind == "correspondence" else None
-        if refine_rings:
+        if refine_rings or refine_spectral:
             unrefined_errors.append(geodesics(pred, target))
-            pred = _refined(torch.from_numpy(probabilities).to(device), record, refine_rings)
+            scores = _ring_scores(torch.from_numpy(probabilities).to(device), record, refine_rings)
+            pred = scores.argmax(dim=1).cpu().numpy()
+            if refine_spectral:
+                if refine_rings:
+                    ring_errors.append(geodesics(pred, target))
+                pred = refiner.refine(scores, record.surface, refine_spectral)
         per_shape[record.name], errors, shape_confusion = _score_shape(kind, record, pred, target, n_classes, geodesics)
         if kind == "correspondence":
             errors_all.append(errors)
@@ -110,9 +159,11 @@ def evaluate_members(
         result["error_curve"] = {"radii": scores["curve_radii"], "fractions": scores["curve_fractions"]}
         result["baseline"] = {"chance_accuracy": 1.0 / float(checkpoint["num_classes"])}
         result["refine_rings"] = refine_rings
-        if refine_rings:  # what the refinement changed, on the same split
-            unrefined = zmetrics.correspondence_scores(unrefined_errors)
-            result["unrefined_summary"] = {k: v for k, v in unrefined.items() if not k.startswith("curve_")}
+        result["refine_spectral"] = refine_spectral
+        for key, stage in (("unrefined_summary", unrefined_errors), ("ring_refined_summary", ring_errors)):
+            if stage:  # what the refinement changed, on the same split
+                scores = zmetrics.correspondence_scores(stage)
+                result[key] = {k: v for k, v in scores.items() if not k.startswith("curve_")}
     elif kind == "segmentation":
         result["summary"] = zmetrics.segmentation_scores(confusion=confusion)
         result["baseline"] = {"majority_class_accuracy": float(label_counts.max() / label_counts.sum())}
@@ -130,28 +181,56 @@ def evaluate_members(
 def select_refine_rings(
     members: Sequence[tuple], dataset, candidates: Sequence[int], device, progress: bool
 ) -> tuple[int, dict | None]:
-    """The refinement rings to use and how they were chosen: the only candidate, or (correspondence) the one
-    whose exact accuracy on the ``val`` split is highest, the fewest rings on a tie.
+    """:func:`select_refinement` over ring counts alone (no global step): ``(rings, choice)``."""
+    rings, _, choice = select_refinement(members, dataset, candidates, [0.0], device, progress)
+    return rings, choice
 
-    Returns ``(rings, choice)`` with ``choice`` None when nothing was chosen, else
-    ``{"split": "val", "accuracy": {rings: exact accuracy}, "rings": chosen}`` for ``metrics.json``.
+
+def select_refinement(
+    members: Sequence[tuple],
+    dataset,
+    rings_candidates: Sequence[int],
+    spectral_candidates: Sequence[float],
+    device,
+    progress: bool,
+) -> tuple[int, float, dict | None]:
+    """The refinement to use and how it was chosen, on the ``val`` split (correspondence; other tasks get
+    none): first the ring count whose exact accuracy is highest (the fewest rings on a tie), then, after those
+    rings, the global step's radius (:mod:`zernet.training.spectral_refine`; 0: off) whose exact accuracy is
+    highest (off on a tie, else the widest radius). A single candidate is taken without a look at the data.
+    Without a template geometry (older checkpoints) the global step is left off with a warning
+    (:func:`global_refinement_unavailable`).
+
+    Returns ``(rings, radius, choice)`` with ``choice`` None when nothing was chosen, else, for
+    ``metrics.json``, ``{"split": "val", "accuracy": {rings: exact accuracy}, "rings": chosen}`` and, when
+    radii were candidates, ``"spectral": chosen radius`` and ``"spectral_accuracy": {radius: exact accuracy
+    after the chosen rings}`` (radius "0": the rings alone).
     """
-    candidates = sorted(set(int(c) for c in candidates))
+    candidates = sorted(set(int(c) for c in rings_candidates))
     if not candidates or candidates[0] < 0:
         raise ConfigError(f"refine rings must be one or more integers >= 0, got {candidates}")
+    try:
+        radii = sorted(set(check_radii(spectral_candidates)))
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
     if _kind(members[0][1]) != "correspondence":
-        return 0, None
-    if len(candidates) == 1:
-        return candidates[0], None
+        return 0, 0.0, None
+    unavailable = global_refinement_unavailable(members[0][1]) if any(radii) else None
+    if unavailable is not None:
+        warnings.warn(unavailable, UserWarning, stacklevel=2)
+        radii = [0.0]
+    if len(candidates) == 1 and len(radii) == 1:
+        return candidates[0], radii[0], None
     indices = dataset.splits.get("val", [])
     if not indices:
         raise ConfigError(
-            f"eval.refine_rings lists several candidates ({candidates}) but the data set has no "
-            "validation split to choose among them: give one number"
+            f"eval.refine_rings / eval.refine_spectral list several candidates ({candidates} / {radii}) but the "
+            "data set has no validation split to choose among them: give one number each"
         )
     hits = {rings: 0 for rings in candidates}
+    spectral_hits = {radius: 0 for radius in radii}
     total = 0
-    for i in tqdm(indices, desc="choosing refine rings", unit="shape", leave=False, disable=not progress):
+    for i in tqdm(indices, desc="choosing the refinement", unit="shape", leave=False, disable=not progress):
         record = dataset[i]
         pred, probabilities = predict_record(members, record, device)
         target = np.asarray(record.target)
@@ -162,7 +241,30 @@ def select_refine_rings(
             hits[rings] += int(np.sum(refined == target))
     accuracy = {rings: hits[rings] / total for rings in candidates}
     chosen = max(candidates, key=lambda rings: (accuracy[rings], -rings))
-    return chosen, {"split": "val", "accuracy": {str(k): v for k, v in accuracy.items()}, "rings": chosen}
+    choice: dict[str, Any] = {
+        "split": "val",
+        "accuracy": {str(k): v for k, v in accuracy.items()},
+        "rings": chosen,
+    }
+    radius = radii[0]
+    if len(radii) > 1:
+        refiner = _refiner(members[0][1])
+        # Predicted again rather than kept: a FAUST-size shape's probabilities take 190 MB.
+        for i in tqdm(indices, desc="choosing the global refinement", unit="shape", leave=False, disable=not progress):
+            record = dataset[i]
+            target = np.asarray(record.target)
+            _, probabilities = predict_record(members, record, device)
+            scores = _ring_scores(torch.from_numpy(probabilities).to(device), record, chosen)
+            for candidate in radii:
+                refined = refiner.refine(scores, record.surface, candidate)
+                spectral_hits[candidate] += int(np.sum(refined == target))
+        spectral_accuracy = {candidate: spectral_hits[candidate] / total for candidate in radii}
+        radius = max(radii, key=lambda r: (spectral_accuracy[r], r == 0, r))
+        choice["spectral"] = radius
+        choice["spectral_accuracy"] = {f"{k:g}": v for k, v in spectral_accuracy.items()}
+    if unavailable is not None:
+        choice["spectral_unavailable"] = unavailable
+    return chosen, radius, choice
 
 
 def _training_mean_baseline(stats: dict, dataset, indices: Sequence[int]) -> dict:
@@ -185,9 +287,13 @@ def summary_line(metrics: dict) -> str:
     }.get(metrics.get("kind"), ())
     parts = [f"{key} {summary[key]:.4f}" for key in keys if key in summary]
     if "unrefined_summary" in metrics:
+        radius = metrics.get("refine_spectral", 0.0)
+        spectral = f" then globally within {radius:g} of the diameter" if radius else ""
+        ring_stage = metrics.get("ring_refined_summary")
+        rings_only = f", over the rings only {ring_stage['accuracy']:.4f}" if ring_stage else ""
         parts.append(
-            f"(refined over {metrics['refine_rings']} rings; unrefined accuracy "
-            f"{metrics['unrefined_summary']['accuracy']:.4f})"
+            f"(refined over {metrics['refine_rings']} rings{spectral}; unrefined accuracy "
+            f"{metrics['unrefined_summary']['accuracy']:.4f}{rings_only})"
         )
     for key, value in metrics.get("baseline", {}).items():
         parts.append(f"(baseline {key} {value:.4f})")
@@ -233,6 +339,7 @@ def evaluate(
     device: str | None = None,
     on_error: str | None = None,
     refine_rings: int | Sequence[int] | None = None,
+    refine_spectral: float | Sequence[float] | None = None,
 ) -> dict:
     """Evaluate a trained model (a run folder's ``best.pt``, or any checkpoint file) on one split; given
     several, evaluate their ensemble.
@@ -251,6 +358,9 @@ def evaluate(
             without the shapes that fail to load (listed under ``"skipped"``).
         refine_rings: correspondence refinement (:mod:`zernet.training.refine`): a ring radius, or
             candidates chosen among on the validation split; None: the run's ``eval.refine_rings``.
+        refine_spectral: the global step after the rings (:mod:`zernet.training.spectral_refine`): a radius
+            (fraction of the template's diameter; 0: off) or candidates, chosen together with the rings on the
+            validation split; None: the run's ``eval.refine_spectral`` (off for runs made before it existed).
 
     Returns:
         The same metrics dictionary that training writes to ``metrics.json`` (for an ensemble,
@@ -277,10 +387,19 @@ def evaluate(
     members = [(model_from_checkpoint(checkpoint, device), checkpoint) for checkpoint in checkpoints]
     if refine_rings is None:
         refine_rings = config.get("eval", {}).get("refine_rings", (0,))  # older runs: no refinement
-    rings, choice = select_refine_rings(
-        members, dataset, [refine_rings] if isinstance(refine_rings, int) else refine_rings, device, progress
+    if refine_spectral is None:
+        refine_spectral = config.get("eval", {}).get("refine_spectral", (0.0,))
+    rings, radius, choice = select_refinement(
+        members,
+        dataset,
+        [refine_rings] if isinstance(refine_rings, int) else refine_rings,
+        [refine_spectral] if isinstance(refine_spectral, (int, float)) else refine_spectral,
+        device,
+        progress,
     )
-    metrics, _ = evaluate_members(members, dataset, indices, device, progress, keep=0, refine_rings=rings)
+    metrics, _ = evaluate_members(
+        members, dataset, indices, device, progress, keep=0, refine_rings=rings, refine_spectral=radius
+    )
     if choice is not None:
         metrics["refine_choice"] = choice
     best_epochs = [c["state"]["best_epoch"] for c in checkpoints]

@@ -58,7 +58,12 @@ from zernet.training.checkpoint import (
 )
 from zernet.training.config import ConfigError, EvalSection, RunConfig, TrainSection, parse_config
 from zernet.training.epoch import Objective, train_one_epoch, validate
-from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
+from zernet.training.evaluation import (
+    evaluate_members,
+    global_refinement_unavailable,
+    select_refinement,
+    summary_line,
+)
 from zernet.training.init_from import InitSource, initialise_from, load_init_source
 from zernet.training.init_from import describe as describe_init
 from zernet.training.losses import check_loss_targets, resolve_loss
@@ -364,12 +369,11 @@ def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict 
     check_loss_targets(loss_name, dataset, splits.train + splits.val)
     features = _feature_scaling(config.train, dataset, splits, checkpoint, logger)
     correspondence = is_correspondence(dataset, config.data.kind)
-    # Correspondence by vertex index: every shape has the template's connectivity, the first one's included.
-    template_faces = (
-        torch.as_tensor(first.surface.faces, dtype=torch.int64)
-        if correspondence and first.surface.faces is not None
-        else None
-    )
+    # Correspondence by vertex index: every shape has the template's connectivity, the first one's included;
+    # the first training shape (area-normalised) is the template's geometry for the global refinement.
+    has_template = correspondence and first.surface.faces is not None
+    template_faces = torch.as_tensor(first.surface.faces, dtype=torch.int64) if has_template else None
+    template_vertices = torch.as_tensor(first.surface.vertices, dtype=torch.float32) if has_template else None
     record = RunRecord(
         config=config.to_dict(),
         model_spec=spec,
@@ -381,6 +385,7 @@ def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict 
         feature_stats=features,
         preprocess=preprocess_spec(dataset),
         template_faces=template_faces,
+        template_vertices=template_vertices,
     )
     return record, Objective(task, loss_name, targets, features)
 
@@ -494,7 +499,7 @@ def _test(
     logger,
 ) -> tuple[dict, list[dict]]:
     """The selected model (best.pt) on the test split (the validation split if there is none); a
-    correspondence refined as ``evaluation.refine_rings`` says."""
+    correspondence refined as ``evaluation.refine_rings`` and ``evaluation.refine_spectral`` say."""
     best = load_checkpoint(run_dir / "best.pt")
     model.load_state_dict(best["model"])
     if splits.test:
@@ -502,14 +507,19 @@ def _test(
     else:
         split, indices = "val", splits.val
     members = [(model, best)]
-    candidates = evaluation.refine_rings
-    if len(candidates) > 1 and not splits.val:
-        logger.warning(
-            f"no validation split to choose eval.refine_rings among {list(candidates)}: using {min(candidates)}"
-        )
-        candidates = [min(candidates)]
-    rings, choice = select_refine_rings(members, dataset, candidates, device, progress)
-    metrics, predictions = evaluate_members(members, dataset, indices, device, progress, refine_rings=rings)
+    candidates, radii = list(evaluation.refine_rings), list(evaluation.refine_spectral)
+    for key, values in (("refine_rings", candidates), ("refine_spectral", radii)):
+        if len(values) > 1 and not splits.val:
+            logger.warning(f"no validation split to choose eval.{key} among {values}: using {min(values)}")
+            values[:] = [min(values)]
+    unavailable = global_refinement_unavailable(best) if any(radii) else None
+    if unavailable is not None:
+        logger.warning(unavailable)
+        radii = [0.0]
+    rings, radius, choice = select_refinement(members, dataset, candidates, radii, device, progress)
+    metrics, predictions = evaluate_members(
+        members, dataset, indices, device, progress, refine_rings=rings, refine_spectral=radius
+    )
     if choice is not None:
         metrics["refine_choice"] = choice
         logger.info(
@@ -517,8 +527,16 @@ def _test(
             + ", ".join(f"{k}: {v:.4f}" for k, v in choice["accuracy"].items())
             + ")"
         )
-    if best.get("correspondence") and best.get("refine_rings") != rings:
+        if "spectral_accuracy" in choice:
+            logger.info(
+                f"global refinement radius {radius:g}, chosen on the validation split after {rings} rings "
+                "(exact accuracy by radius, 0 = off: "
+                + ", ".join(f"{k}: {v:.4f}" for k, v in choice["spectral_accuracy"].items())
+                + ")"
+            )
+    if best.get("correspondence") and (best.get("refine_rings"), best.get("refine_spectral")) != (rings, radius):
         best["refine_rings"] = rings  # what `predict` applies to a new surface
+        best["refine_spectral"] = radius
         atomic_save_torch(best, run_dir / "best.pt")
     metrics.update(
         {

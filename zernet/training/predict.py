@@ -17,6 +17,7 @@ from zernet.training.build import build_model_from_spec
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
 from zernet.training.refine import refine_correspondence
 from zernet.training.runtime import resolve_device
+from zernet.training.spectral_refine import check_radii, spectral_refiner, template_of
 from zernet.training.targets import destandardise, untransform
 
 __all__ = ["predict_record", "model_from_checkpoint", "predict"]
@@ -71,6 +72,7 @@ def predict(
     refine_rings: int | None = None,
     backend: str | None = None,
     scale: float | None = None,
+    refine_spectral: float | None = None,
 ):
     """Per-vertex predictions of a trained model on a new surface: a mesh or a point cloud, whatever the
     training shapes were.
@@ -87,6 +89,10 @@ def predict(
         refine_rings: correspondence only: average the probabilities over this many rings of mesh neighbours
             on the surface and on the template (:mod:`zernet.training.refine`); None: the number the run
             chose on its validation split (0 for runs that chose none).
+        refine_spectral: correspondence only: after the rings, keep the prediction within this radius (a
+            fraction of the template's geodesic diameter) of a spectral map read from it
+            (:mod:`zernet.training.spectral_refine`; it repairs flipped regions); 0: off; None: what the run
+            chose on its validation split. The probabilities returned stay the ring-refined ones.
         backend: polar-coordinate backend for this surface (``"front"``, ``"fast"``, ``"accurate"``); None:
             the run's own (every backend reads meshes and clouds alike).
         scale: None (default): scale the surface to the training area, as the training shapes were; a
@@ -126,9 +132,12 @@ def predict(
     model = model_from_checkpoint(checkpoint, device)
     pred, probs = predict_record([(model, checkpoint)], record, device)
     rings = checkpoint.get("refine_rings", 0) if refine_rings is None else refine_rings
+    radius = checkpoint.get("refine_spectral", 0.0) if refine_spectral is None else refine_spectral
     if rings:
         probs = _refined_probabilities(checkpoint, record, probs, rings)
         pred = probs.argmax(axis=1)
+    if radius:
+        pred = _globally_refined(checkpoint, record, probs, radius, device)
     if checkpoint["task"] == "classification":
         pred = pred.astype(np.int64)
     else:
@@ -158,3 +167,23 @@ def _refined_probabilities(checkpoint: dict, record, probabilities: np.ndarray, 
     if record.surface.faces is None:
         raise ValueError(f"{record.name}: refining a correspondence needs a triangle mesh, not a point cloud")
     return refine_correspondence(probabilities, record.surface.faces, np.asarray(template), rings)
+
+
+def _globally_refined(checkpoint: dict, record, probabilities: np.ndarray, radius: float, device) -> np.ndarray:
+    """The global refinement (:mod:`zernet.training.spectral_refine`) of a new surface's (ring-refined)
+    probabilities, against the template geometry the run stored, on ``device``."""
+    if not checkpoint.get("correspondence"):
+        raise ValueError(
+            "refine_spectral applies to correspondence models only; this one predicts "
+            + ("values" if checkpoint["task"] == "regression" else "segmentation classes")
+        )
+    radius = check_radii(radius)[0]
+    template = template_of(checkpoint)
+    if template is None:
+        raise ValueError(
+            "this checkpoint stores no template geometry (template_vertices: it was written before zernet "
+            "refined correspondences globally): predict with refine_spectral=0, or train the run again"
+        )
+    refiner = spectral_refiner(*template)
+    scores = torch.from_numpy(np.ascontiguousarray(probabilities, dtype=np.float32)).to(device)
+    return refiner.refine(scores, record.surface, radius)

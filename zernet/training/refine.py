@@ -9,7 +9,8 @@ own. A true map sends the neighbours of ``i`` near the neighbours of ``j``, so t
 where ``P`` (N × M) holds the predicted probabilities and ``A`` is a mesh's ring average: row ``i`` averages,
 with equal weights, the vertices at most ``rings`` edges from vertex ``i``. A vertex whose own scores are
 unsure or wrong takes the answer its neighbourhood agrees on; a whole region mapped to the wrong place (a
-left leg on the right one) stays as it is. The rings count mesh edges, so they follow the surface and never
+left leg on the right one) stays as it is: that is the work of the global step that follows
+(:mod:`zernet.training.spectral_refine`). The rings count mesh edges, so they follow the surface and never
 bridge a fold (fingers, armpits). The best radius grows with the mesh resolution and is chosen on validation
 shapes (``eval.refine_rings``). Averaging once over ``r`` rings is not the same as averaging ``r`` times over
 one ring: repeated averaging weights each vertex by how its rings overlap its neighbours', which on an

@@ -1,4 +1,15 @@
-"""The Laplace-Beltrami eigenbasis of a surface (mesh or point cloud), cached on disk.
+"""The Laplace-Beltrami eigenbasis of a surface (mesh or point cloud), cached on disk, and the point maps it
+carries: functional maps from point maps and back, ZoomOut.
+
+Shared by matching two surfaces (:mod:`zernet.matching`) and the global refinement of a predicted
+correspondence (:mod:`zernet.training.spectral_refine`), which sits below matching: the pure numerical pieces
+live here, the learned functional-map layer and the confidence in :mod:`zernet.matching.fmap`.
+
+Convention (as in pyFM and DiffusionNet): a functional map ``C_xy`` (k_y, k_x) carries a function on a
+surface X, given by its spectral coefficients on X, to a function on Y. A point map ``T: Y -> X`` (one X
+vertex per Y vertex, an array ``(N_y,)``) induces ``C_xy = Φ_yᵀ M_y Φ_x[T]`` (the pull-back: ``f ∘ T``), and
+conversely ``C_xy`` gives ``T(y) = argmin_x ‖Φ_x[x] - Φ_y[y] C_xy‖`` (nearest neighbours in the spectral
+embedding).
 
 The cotangent-like Laplacian ``L`` (N, N) and the lumped mass matrix ``M`` (diagonal) come from
 ``robust-laplacian`` (Sharp & Crane 2020, "A Laplacian for nonmanifold triangle meshes": the tufted cover
@@ -27,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
+import torch
 
 from zernet.geometry import Surface
 from zernet.io_utils import atomic_write_bytes
@@ -40,6 +52,10 @@ __all__ = [
     "laplacian_eigenbasis",
     "spectral_cache_key",
     "heat_kernel_signature",
+    "fmap_from_pointmap",
+    "nearest_rows",
+    "pointmap_from_fmap",
+    "zoomout",
 ]
 
 #: Bumped when a change alters the stored bases, so older cache files get another key.
@@ -159,3 +175,91 @@ def heat_kernel_signature(basis: SpectralBasis, n_times: int = 16) -> np.ndarray
     signature = squares @ np.exp(-np.outer(basis.eigenvalues, times))  # (N, n_times)
     signature /= (basis.mass @ signature / basis.mass.sum())[None, :]
     return signature.astype(np.float32)
+
+
+# ----------------------------------------------------------------- point maps and functional maps
+def fmap_from_pointmap(
+    pointmap_yx: np.ndarray,
+    basis_x: SpectralBasis,
+    basis_y: SpectralBasis,
+    k_x: int | None = None,
+    k_y: int | None = None,
+    weights: np.ndarray | None = None,
+) -> np.ndarray:
+    """``C_xy = Φ_yᵀ M_y Φ_x[T]`` (k_y, k_x) of a point map ``T: Y -> X`` given as (N_y,) X indices.
+
+    ``weights`` (N_y,) >= 0: how much each Y vertex's image counts. The map is then the weighted least squares
+    ``argmin_C Σ_y w_y m_y ‖Φ_y[y] C - Φ_x[T(y)]‖²``, i.e. ``(Φ_yᵀ W M_y Φ_y)⁻¹ Φ_yᵀ W M_y Φ_x[T]`` (equal
+    weights give the projection above, since ``Φ_yᵀ M_y Φ_y = I``)."""
+    k_x = basis_x.k if k_x is None else k_x
+    k_y = basis_y.k if k_y is None else k_y
+    pulled_back = basis_x.eigenvectors[np.asarray(pointmap_yx), :k_x]  # (N_y, k_x)
+    eigenvectors_y = basis_y.eigenvectors[:, :k_y]
+    if weights is None:
+        return eigenvectors_y.T @ (basis_y.mass[:, None] * pulled_back)
+    weights = np.asarray(weights, dtype=np.float64)
+    if weights.shape != (len(eigenvectors_y),) or not np.all(weights >= 0) or not weights.sum() > 0:
+        raise ValueError(f"weights must be {len(eigenvectors_y)} values >= 0, not all zero")
+    weighted_mass = basis_y.mass * (weights / weights.mean())
+    gram = eigenvectors_y.T @ (weighted_mass[:, None] * eigenvectors_y)
+    gram[np.diag_indices_from(gram)] += 1e-9 * np.trace(gram) / k_y  # a vertex-free mode stays solvable
+    return np.linalg.solve(gram, eigenvectors_y.T @ (weighted_mass[:, None] * pulled_back))
+
+
+def nearest_rows(
+    queries: np.ndarray, points: np.ndarray, chunk: int = 2048, device=None, dtype: torch.dtype = torch.float64
+) -> np.ndarray:
+    """(M,) int64 index of the row of ``points`` (N, k) nearest to each row of ``queries`` (M, k).
+
+    Brute force by matrix products in chunks (``‖p‖² - 2 q·p`` per chunk of queries): in the 30-80
+    dimensions of a spectral embedding a k-d tree prunes almost nothing, and this was 1.4-2.9x faster than
+    ``scipy.spatial.cKDTree`` at 6,000 x 7,000 points (k = 30, 80; one thread), with the same answers.
+    ``device``, ``dtype``: where and in what precision the products run (torch; default the CPU, float64)."""
+    queries_t = torch.as_tensor(np.ascontiguousarray(queries), device=device, dtype=dtype)
+    points_t = torch.as_tensor(np.ascontiguousarray(points), device=device, dtype=dtype)
+    squared = (points_t * points_t).sum(dim=1)
+    nearest = [
+        torch.addmm(squared[None, :], queries_t[start : start + chunk], points_t.T, alpha=-2).argmin(dim=1)
+        for start in range(0, len(queries_t), chunk)
+    ]
+    return torch.cat(nearest).cpu().numpy().astype(np.int64) if nearest else np.zeros(0, dtype=np.int64)
+
+
+def pointmap_from_fmap(
+    fmap_xy: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis, device=None, dtype=torch.float64
+) -> np.ndarray:
+    """The point map ``T: Y -> X`` (N_y,) int64 of ``C_xy`` (k_y, k_x): for each Y vertex, the X vertex
+    nearest to ``Φ_y[y] C_xy`` in the spectral embedding ``Φ_x[:, :k_x]`` (:func:`nearest_rows`, on
+    ``device`` in ``dtype``)."""
+    k_y, k_x = fmap_xy.shape
+    embedding_y = basis_y.eigenvectors[:, :k_y] @ fmap_xy  # (N_y, k_x)
+    return nearest_rows(embedding_y, basis_x.eigenvectors[:, :k_x], device=device, dtype=dtype)
+
+
+def zoomout(
+    pointmap_yx: np.ndarray,
+    basis_x: SpectralBasis,
+    basis_y: SpectralBasis,
+    k_start: int,
+    k_end: int,
+    step: int = 1,
+    device=None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """ZoomOut (Melzi et al. 2019): refine a point map ``T: Y -> X`` by spectral upsampling.
+
+    From ``k = k_start`` to ``k_end`` by ``step``: the k × k functional map of the current point map, then
+    the point map of that functional map. Each round adds frequencies the previous map fixes only coarsely,
+    which removes noise from an initial map whose low frequencies are right (a learned one, or a rigid
+    alignment). ``k_end`` is capped at both bases' sizes. ``device``: where the nearest neighbours are
+    searched (torch; None: the CPU).
+
+    Returns:
+        (pointmap (N_y,) int64, C_xy (k, k) of the last round).
+    """
+    k_end = min(k_end, basis_x.k, basis_y.k)
+    pointmap = np.asarray(pointmap_yx, dtype=np.int64)
+    fmap = fmap_from_pointmap(pointmap, basis_x, basis_y, k_start, k_start)
+    for k in range(k_start, k_end + 1, step):
+        fmap = fmap_from_pointmap(pointmap, basis_x, basis_y, k, k)
+        pointmap = pointmap_from_fmap(fmap, basis_x, basis_y, device=device)
+    return pointmap, fmap
