@@ -60,6 +60,8 @@ RECIPES = {
     # Other people's proportions on the inputs: per-axis scaling and a smooth warp of xyz.
     "proportions": ({"train.augment_anisotropy": 0.1, "train.augment_warp": 0.05}, False),
     "pretrained": ({"train.lr": 4e-3}, True),
+    # The same start at the shipped learning rate: does the lower rate alone hold the pretrained start back?
+    "pretrained-shipped-lr": ({}, True),
     "pretrained+proportions": (
         {"train.lr": 4e-3, "train.augment_anisotropy": 0.1, "train.augment_warp": 0.05},
         True,
@@ -111,8 +113,11 @@ def diversity(root: Path, topology: str, seed: int, cache_dir: str) -> dict:
     }
 
 
-def recipe_config(data_root: Path, recipe: str, epochs: int | None, threads: int | None, n_vertices: int) -> dict:
+def recipe_config(
+    data_root: Path, recipe: str, epochs: int | None, threads: int | None, n_vertices: int, cache_dir: str
+) -> dict:
     config = load_config(CONFIG)
+    config["cache_dir"] = cache_dir
     config["data"].update({"root": str(data_root), "n_vertices": n_vertices})
     config["train"].update({"threads": threads, "keep_epochs": True})
     if epochs is not None:
@@ -124,10 +129,12 @@ def recipe_config(data_root: Path, recipe: str, epochs: int | None, threads: int
     return config
 
 
-def pretrain(data_root: Path, run_dir: Path, epochs: int | None, threads: int | None, n_vertices: int) -> Path:
+def pretrain(
+    data_root: Path, run_dir: Path, epochs: int | None, threads: int | None, n_vertices: int, cache_dir: str
+) -> Path:
     """The weights pretrained on other people (trained once, then reused)."""
     if not (run_dir / "best.pt").is_file():
-        config = recipe_config(data_root, "shipped", epochs, threads, n_vertices)
+        config = recipe_config(data_root, "shipped", epochs, threads, n_vertices, cache_dir)
         count = len(list(data_root.glob("training/registrations/tr_reg_*.ply")))
         config["data"].update({"train_indices": f"0:{count - 2}", "test_indices": f"{count - 2}:{count}"})
         config["train"]["keep_epochs"] = False
@@ -161,7 +168,7 @@ def epoch_scores(run_dir: Path, dataset, rings: int) -> list[dict]:
 
 def run_recipe(name: str, data_root: Path, runs: Path, pretrained: Path | None, args) -> dict:
     run_dir = runs / name
-    config = recipe_config(data_root, name, args.epochs, args.threads, N_VERTICES[args.topology])
+    config = recipe_config(data_root, name, args.epochs, args.threads, N_VERTICES[args.topology], args.cache_dir)
     started = time.perf_counter()
     if not (run_dir / "metrics.json").is_file():
         train(config, run_dir, progress=False, overwrite=True, init_from=pretrained)
@@ -280,7 +287,7 @@ def main() -> None:
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--cache-dir", default=".zernet-cache")
+    parser.add_argument("--cache-dir", default=".zernet-cache", help="generated bodies and patch operators")
     parser.add_argument("--output", type=Path, default=RESULTS / "few_people", help="path without suffix")
     args = parser.parse_args()
 
@@ -289,7 +296,9 @@ def main() -> None:
     if any(RECIPES[name][1] for name in args.recipes):
         topology = args.pretrain_topology or args.topology
         others = other_bodies(args.others, topology, args.seed, args.pretrain_count, args.cache_dir)
-        pretrained = pretrain(others, args.runs / "pretrain", args.pretrain_epochs, args.threads, N_VERTICES[topology])
+        pretrained = pretrain(
+            others, args.runs / "pretrain", args.pretrain_epochs, args.threads, N_VERTICES[topology], args.cache_dir
+        )
     result = {
         "topology": args.topology,
         "n_vertices": N_VERTICES[args.topology],
