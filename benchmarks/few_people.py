@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -39,11 +40,13 @@ import matplotlib  # noqa: E402
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import yaml  # noqa: E402
 
 from zernet.data.bodies import BodyGenerator, write_bodies  # noqa: E402
 from zernet.data.bodies.pose import draw_phenotype  # noqa: E402
 from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
 from zernet.training import build_dataset, evaluate, load_checkpoint, load_config, parse_config, train  # noqa: E402
+from zernet.training.init_from import export_backbone  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 CONFIG = ROOT / "configs" / "faust_single_scale.yaml"
@@ -140,6 +143,29 @@ def pretrain(
         config["train"]["keep_epochs"] = False
         train(config, run_dir, progress=False, overwrite=True)
     return run_dir
+
+
+def ship_backbone(run_dir: Path, name: str, topology: str, count: int) -> None:
+    """Write the pretrained run's backbone to ``zernet/pretrained/NAME.pt`` and its provenance to NAME.json."""
+    target = ROOT / "zernet" / "pretrained" / f"{name}.pt"
+    written = export_backbone(run_dir, target)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    history = load_checkpoint(run_dir / "last.pt")["state"]["history"]
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    provenance = {
+        "what": "ZerNet backbone (every weight but the output layer, float16) for correspondence on human bodies",
+        "trained_on": f"{count} generated bodies of independently drawn people ({topology} topology, "
+        f"{count - 10} training, 8 validation carved by the FAUST loader, 2 test), never the benchmark's people",
+        "config": yaml.safe_load((run_dir / "config.yaml").read_text()),
+        "command": "benchmarks/few_people.py " + " ".join(sys.argv[1:]),
+        "commit": commit,
+        "epochs": len(history),
+        "val_accuracy": [entry.get("val_accuracy") for entry in history],
+        "best_epoch": metrics.get("best_epoch"),
+        **written,
+    }
+    write_json(target.with_suffix(".json"), provenance)
+    print(f"wrote {target} ({written['bytes'] / 1e6:.1f} MB) and its provenance", flush=True)
 
 
 def epoch_scores(run_dir: Path, dataset, rings: int) -> list[dict]:
@@ -285,12 +311,27 @@ def main() -> None:
         help="topology of the pretraining bodies (default --topology): the patch operators are intrinsic at a "
         "fixed area, so convolutions learnt on coarser bodies apply to finer ones",
     )
+    parser.add_argument(
+        "--export-backbone",
+        metavar="NAME",
+        default=None,
+        help="only pretrain, then ship the pretrained backbone as zernet/pretrained/NAME.pt with NAME.json "
+        "(its provenance); no recipe is trained",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--cache-dir", default=".zernet-cache", help="generated bodies and patch operators")
     parser.add_argument("--output", type=Path, default=RESULTS / "few_people", help="path without suffix")
     args = parser.parse_args()
 
+    if args.export_backbone:
+        topology = args.pretrain_topology or args.topology
+        others = other_bodies(args.others, topology, args.seed, args.pretrain_count, args.cache_dir)
+        run_dir = pretrain(
+            others, args.runs / "pretrain", args.pretrain_epochs, args.threads, N_VERTICES[topology], args.cache_dir
+        )
+        ship_backbone(run_dir, args.export_backbone, topology, args.pretrain_count)
+        return
     data_root = people_bodies(args.data, args.topology, args.seed, args.cache_dir)
     pretrained = None
     if any(RECIPES[name][1] for name in args.recipes):

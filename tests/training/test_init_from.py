@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,8 +14,10 @@ from tiny_configs import tiny_config
 
 import zernet.training.init_from as init_from_module
 from zernet.cli import main
-from zernet.training import ConfigError, load_checkpoint, train
-from zernet.training.build import build_model_from_spec
+from zernet.data.features import feature_channels
+from zernet.operators import PatchConfig
+from zernet.training import ConfigError, load_checkpoint, load_config, parse_config, train
+from zernet.training.build import build_model_from_spec, model_spec
 from zernet.training.init_from import export_backbone, initialise_from, load_init_source, pretrained_names
 
 
@@ -184,3 +187,17 @@ def test_the_shipped_weights_load():
     for name in pretrained_names():
         source = load_init_source(f"pretrained:{name}")
         assert source.weights and not any(key.startswith("output.") for key in source.weights)
+
+
+def test_the_faust_config_starts_from_the_shipped_backbone():
+    """configs/faust_single_scale.yaml names pretrained:bodies, and the model it builds takes every weight
+    but its 6,890-way output layer from it."""
+    config = parse_config(load_config(Path(__file__).resolve().parents[2] / "configs" / "faust_single_scale.yaml"))
+    assert config.train.init_from == "pretrained:bodies"
+    degrees = [int(scale["n_max"]) for scale in config.patch.scales]
+    in_channels = feature_channels(config.data.options["features"], degrees)
+    spec = model_spec(config.model, in_channels, 6890, [PatchConfig(r0=1.0, n_max=n) for n in degrees])
+    model = build_model_from_spec(spec)
+    info = initialise_from(model, load_init_source(config.train.init_from))
+    assert sorted(info["reinitialised"]) == ["output.bias", "output.weight"]
+    assert info["copied"] == len(model.state_dict()) - 2
