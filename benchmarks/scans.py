@@ -7,7 +7,7 @@ uneven density, and cut to a partial scan; ground truth through the position on 
 
 1. trains each model in ``--models`` (a run folder per model under ``--runs``; an existing run with a
    ``best.pt`` is reused) with ``configs/bodies_segmentation.yaml``, changing only the data folders, the
-   model name and the epochs;
+   model name and the epochs (and, for ``zernet-mixed``, the training set and the scaling: ``MODELS``);
 2. predicts every form of every test body with ``zernet.training.predict`` (what ``zernet predict`` does:
    repairs, the backend chosen by the kind of surface, one value per input vertex), and scores the
    vertex accuracy against the form's ground truth; a form that raises counts as *refused*;
@@ -52,12 +52,14 @@ from zernet.viz import render_comparison  # noqa: E402
 RESULTS = ROOT / "benchmarks" / "results"
 CONFIG = ROOT / "configs" / "bodies_segmentation.yaml"
 FORMS = ("original", "remeshed", "decimated", "cloud", "cloud-noisy", "partial")
-#: zernet and FeaStNet (the same widths and dropout) trained on the original bodies; zernet-mixed: the zernet
-#: run fine-tuned for one epoch on the original training bodies plus the uniform and the noisy cloud of half
-#: of them (augmentation by resampling).
+#: zernet and FeaStNet (the same widths and dropout) trained on the original bodies; zernet-mixed: zernet
+#: trained from scratch on the original training bodies plus every form of the first MIXED_BODIES of them
+#: (augmentation by remeshing, decimation, resampling and one-sided views), at one fixed scale
+#: (``patch.scale``: the training bodies' median factor to the training area) instead of per-shape area
+#: normalisation, which would enlarge a partial scan to a whole body's area.
 MODELS = ("zernet", "feastnet", "zernet-mixed")
-#: Training bodies whose clouds join the mixed training set, and the forms taken.
-MIXED_BODIES, MIXED_FORMS = 40, ("cloud", "cloud-noisy")
+#: Training bodies whose forms join the mixed training set, and the forms taken.
+MIXED_BODIES, MIXED_FORMS = 40, ("remeshed", "decimated", "cloud", "cloud-noisy", "partial")
 #: Model options only zernet takes.
 ZERNET_ONLY = ("angular_resolution", "pooling")
 
@@ -113,15 +115,13 @@ def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
     config["data"].update(meshes=str(segmentation / "meshes"), labels=str(segmentation / "labels"))
     config["train"].update(epochs=args.epochs, threads=args.threads)
     config["eval"]["renders"] = 0
-    extra = []
     if model == "feastnet":
         config["model"] = {key: value for key, value in config["model"].items() if key not in ZERNET_ONLY}
         config["model"]["name"] = "feastnet"
     if model == "zernet-mixed":
         mixed = mixed_training_folder(bodies)
         config["data"].update(meshes=str(mixed / "meshes"), labels=str(mixed / "labels"))
-        config["train"].update(epochs=1, lr=1.0e-3)
-        extra = ["--init-from", str(ensure_run("zernet", bodies, run_dir.parent / "zernet", args))]
+        config["patch"]["scale"] = training_scale(bodies, config["patch"].pop("area"))
     path = run_dir.parent / f"{model}.yaml"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(config))
@@ -137,7 +137,6 @@ def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
             "--no-progress",
             "--workers",
             str(args.threads),
-            *extra,
         ],
         check=True,
     )
@@ -145,7 +144,7 @@ def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
 
 
 def mixed_training_folder(bodies: Path) -> Path:
-    """A segmentation folder of links: the original training and test bodies, plus the clouds
+    """A segmentation folder of links: the original training and test bodies, plus the forms
     (:data:`MIXED_FORMS`) of the first :data:`MIXED_BODIES` training bodies (generated if missing)."""
     forms = bodies / "train-forms"
     if not (forms / "forms" / MIXED_FORMS[0] / "meshes" / "train").is_dir():
@@ -250,8 +249,8 @@ def markdown(results: dict, args, scale: float) -> str:
         "# Scans as users bring them: segmentation on every form of 20 held-out generated bodies",
         "",
         "zernet and FeaStNet trained on the original (clean, shared-topology) training bodies only; "
-        "zernet-mixed: that zernet run fine-tuned for one epoch on the original training bodies plus the "
-        "uniform and the noisy cloud of 40 of them. Test split: 20 bodies "
+        f"zernet-mixed: zernet trained on the original training bodies plus every form of {MIXED_BODIES} of "
+        "them, at one fixed scale (`patch.scale`) instead of per-shape area normalisation. Test split: 20 bodies "
         "never seen in training, each in every form (`zernet bodies ... --forms all`). Accuracy pooled over "
         "the vertices (points) of the form, against the ground truth carried from the original body; "
         "*drop*: points below the original form; *refused*: shapes that raised.",

@@ -13,6 +13,7 @@ import trimesh
 from meshes import grid, icosphere, random_sphere_points
 
 from zernet.geometry import (
+    FixedScale,
     Surface,
     SurfaceError,
     SurfaceWarning,
@@ -372,6 +373,22 @@ def test_normalize_area_exact_with_field_scaling():
     # Exponent 1 scales like area itself.
     doubled, _ = normalize_area(sphere, 2 * area, {"J2m": 1.0})
     np.testing.assert_allclose(doubled.fields["J2m"], 2 * sphere.fields["J2m"], rtol=1e-15)
+
+
+def test_a_fixed_scale_ignores_the_area():
+    """FixedScale(f): positions times f about the centroid, fields times f^(2e), whatever the area: a
+    hemisphere and its whole sphere get the same factor (partial scans keep their size)."""
+    sphere = icosphere(2)
+    sphere = Surface(sphere.vertices * 3.0, sphere.faces, fields={"J2m": np.linspace(0.1, 0.3, sphere.n_vertices)})
+    upper = sphere.faces[(sphere.vertices[sphere.faces].mean(axis=1)[:, 2] > 0)]
+    half = Surface(sphere.vertices, upper, fields=sphere.fields)
+    for surface in (sphere, half):
+        scaled, scale = normalize_area(surface, FixedScale(2.5), {"J2m": 0.5})
+        assert scale == 2.5
+        assert scaled.area == pytest.approx(6.25 * surface.area, rel=1e-12)
+        np.testing.assert_allclose(scaled.fields["J2m"], 2.5 * surface.fields["J2m"], rtol=1e-15)
+    with pytest.raises(ValueError, match="positive"):
+        FixedScale(0.0)
 
 
 def test_normalize_area_point_cloud_and_errors():

@@ -32,6 +32,7 @@ TODAYS_FORMAT = {
     },
     "patch": {
         "area": None,
+        "scale": None,
         "scales": [{"r0": 2.5, "n_samples": 4000, "patch_size": 50, "n_max": 5, "subtract_center": True}],
     },
     "model": {"name": "zernet", "widths": [16, 32, 64, 64], "angular_resolution": 4, "pooling": "max", "dropout": 0.1},

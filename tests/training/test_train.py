@@ -439,3 +439,23 @@ def test_directional_model_trains_and_predicts_with_operators_built_before_the_n
     assert 0.0 <= metrics["summary"]["accuracy"] <= 1.0
     again = evaluate(tmp_path / "run")
     assert again["summary"]["accuracy"] == pytest.approx(metrics["summary"]["accuracy"])
+
+
+def test_a_fixed_scale_is_kept_in_the_checkpoint_and_applied_by_predict(tmp_path, cache_dir):
+    """patch.scale: every shape is multiplied by the factor (not normalised to an area), the checkpoint
+    keeps it, and predict applies it to a new surface, so a partial one keeps its size."""
+    config = tiny_config(cache_dir, epochs=1)
+    config["patch"]["scale"] = 1.5
+    train(config, tmp_path / "run", progress=False, workers=0)
+    checkpoint = load_checkpoint(tmp_path / "run" / "best.pt")
+    assert checkpoint["preprocess"]["unit_scale"] == 1.5 and checkpoint["preprocess"]["area"] is None
+    dataset = build_dataset(checkpoint["config"], progress=False)
+    assert all(dataset[i].scale == 1.5 for i in range(len(dataset)))
+    surface, _, _ = make_creature(123, n_vertices=200)
+    kept = surface.faces[surface.vertices[surface.faces].mean(axis=1)[:, 0] > 0]
+    half = Surface(surface.vertices, kept)
+    _, default = predict(tmp_path / "run", half, probabilities=True)
+    _, explicit = predict(tmp_path / "run", half, probabilities=True, scale=1.5)
+    np.testing.assert_array_equal(default, explicit)
+    with pytest.raises(ConfigError, match="patch.area .* and patch.scale .* both set"):
+        parse_config({**config, "patch": {**config["patch"], "area": 100.0}})

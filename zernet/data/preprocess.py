@@ -328,7 +328,8 @@ def build_dataset(
         sources: one :class:`ShapeSource` per shape; their order is the data set's order.
         patch_configs: PatchConfig (or dicts), one per scale.
         cache_dir: folder for the shape cache and the patch operators' cache.
-        target_area: area every surface is scaled to (None: keep the file's scale).
+        target_area: area every surface is scaled to (None: keep the file's scale), or a
+            :class:`~zernet.geometry.FixedScale` factor applied to every surface instead.
         task, num_classes: see :class:`ShapeDataset`.
         split_names: {"train": names, "test": names, ...}; a "val" split is carved from "train"
             (``n_val`` shapes or a fraction, seeded by ``seed``) unless split_names already has one.

@@ -228,7 +228,7 @@ def make_synthetic_dataset(
     names = [s.name for s in sources]
     return build_dataset(
         sources,
-        target_area=SYNTHETIC_AREA if area is None else float(area),
+        target_area=SYNTHETIC_AREA if area is None else area,
         task="classification" if task == "segmentation" else "regression",
         num_classes=len(PART_NAMES) if task == "segmentation" else None,
         split_names={"train": names[: n_shapes - n_test], "test": names[n_shapes - n_test :]},

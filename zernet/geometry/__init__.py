@@ -9,7 +9,7 @@ Modules, each with one job:
 - :mod:`~zernet.geometry.io` — :func:`load_surface` and the file readers.
 - :mod:`~zernet.geometry.validate` — :func:`validate_surface`, :func:`repair_surface` and the checks.
 - :mod:`~zernet.geometry.cloud_mesh` — :func:`mesh_from_cloud`: triangles through a cloud's own points.
-- :mod:`~zernet.geometry.sampling` — :func:`normalize_area`, :class:`SurfaceSamples`, :func:`sample_surface`.
+- :mod:`~zernet.geometry.sampling` — :class:`FixedScale`, :func:`normalize_area`, :class:`SurfaceSamples`, :func:`sample_surface`.
 - :mod:`~zernet.geometry.polar` (a package) — :func:`compute_polar`, :func:`tangent_frames`,
   :func:`transport_angles`, with the backends in :mod:`~zernet.geometry.polar.front` (and its vertex fans,
   :mod:`~zernet.geometry.polar.fans`), :mod:`~zernet.geometry.polar.fast`, :mod:`~zernet.geometry.polar.accurate`,
@@ -29,7 +29,7 @@ from zernet.geometry.polar import (
     tangent_frames,
     transport_angles,
 )
-from zernet.geometry.sampling import SurfaceSamples, normalize_area, sample_surface
+from zernet.geometry.sampling import FixedScale, SurfaceSamples, normalize_area, sample_surface
 from zernet.geometry.surface import Surface, SurfaceError, SurfaceWarning
 from zernet.geometry.validate import RepairedSurface, repair_surface, validate_surface
 
@@ -43,6 +43,7 @@ __all__ = [
     "repair_surface",
     "RepairedSurface",
     "mesh_from_cloud",
+    "FixedScale",
     "normalize_area",
     "SurfaceSamples",
     "sample_surface",

@@ -1,6 +1,6 @@
 """Area normalisation and area-weighted uniform sampling of surfaces.
 
-Public API: :func:`normalize_area`, :class:`SurfaceSamples`, :func:`sample_surface`.
+Public API: :class:`FixedScale`, :func:`normalize_area`, :class:`SurfaceSamples`, :func:`sample_surface`.
 """
 
 from __future__ import annotations
@@ -13,14 +13,30 @@ import scipy.sparse
 
 from zernet.geometry.surface import Surface, SurfaceError
 
-__all__ = ["normalize_area", "SurfaceSamples", "sample_surface"]
+__all__ = ["FixedScale", "normalize_area", "SurfaceSamples", "sample_surface"]
 
 
 # ====================================================================== area normalisation
+@dataclass(frozen=True)
+class FixedScale:
+    """One linear factor for every surface instead of an area to reach (``patch.scale``).
+
+    For surfaces in known units whose area says nothing about their size: partial scans (one side of a body
+    has half its area) and a mix of whole and partial scans from one scanner. ``normalize_area`` then
+    multiplies the positions by ``factor`` (about the area-weighted centroid, as it scales for an area).
+    """
+
+    factor: float
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.factor) and self.factor > 0):
+            raise ValueError(f"a fixed scale must be positive and finite, got {self.factor}")
+
+
 def normalize_area(
-    surface: Surface, target_area: float, field_exponents: Mapping[str, float] | None = None
+    surface: Surface, target_area: float | FixedScale, field_exponents: Mapping[str, float] | None = None
 ) -> tuple[Surface, float]:
-    """Scale a surface uniformly so that its area becomes ``target_area``.
+    """Scale a surface uniformly so that its area becomes ``target_area`` (or by a :class:`FixedScale`).
 
     The scaling is about the area-weighted centroid c (which therefore stays put), not about the origin:
     ``v' = c + s (v - c)`` with linear factor ``s = sqrt(target_area / area)``. Normals are unchanged.
@@ -34,14 +50,16 @@ def normalize_area(
 
     Args:
         surface: mesh or point cloud with positive area.
-        target_area: the wanted area (> 0), e.g. 15000 for human bodies, 100 for aneurysms.
+        target_area: the wanted area (> 0), e.g. 15000 for human bodies, 100 for aneurysms; or a
+            :class:`FixedScale`, whose factor is applied whatever the surface's area.
         field_exponents: {field name: area exponent e}; ``None`` scales no field.
 
     Returns:
         (scaled surface, s) where s is the linear scale factor applied to the positions.
     """
-    target_area = float(target_area)
-    if not np.isfinite(target_area) or target_area <= 0:
+    fixed = target_area.factor if isinstance(target_area, FixedScale) else None
+    target_area = None if fixed is not None else float(target_area)
+    if fixed is None and (not np.isfinite(target_area) or target_area <= 0):
         raise SurfaceError(f"{surface.name}: target area must be positive and finite, got {target_area}")
     field_exponents = dict(field_exponents or {})
     missing = [key for key in field_exponents if key not in surface.fields]
@@ -53,7 +71,7 @@ def normalize_area(
     area = float(weights.sum())
     if not np.isfinite(area) or area <= 0:
         raise SurfaceError(f"{surface.name}: cannot normalise a surface of area {area}")
-    ratio = target_area / area
+    ratio = fixed**2 if fixed is not None else target_area / area
     scale = float(np.sqrt(ratio))
     centroid = weights @ surface.vertices / area
     vertices = centroid + scale * (surface.vertices - centroid)

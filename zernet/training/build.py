@@ -16,6 +16,7 @@ import torch
 
 from zernet.data import DatasetError, load_dataset
 from zernet.data.features import feature_channels, needs_patch_operators
+from zernet.geometry import FixedScale
 from zernet.io_utils import plain
 from zernet.nn.models import MODEL_REGISTRY, available_models, build_model, reads_patch_operators
 from zernet.operators import PatchConfig
@@ -78,7 +79,8 @@ def load_data(
     on_error: str | None = None,
     patch_operators: bool = True,
 ):
-    """Hand ``data.kind`` to :func:`zernet.data.load_dataset` with the patch scales, ``patch.area``,
+    """Hand ``data.kind`` to :func:`zernet.data.load_dataset` with the patch scales, ``patch.area`` (or
+    ``patch.scale``),
     ``cache_dir``, ``data.seed``, ``data.on_error`` (or ``on_error`` when given), ``data.val_fraction``/
     ``data.val_count`` (unless null: the loader's default) and ``data.features`` (as ``feature_kind``);
     every other ``data`` key is a loader option passed by name (``root``, ``test``, ...).
@@ -100,7 +102,7 @@ def load_data(
         return load_dataset(
             data.kind,
             patch_configs=patch.patch_configs(),
-            area=patch.area,
+            area=patch.size(),
             cache_dir=cache_dir,
             progress=progress,
             **options,
@@ -154,10 +156,13 @@ def is_correspondence(dataset, data_kind: str) -> bool:
 
 
 def preprocess_spec(dataset) -> dict:
-    """What :func:`zernet.training.predict.predict` needs to preprocess a new surface like the training shapes."""
+    """What :func:`zernet.training.predict.predict` needs to preprocess a new surface like the training shapes:
+    the area every shape was scaled to, or the fixed factor applied instead (``unit_scale``)."""
+    fixed = isinstance(dataset.target_area, FixedScale)
     return {
         "patch_configs": [plain(dataclasses.asdict(c)) for c in dataset.patch_configs],
-        "area": None if dataset.target_area is None else float(dataset.target_area),
+        "area": None if dataset.target_area is None or fixed else float(dataset.target_area),
+        "unit_scale": float(dataset.target_area.factor) if fixed else None,
         "feature_kind": str(dataset.feature_kind),
         "class_names": plain(dataset.info.get("class_names")),
     }

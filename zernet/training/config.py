@@ -36,6 +36,7 @@ import yaml
 
 from zernet.data import DATASET_KINDS, ON_ERROR_CHOICES, DatasetError, data_option_names
 from zernet.data.faust import registration_numbers
+from zernet.geometry import FixedScale
 from zernet.nn.models import available_models
 from zernet.operators import PatchConfig
 
@@ -287,10 +288,18 @@ class PatchSection(_Section):
     NAME: ClassVar[str] = "patch"
 
     area: float | None = _rule(None, "number", positive=True, optional=True)  # None: the data set's default
+    # A fixed factor on every shape's coordinates instead of normalising its area (scans in known units,
+    # partial scans); checkpoints keep it and `predict` applies it. Not with `area`.
+    scale: float | None = _rule(None, "number", positive=True, optional=True)
     scales: list[dict[str, Any]] = field(default_factory=list)  # []: the data set's default
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.area is not None and self.scale is not None:
+            raise ConfigError(
+                f"patch.area ({self.area}) and patch.scale ({self.scale}) both set: give one (area normalises "
+                "each shape to that area, scale multiplies every shape's coordinates by one factor)"
+            )
         if not isinstance(self.scales, (list, tuple)):
             raise ConfigError(
                 "patch.scales must be a list of patch settings, one per scale (e.g. [{r0: 5.5}]), "
@@ -316,6 +325,11 @@ class PatchSection(_Section):
     def patch_configs(self) -> list[PatchConfig]:
         """One :class:`~zernet.operators.patch.PatchConfig` per scale."""
         return [PatchConfig(**scale) for scale in self.scales]
+
+    def size(self) -> float | FixedScale | None:
+        """What every shape is scaled to: ``area``, a :class:`~zernet.geometry.FixedScale` of ``scale``, or
+        None (the data set's default area)."""
+        return FixedScale(float(self.scale)) if self.scale is not None else self.area
 
 
 @dataclass(frozen=True)

@@ -95,9 +95,10 @@ def predict(
             chose on its validation split. The probabilities returned stay the ring-refined ones.
         backend: polar-coordinate backend for this surface (``"front"``, ``"fast"``, ``"accurate"``); None:
             the run's own (every backend reads meshes and clouds alike).
-        scale: None (default): scale the surface to the training area, as the training shapes were; a
-            number: multiply its coordinates by this instead — for a partial scan, whose area is not the
-            whole shape's (e.g. the factor that takes the training shapes' units to the training area).
+        scale: None (default): scale the surface as the training shapes were (to the training area, or by
+            the run's ``patch.scale``); a number: multiply its coordinates by this instead — for a partial
+            scan, whose area is not the whole shape's (e.g. the factor that takes the training shapes'
+            units to the training area).
 
     Returns:
         (N,) int64 class indices or (N,) float32 values, one per vertex of the *input* surface (a merged
@@ -116,6 +117,8 @@ def predict(
     if backend is not None:
         patch_configs = [dataclasses.replace(c, backend=backend) for c in patch_configs]
     surface = repaired.surface
+    if scale is None and spec.get("unit_scale"):  # trained at a fixed scale (patch.scale): the same factor
+        scale = float(spec["unit_scale"])
     if scale is not None:
         if not scale > 0:
             raise ValueError(f"scale must be positive, got {scale}")
