@@ -13,8 +13,8 @@ uneven density, and cut to a partial scan; ground truth through the position on 
    vertex accuracy against the form's ground truth; a form that raises counts as *refused*;
 3. writes ``benchmarks/results/scans.md`` and ``scans.json`` (accuracy per model and form, pooled over the
    vertices of the 20 test bodies, its drop from the original form, refusals, seconds per shape) and one
-   picture per form (``scans_<form>.png``: the first test body coloured by zernet's predicted part, and
-   where the prediction is wrong).
+   picture per form and zernet model (``scans_<form>.png``, ``scans_mixed_<form>.png``: the first test body
+   coloured by the predicted part, and where the prediction is wrong).
 
 Partial scans cover part of the body, so scaling them to the training area would enlarge them: they are
 scaled instead by the factor that takes the training bodies (all in metres) to the training area, the
@@ -60,6 +60,8 @@ FORMS = ("original", "remeshed", "decimated", "cloud", "cloud-noisy", "partial")
 MODELS = ("zernet", "feastnet", "zernet-mixed")
 #: Training bodies whose forms join the mixed training set, and the forms taken.
 MIXED_BODIES, MIXED_FORMS = 40, ("remeshed", "decimated", "cloud", "cloud-noisy", "partial")
+#: Models whose predictions are drawn, and the suffix of their pictures' names.
+PICTURES = {"zernet": "", "zernet-mixed": "_mixed"}
 #: Model options only zernet takes.
 ZERNET_ONLY = ("angular_resolution", "pooling")
 
@@ -290,7 +292,7 @@ def main(argv=None) -> int:
         results[model] = {}
         for form in args.forms:
             files = form_files(args.bodies, form)[: args.limit]
-            picture = RESULTS / f"{args.out}_{form}.png" if model == "zernet" else None
+            picture = RESULTS / f"{args.out}{PICTURES[model]}_{form}.png" if model in PICTURES else None
             row = score_form(run_dir, files, scale if form == "partial" else None, picture)
             results[model][form] = row
             accuracy = "-" if row["accuracy"] is None else f"{100 * row['accuracy']:.2f} %"
