@@ -145,6 +145,15 @@ def pretrain(
     return run_dir
 
 
+def pretrained_run(args) -> Path:
+    """The run pretrained on ``--pretrain-count`` bodies of other people (generated and trained once)."""
+    topology = args.pretrain_topology or args.topology
+    others = other_bodies(args.others, topology, args.seed, args.pretrain_count, args.cache_dir)
+    return pretrain(
+        others, args.runs / "pretrain", args.pretrain_epochs, args.threads, N_VERTICES[topology], args.cache_dir
+    )
+
+
 def ship_backbone(run_dir: Path, name: str, topology: str, count: int) -> None:
     """Write the pretrained run's backbone to ``zernet/pretrained/NAME.pt`` and its provenance to NAME.json."""
     target = ROOT / "zernet" / "pretrained" / f"{name}.pt"
@@ -324,22 +333,12 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=RESULTS / "few_people", help="path without suffix")
     args = parser.parse_args()
 
+    topology = args.pretrain_topology or args.topology
     if args.export_backbone:
-        topology = args.pretrain_topology or args.topology
-        others = other_bodies(args.others, topology, args.seed, args.pretrain_count, args.cache_dir)
-        run_dir = pretrain(
-            others, args.runs / "pretrain", args.pretrain_epochs, args.threads, N_VERTICES[topology], args.cache_dir
-        )
-        ship_backbone(run_dir, args.export_backbone, topology, args.pretrain_count)
+        ship_backbone(pretrained_run(args), args.export_backbone, topology, args.pretrain_count)
         return
     data_root = people_bodies(args.data, args.topology, args.seed, args.cache_dir)
-    pretrained = None
-    if any(RECIPES[name][1] for name in args.recipes):
-        topology = args.pretrain_topology or args.topology
-        others = other_bodies(args.others, topology, args.seed, args.pretrain_count, args.cache_dir)
-        pretrained = pretrain(
-            others, args.runs / "pretrain", args.pretrain_epochs, args.threads, N_VERTICES[topology], args.cache_dir
-        )
+    pretrained = pretrained_run(args) if any(RECIPES[name][1] for name in args.recipes) else None
     result = {
         "topology": args.topology,
         "n_vertices": N_VERTICES[args.topology],

@@ -57,10 +57,11 @@ def normalize_area(
     Returns:
         (scaled surface, s) where s is the linear scale factor applied to the positions.
     """
-    fixed = target_area.factor if isinstance(target_area, FixedScale) else None
-    target_area = None if fixed is not None else float(target_area)
-    if fixed is None and (not np.isfinite(target_area) or target_area <= 0):
-        raise SurfaceError(f"{surface.name}: target area must be positive and finite, got {target_area}")
+    fixed = isinstance(target_area, FixedScale)
+    if not fixed:
+        target_area = float(target_area)
+        if not np.isfinite(target_area) or target_area <= 0:
+            raise SurfaceError(f"{surface.name}: target area must be positive and finite, got {target_area}")
     field_exponents = dict(field_exponents or {})
     missing = [key for key in field_exponents if key not in surface.fields]
     if missing:
@@ -71,7 +72,7 @@ def normalize_area(
     area = float(weights.sum())
     if not np.isfinite(area) or area <= 0:
         raise SurfaceError(f"{surface.name}: cannot normalise a surface of area {area}")
-    ratio = fixed**2 if fixed is not None else target_area / area
+    ratio = target_area.factor**2 if fixed else target_area / area
     scale = float(np.sqrt(ratio))
     centroid = weights @ surface.vertices / area
     vertices = centroid + scale * (surface.vertices - centroid)
