@@ -183,6 +183,24 @@ def test_gradcheck_and_backward_is_transpose():
     assert np.allclose(grad.numpy(), op.matrix.T @ g.reshape(-1, 2).numpy())
 
 
+def test_a_forward_pass_without_gradients_builds_no_transpose():
+    # Prediction and matching never backpropagate: the transpose (as costly as the matrix) is left out, and
+    # built the first time a gradient needs it, for the batch of several surfaces too.
+    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3))
+    batch = PatchOperator.concatenate([op, op])
+    x = torch.randn(2 * op.n_vertices, 2, dtype=torch.float64)
+    with torch.no_grad():
+        values = batch.apply(x)
+    assert [pair[1] for pair in batch._tensors.values()] == [None]
+    assert [pair[1] for pair in op._tensors.values()] == [None]
+    x.requires_grad_(True)
+    g = torch.randn(2 * op.n_vertices, op.k, 2, dtype=torch.float64)
+    (grad,) = torch.autograd.grad(batch.apply(x), x, g)
+    torch.testing.assert_close(values, batch.apply(x).detach())
+    assert np.allclose(grad.numpy(), batch.matrix.T @ g.reshape(-1, 2).numpy())
+    assert all(pair[1] is not None for pair in op._tensors.values())
+
+
 def test_apply_in_another_basis_order_is_the_gathered_apply():
     op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3))
     order = tuple(np.random.default_rng(1).permutation(op.k).tolist())

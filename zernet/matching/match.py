@@ -25,7 +25,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from zernet.geometry import Surface, read_surface, repair_surface
-from zernet.matching.fmap import cycle_confidence, functional_map, pointmap_from_fmap, zoomout
+from zernet.matching.fmap import cycle_confidence, functional_map, nearest_rows, pointmap_from_fmap, zoomout
 from zernet.matching.model import DescriptorModel, load_matching_model
 from zernet.matching.shapes import MatchShape, prepare_shape, rotating_columns
 from zernet.operators.spectral import SpectralBasis
@@ -41,6 +41,9 @@ __all__ = [
     "nearest_vertex_map",
     "CONFIDENCE_SCALE",
 ]
+
+#: Source vertices on which the candidate alignments of the target are compared.
+ALIGNMENT_SAMPLE = 1000
 
 #: The round-trip distance, as a fraction of the square root of the source's area, at which the
 #: confidence falls to 1/e.
@@ -126,15 +129,6 @@ def descriptor_fmap(
     )
 
 
-def _refined(
-    pointmap_yx: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis, k_start: int, k_end: int, step: int
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """ZoomOut from ``k_start`` to ``k_end`` (none when ``k_end <= k_start``)."""
-    if k_end <= k_start:
-        return pointmap_yx, None
-    return zoomout(pointmap_yx, basis_x, basis_y, k_start, k_end, step)
-
-
 def match_shapes(
     model: DescriptorModel, source: MatchShape, target: MatchShape, zoomout_end: int | None = None
 ) -> MatchResult:
@@ -146,19 +140,27 @@ def match_shapes(
     start = time.perf_counter()
     descriptors_s = shape_descriptors(model, source)
     rotations = candidate_alignments(source, target) if spec.align_target else [None]
+    # The alignments are told apart on a fixed sample of source vertices: the full point map is then
+    # searched once, for the one kept.
+    sample = np.sort(np.random.default_rng(0).permutation(source.n_vertices)[:ALIGNMENT_SAMPLE])
     best = None
     for rotation in rotations:
         descriptors_t = shape_descriptors(model, target, rotation)
         with torch.no_grad():
             fmap_ts = descriptor_fmap(model, descriptors_t, descriptors_s, target, source).double().numpy()
         # C_ts carries target functions to the source, so it gives the point map source -> target.
-        vertex_map = pointmap_from_fmap(fmap_ts, target.basis, source.basis)
+        images = nearest_rows(
+            source.basis.eigenvectors[sample, : spec.n_fmap] @ fmap_ts, target.basis.eigenvectors[:, : spec.n_fmap]
+        )
         # How well the descriptors agree under the map: a flipped or upside-down alignment maps
         # consistently (both directions agree) but pairs unlike descriptors.
-        disagreement = float(((descriptors_s - descriptors_t[vertex_map]) ** 2).sum(dim=1).mean())
+        disagreement = float(
+            ((descriptors_s[torch.as_tensor(sample)] - descriptors_t[torch.as_tensor(images)]) ** 2).sum(dim=1).mean()
+        )
         if best is None or disagreement < best[0]:
-            best = (disagreement, vertex_map, fmap_ts, descriptors_t)
-    _, vertex_map, fmap_ts, descriptors_t = best
+            best = (disagreement, fmap_ts, descriptors_t)
+    _, fmap_ts, descriptors_t = best
+    vertex_map = pointmap_from_fmap(fmap_ts, target.basis, source.basis)
     with torch.no_grad():
         fmap_st = descriptor_fmap(model, descriptors_s, descriptors_t, source, target).double().numpy()
     reverse_map = pointmap_from_fmap(fmap_st, source.basis, target.basis)
@@ -166,9 +168,16 @@ def match_shapes(
     start = time.perf_counter()
     # ZoomOut refines the answer (source -> target); the reverse map serves the confidence and the
     # picture and keeps the layer's resolution (ZoomOut in both directions doubled the time).
-    vertex_map, refined_ts = _refined(
-        vertex_map, target.basis, source.basis, spec.n_fmap, zoomout_end, spec.zoomout_step
-    )
+    refined_ts = None
+    if zoomout_end > spec.n_fmap:
+        features = None
+        if spec.zoomout_descriptor_weight > 0:
+            # Descriptors in units of their typical length on the source, times the weight.
+            scale = spec.zoomout_descriptor_weight / float(descriptors_s.square().sum(dim=1).mean().sqrt())
+            features = (scale * descriptors_s.double().numpy(), scale * descriptors_t.double().numpy())
+        vertex_map, refined_ts = zoomout(
+            vertex_map, target.basis, source.basis, spec.n_fmap, zoomout_end, spec.zoomout_step, features=features
+        )
     seconds["zoomout"] = time.perf_counter() - start
     scale = CONFIDENCE_SCALE * np.sqrt(source.surface.area)
     confidence = cycle_confidence(vertex_map, reverse_map, source.surface.vertices, scale)

@@ -53,6 +53,8 @@ class MatchingSpec:
         n_fmap: eigenpairs of the functional-map layer.
         regularisation, gamma: of the layer (:func:`zernet.matching.fmap.functional_map`).
         zoomout_end, zoomout_step: ZoomOut from ``n_fmap`` to ``zoomout_end`` eigenpairs (0: no ZoomOut).
+        zoomout_descriptor_weight: weight of the descriptors (scaled to unit typical length) appended to the
+            spectral embeddings in ZoomOut's nearest-neighbour searches (0: plain ZoomOut).
         align_target: turn the target's pose-dependent inputs (xyz, normals) into the source's frame before
             its descriptors are computed, trying the 4 proper sign choices of the principal axes and keeping
             the most consistent match (:func:`zernet.matching.match.candidate_alignments`).
@@ -71,6 +73,7 @@ class MatchingSpec:
     gamma: float = 0.5
     zoomout_end: int = 80
     zoomout_step: int = 2
+    zoomout_descriptor_weight: float = 0.0
     align_target: bool = False
     feature_mean: tuple[float, ...] | None = None
     feature_std: tuple[float, ...] | None = None

@@ -255,26 +255,39 @@ class PatchOperator:
     accepts_basis_order = True
 
     def _torch_matrices(
-        self, dtype: torch.dtype, device: torch.device, basis_order: tuple | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+        self, dtype: torch.dtype, device: torch.device, basis_order: tuple | None = None, transpose: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """CSR tensors of A and Aᵀ (rows of A in ``basis_order`` within each vertex, the columns of Aᵀ
         likewise) for this dtype and device, built on first use and kept. Aᵀ is the stored
         :attr:`transpose`, never re-sorted; below float64 the arrays are cast first (half the bytes to
-        reorder and move)."""
+        reorder and move). With ``transpose=False`` Aᵀ is not built (None unless built before): a forward
+        pass without gradients never reads it, and building it costs as much as A."""
         device = canonical_device(device)
         key = (dtype, device, basis_order)
-        if key not in self._tensors and self._parts:  # a batch: its surfaces' own tensors, stacked
-            built = [part._torch_matrices(dtype, device, basis_order) for part in self._parts]
-            self._tensors[key] = tuple(block_diagonal_csr([b[i] for b in built]) for i in (0, 1))
-        if key not in self._tensors:
-            matrix, transpose = self.matrix, self.transpose
-            if dtype != torch.float64 and matrix.dtype == np.float64:
-                matrix, transpose = matrix.astype(np.float32), transpose.astype(np.float32)
-            if basis_order is not None:
-                matrix = reorder_basis_rows(matrix, self.k, basis_order)
-                transpose = reorder_basis_columns(transpose, self.k, basis_order)
-            self._tensors[key] = (to_torch_csr(matrix, dtype, device), to_torch_csr(transpose, dtype, device))
+        held = self._tensors.get(key)
+        if held is not None and (held[1] is not None or not transpose):
+            return held
+        if self._parts:  # a batch: its surfaces' own tensors, stacked
+            built = [part._torch_matrices(dtype, device, basis_order, transpose) for part in self._parts]
+            matrix = held[0] if held is not None else block_diagonal_csr([b[0] for b in built])
+            self._tensors[key] = (matrix, block_diagonal_csr([b[1] for b in built]) if transpose else None)
+            return self._tensors[key]
+        matrix = held[0] if held is not None else to_torch_csr(self._host_csr(False, dtype, basis_order), dtype, device)
+        self._tensors[key] = (
+            matrix,
+            to_torch_csr(self._host_csr(True, dtype, basis_order), dtype, device) if transpose else None,
+        )
         return self._tensors[key]
+
+    def _host_csr(self, transposed: bool, dtype: torch.dtype, basis_order: tuple | None) -> scipy.sparse.csr_matrix:
+        """A or Aᵀ on the host, cast to float32 below float64 and in ``basis_order``."""
+        matrix = self.transpose if transposed else self.matrix
+        if dtype != torch.float64 and matrix.dtype == np.float64:
+            matrix = matrix.astype(np.float32)
+        if basis_order is not None:
+            reorder = reorder_basis_columns if transposed else reorder_basis_rows
+            matrix = reorder(matrix, self.k, basis_order)
+        return matrix
 
     def apply(self, x: torch.Tensor, basis_order: tuple | None = None) -> torch.Tensor:
         """Zernike coefficients of the features' local patches.
@@ -292,7 +305,9 @@ class PatchOperator:
             raise ValueError(f"features have {x.shape[0]} rows but the operator has {self.n_vertices} vertices")
         trailing = x.shape[1:]
         flat = x.reshape(self.n_vertices, -1)
-        matrix, transpose = self._torch_matrices(x.dtype, x.device, checked_basis_order(basis_order, self.k))
+        needs_transpose = torch.is_grad_enabled() and flat.requires_grad  # only the backward reads Aᵀ
+        order = checked_basis_order(basis_order, self.k)
+        matrix, transpose = self._torch_matrices(x.dtype, x.device, order, needs_transpose)
         out = SparseApply.apply(flat.contiguous(), matrix, transpose)
         return out.reshape((self.n_vertices, self.k) + tuple(trailing))
 
@@ -331,7 +346,7 @@ class PatchOperator:
         copy.__dict__.update(self.__dict__)
         copy._parts = [part.copy_to(device, non_blocking) for part in self._parts]
         copy._tensors = {
-            (dtype, device, order): tuple(csr_copy_to(m, device, non_blocking) for m in matrices)
+            (dtype, device, order): tuple(None if m is None else csr_copy_to(m, device, non_blocking) for m in matrices)
             for (dtype, _, order), matrices in self._tensors.items()
         }
         return copy
@@ -341,7 +356,7 @@ class PatchOperator:
         for part in self._parts:
             part.pin_memory()
         self._tensors = {
-            key: tuple(pinned_csr(m) if m.device.type == "cpu" else m for m in matrices)
+            key: tuple(pinned_csr(m) if m is not None and m.device.type == "cpu" else m for m in matrices)
             for key, matrices in self._tensors.items()
         }
         return self
@@ -349,7 +364,7 @@ class PatchOperator:
     @property
     def prepared_nbytes(self) -> int:
         """Bytes of the prepared torch tensors (:meth:`to`) this operator holds."""
-        own = sum(csr_nbytes(m) for matrices in self._tensors.values() for m in matrices)
+        own = sum(csr_nbytes(m) for matrices in self._tensors.values() for m in matrices if m is not None)
         return own if not self._parts else sum(part.prepared_nbytes for part in self._parts)
 
     def __getstate__(self):

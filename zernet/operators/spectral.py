@@ -207,26 +207,35 @@ def fmap_from_pointmap(
 
 
 def nearest_rows(
-    queries: np.ndarray, points: np.ndarray, chunk: int = 2048, device=None, dtype: torch.dtype = torch.float64
+    queries: np.ndarray, points: np.ndarray, chunk: int = 2048, device=None, dtype: torch.dtype = torch.float32
 ) -> np.ndarray:
     """(M,) int64 index of the row of ``points`` (N, k) nearest to each row of ``queries`` (M, k).
 
     Brute force by matrix products in chunks (``‖p‖² - 2 q·p`` per chunk of queries): in the 30-80
     dimensions of a spectral embedding a k-d tree prunes almost nothing, and this was 1.4-2.9x faster than
     ``scipy.spatial.cKDTree`` at 6,000 x 7,000 points (k = 30, 80; one thread), with the same answers.
-    ``device``, ``dtype``: where and in what precision the products run (torch; default the CPU, float64)."""
+    ``device``, ``dtype``: where and in what precision the products run (torch; default the CPU, float32:
+    2.7x faster than float64 and the same matching errors to two decimals on generated bodies)."""
     queries_t = torch.as_tensor(np.ascontiguousarray(queries), device=device, dtype=dtype)
     points_t = torch.as_tensor(np.ascontiguousarray(points), device=device, dtype=dtype)
     squared = (points_t * points_t).sum(dim=1)
     nearest = [
-        torch.addmm(squared[None, :], queries_t[start : start + chunk], points_t.T, alpha=-2).argmin(dim=1)
+        _argmin_rows(torch.addmm(squared[None, :], queries_t[start : start + chunk], points_t.T, alpha=-2))
         for start in range(0, len(queries_t), chunk)
     ]
-    return torch.cat(nearest).cpu().numpy().astype(np.int64) if nearest else np.zeros(0, dtype=np.int64)
+    return np.concatenate(nearest).astype(np.int64) if nearest else np.zeros(0, dtype=np.int64)
+
+
+def _argmin_rows(distances: torch.Tensor) -> np.ndarray:
+    """Column of each row's minimum. On the CPU numpy's argmin is 6x faster than torch's (measured on
+    2,048 x 6,341 float64, one thread: 11 against 70 ms)."""
+    if distances.device.type == "cpu":
+        return distances.numpy().argmin(axis=1)
+    return distances.argmin(dim=1).cpu().numpy()
 
 
 def pointmap_from_fmap(
-    fmap_xy: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis, device=None, dtype=torch.float64
+    fmap_xy: np.ndarray, basis_x: SpectralBasis, basis_y: SpectralBasis, device=None, dtype=torch.float32
 ) -> np.ndarray:
     """The point map ``T: Y -> X`` (N_y,) int64 of ``C_xy`` (k_y, k_x): for each Y vertex, the X vertex
     nearest to ``Φ_y[y] C_xy`` in the spectral embedding ``Φ_x[:, :k_x]`` (:func:`nearest_rows`, on
@@ -244,6 +253,7 @@ def zoomout(
     k_end: int,
     step: int = 1,
     device=None,
+    features: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """ZoomOut (Melzi et al. 2019): refine a point map ``T: Y -> X`` by spectral upsampling.
 
@@ -253,6 +263,11 @@ def zoomout(
     alignment). ``k_end`` is capped at both bases' sizes. ``device``: where the nearest neighbours are
     searched (torch; None: the CPU).
 
+    ``features``: optional ``(features_y (N_y, d), features_x (N_x, d))`` appended to the spectral embeddings
+    in every nearest-neighbour search (learned descriptors, scaled by the caller to weigh against the
+    embedding): the point map then also pairs vertices that look alike, not only those the functional map
+    brings close.
+
     Returns:
         (pointmap (N_y,) int64, C_xy (k, k) of the last round).
     """
@@ -261,5 +276,9 @@ def zoomout(
     fmap = fmap_from_pointmap(pointmap, basis_x, basis_y, k_start, k_start)
     for k in range(k_start, k_end + 1, step):
         fmap = fmap_from_pointmap(pointmap, basis_x, basis_y, k, k)
-        pointmap = pointmap_from_fmap(fmap, basis_x, basis_y, device=device)
+        if features is None:
+            pointmap = pointmap_from_fmap(fmap, basis_x, basis_y, device=device)
+        else:
+            queries = np.hstack([basis_y.eigenvectors[:, :k] @ fmap, features[0]])
+            pointmap = nearest_rows(queries, np.hstack([basis_x.eigenvectors[:, :k], features[1]]), device=device)
     return pointmap, fmap

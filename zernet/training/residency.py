@@ -193,7 +193,8 @@ def _geometry_tensors(geometry):
     for op in list(geometry.operators) + list(geometry.directional):
         for matrices in list(getattr(op, "_tensors", {}).values()) + list(getattr(op, "_torch", {}).values()):
             for m in matrices:
-                yield from (m.crow_indices(), m.col_indices(), m.values())
+                if m is not None:  # a transpose not built (forward-only use)
+                    yield from (m.crow_indices(), m.col_indices(), m.values())
     for tensor in (geometry.edge_index, geometry.batch):
         if tensor is not None:
             yield tensor

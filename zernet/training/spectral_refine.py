@@ -171,7 +171,7 @@ class SpectralRefiner:
         for k in range(min(self.k_start, k_end), k_end + 1, self.step):
             fmap = fmap_from_pointmap(pointmap, self.basis, basis, k, k, weights=weights)
             weights = None  # later rounds read maps the radius has already cleaned
-            spectral_map = pointmap_from_fmap(fmap, self.basis, basis, device=scores.device, dtype=torch.float32)
+            spectral_map = pointmap_from_fmap(fmap, self.basis, basis, device=scores.device)
             pointmap = self.restrict(scores, spectral_map, radius).cpu().numpy()
         return pointmap
 
