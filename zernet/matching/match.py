@@ -28,7 +28,6 @@ from zernet.geometry import Surface, read_surface, repair_surface
 from zernet.matching.fmap import cycle_confidence, functional_map, nearest_rows, pointmap_from_fmap, zoomout
 from zernet.matching.model import DescriptorModel, load_matching_model
 from zernet.matching.shapes import MatchShape, prepare_shape, rotating_columns
-from zernet.operators.spectral import SpectralBasis
 
 __all__ = [
     "MatchResult",
