@@ -8,8 +8,8 @@ Settings (pairs of test bodies i -> i + 1, never seen in training; each body rem
 - ``rotated``: the same pairs, the target turned by a random rotation (the error must not change);
 - ``cloud``: the source a noisy point cloud (half the vertex count, density varying 3x, 2 mm noise), the
   target remeshed;
-- ``partial`` (not in the default list): the source a one-sided scan (the faces a camera sees), the target
-  remeshed whole.
+- ``partial``: the source a one-sided scan (the faces a camera sees), the target remeshed whole; both
+  scaled by one factor (``zernet match --same-scale``), so the source is matched as a part of the target.
 
 Error (the field's convention): the geodesic distance on the target between the predicted vertex and the
 true one (the target vertex nearest to the true image, :func:`zernet.matching.bodies.ground_truth_map`),
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from zernet.geometry import Surface
+from zernet.geometry import FixedScale, Surface
 from zernet.io_utils import write_json
 from zernet.matching.bodies import body_forms, ground_truth_map
 from zernet.matching.fmap import zoomout
@@ -95,10 +95,14 @@ def main(argv=None) -> int:
                 rotation = random_rotation(rng, "any")
                 target_surface = Surface(target_surface.vertices @ rotation.T, target_surface.faces, name="rotated")
             start = time.perf_counter()
+            # A partial scan is matched in the units it shares with the whole body (zernet match --same-scale).
+            area = spec.area
+            if setting == "partial":
+                area = FixedScale(float(np.sqrt(spec.area / max(source_form.surface.area, target_surface.area))))
             source = prepare_shape(
                 source_form.surface,
                 spec.patch_config_objects(),
-                spec.area,
+                area,
                 spec.feature_kind,
                 spec.n_eigen,
                 cache_dir=None,
@@ -107,7 +111,7 @@ def main(argv=None) -> int:
             target = prepare_shape(
                 target_surface,
                 spec.patch_config_objects(),
-                spec.area,
+                area,
                 spec.feature_kind,
                 spec.n_eigen,
                 cache_dir=None,

@@ -54,6 +54,13 @@ def add_match_command(sub, parents: list[argparse.ArgumentParser]) -> None:
         metavar="DIR",
         help="cache of patch operators and eigenbases (default: none)",
     )
+    p.add_argument(
+        "--same-scale",
+        action="store_true",
+        help="the two files are in the same units (scans from one scanner): scale both by one factor instead "
+        "of each to the model's area, so that a partial SOURCE (one side of a body) is matched as a part of "
+        "TARGET",
+    )
     p.add_argument("--no-picture", action="store_true", help="skip PREFIX.png")
     p.set_defaults(func=run_match)
 
@@ -86,7 +93,7 @@ def run_match(args) -> int:
 
     model, _ = load_matching_model(args.run)
     source, target = read_surface(args.source), read_surface(args.target)
-    result, _, _ = match_surfaces(source, target, model, cache_dir=args.cache_dir)
+    result, _, _ = match_surfaces(source, target, model, cache_dir=args.cache_dir, same_scale=args.same_scale)
     prefix = args.out
     prefix.parent.mkdir(parents=True, exist_ok=True)
     written = [prefix.with_name(prefix.name + suffix) for suffix in (".npy", ".txt", "_fmap.npy", "_confidence.npy")]

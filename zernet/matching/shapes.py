@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from zernet.data import prepare_record
-from zernet.geometry import Surface
+from zernet.geometry import FixedScale, Surface
 from zernet.operators import Geometry, PatchConfig
 from zernet.operators.spectral import SpectralBasis, heat_kernel_signature, laplacian_eigenbasis
 
@@ -89,7 +89,7 @@ def input_features(zernet_features: np.ndarray | None, basis: SpectralBasis, fea
 def prepare_shape(
     surface: Surface,
     patch_configs: list[PatchConfig],
-    area: float,
+    area: float | FixedScale,
     feature_kind: str,
     n_eigen: int,
     cache_dir: str | os.PathLike | None = None,
@@ -101,7 +101,8 @@ def prepare_shape(
         surface: a mesh or a point cloud (validated here; repair a user's file first with
             :func:`zernet.geometry.repair_surface`, which keeps the map back to its vertices).
         patch_configs: the descriptor model's patch settings, one per scale.
-        area: the area the model was trained at.
+        area: the area the model was trained at, or a :class:`~zernet.geometry.FixedScale` (a shape matched
+            as a part of another in the same units).
         feature_kind: zernet feature parts joined by "+", optionally with ``hks``.
         n_eigen: eigenpairs to compute (the most any later step uses, ZoomOut included).
         cache_dir: cache of operators and eigenbases (None: nothing cached).

@@ -55,6 +55,8 @@ __all__ = [
     "fmap_from_pointmap",
     "nearest_rows",
     "pointmap_from_fmap",
+    "MIN_PARTIAL_BASIS",
+    "partial_basis_size",
     "zoomout",
 ]
 
@@ -162,17 +164,26 @@ def _read_basis(path: Path, key: str) -> SpectralBasis:
         return SpectralBasis(stored["eigenvalues"], stored["eigenvectors"], stored["mass"])
 
 
+# Eigenvalues below this fraction of the largest are zero (one per connected piece), not frequencies.
+_ZERO_EIGENVALUE = 1e-9
+
+
 def heat_kernel_signature(basis: SpectralBasis, n_times: int = 16) -> np.ndarray:
     """(N, n_times) float32 heat kernel signature ``Σ_i exp(-λ_i t) φ_i(x)²`` (Sun et al. 2009) at
     ``n_times`` times log-spaced over the basis's range (``4 ln 10 / λ_max`` to ``4 ln 10 / λ_1``), each
-    column divided by its area-weighted mean so it does not depend on the surface's scale or sampling."""
-    eigenvalues = basis.eigenvalues[1:]
-    eigenvalues = eigenvalues[eigenvalues > 0]
+    column divided by its area-weighted mean so it does not depend on the surface's scale or sampling.
+
+    A surface in several pieces (a one-sided scan) has one zero eigenvalue per piece, whose eigenfunctions
+    are constant on a piece: ``1 / area`` of that piece, huge on a small fragment, and never decaying. The
+    zero eigenvalues count as one, the constant over the whole surface (``1 / total area``), as on a
+    surface in one piece, where this is the textbook sum; the range starts at the first nonzero one."""
+    zero = basis.eigenvalues <= _ZERO_EIGENVALUE * basis.eigenvalues.max()
+    eigenvalues = basis.eigenvalues[~zero]
     if len(eigenvalues) == 0:
         raise ValueError("the heat kernel signature needs at least one positive eigenvalue")
     times = np.geomspace(4 * np.log(10) / eigenvalues[-1], 4 * np.log(10) / eigenvalues[0], n_times)
-    squares = basis.eigenvectors**2  # (N, k)
-    signature = squares @ np.exp(-np.outer(basis.eigenvalues, times))  # (N, n_times)
+    squares = basis.eigenvectors[:, ~zero] ** 2  # (N, k - zeros)
+    signature = squares @ np.exp(-np.outer(eigenvalues, times)) + 1.0 / basis.mass.sum()  # (N, n_times)
     signature /= (basis.mass @ signature / basis.mass.sum())[None, :]
     return signature.astype(np.float32)
 
@@ -245,6 +256,17 @@ def pointmap_from_fmap(
     return nearest_rows(embedding_y, basis_x.eigenvectors[:, :k_x], device=device, dtype=dtype)
 
 
+#: The fewest eigenpairs a part keeps (:func:`partial_basis_size`).
+MIN_PARTIAL_BASIS = 6
+
+
+def partial_basis_size(k: int, area_ratio: float) -> int:
+    """Eigenpairs of a part with ``area_ratio`` of a whole's area that span the frequencies of the whole's
+    first ``k``: by Weyl's law eigenvalues grow as the inverse of the area, so about ``area_ratio k`` (the
+    functional map between them is rectangular, as in partial functional maps, Rodolà et al. 2017)."""
+    return max(MIN_PARTIAL_BASIS, min(k, int(round(k * area_ratio))))
+
+
 def zoomout(
     pointmap_yx: np.ndarray,
     basis_x: SpectralBasis,
@@ -254,6 +276,7 @@ def zoomout(
     step: int = 1,
     device=None,
     features: tuple[np.ndarray, np.ndarray] | None = None,
+    area_ratio: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """ZoomOut (Melzi et al. 2019): refine a point map ``T: Y -> X`` by spectral upsampling.
 
@@ -268,17 +291,22 @@ def zoomout(
     embedding): the point map then also pairs vertices that look alike, not only those the functional map
     brings close.
 
+    ``area_ratio`` < 1: Y is a part of X with that share of its area (a partial scan); Y's basis then grows as
+    :func:`partial_basis_size` of X's, and the maps are rectangular.
+
     Returns:
-        (pointmap (N_y,) int64, C_xy (k, k) of the last round).
+        (pointmap (N_y,) int64, C_xy (k_y, k) of the last round).
     """
     k_end = min(k_end, basis_x.k, basis_y.k)
     pointmap = np.asarray(pointmap_yx, dtype=np.int64)
-    fmap = fmap_from_pointmap(pointmap, basis_x, basis_y, k_start, k_start)
+    k_y = partial_basis_size(k_start, area_ratio) if area_ratio < 1 else k_start
+    fmap = fmap_from_pointmap(pointmap, basis_x, basis_y, k_start, k_y)
     for k in range(k_start, k_end + 1, step):
-        fmap = fmap_from_pointmap(pointmap, basis_x, basis_y, k, k)
+        k_y = partial_basis_size(k, area_ratio) if area_ratio < 1 else k
+        fmap = fmap_from_pointmap(pointmap, basis_x, basis_y, k, k_y)
         if features is None:
             pointmap = pointmap_from_fmap(fmap, basis_x, basis_y, device=device)
         else:
-            queries = np.hstack([basis_y.eigenvectors[:, :k] @ fmap, features[0]])
+            queries = np.hstack([basis_y.eigenvectors[:, :k_y] @ fmap, features[0]])
             pointmap = nearest_rows(queries, np.hstack([basis_x.eigenvectors[:, :k], features[1]]), device=device)
     return pointmap, fmap
