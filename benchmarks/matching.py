@@ -107,6 +107,7 @@ def main(argv=None) -> int:
                 spec.n_eigen,
                 cache_dir=None,
                 name=source_form.name,
+                descriptor_vertices=spec.descriptor_vertices,
             )
             target = prepare_shape(
                 target_surface,
@@ -116,6 +117,7 @@ def main(argv=None) -> int:
                 spec.n_eigen,
                 cache_dir=None,
                 name=target_form.name,
+                descriptor_vertices=spec.descriptor_vertices,
             )
             result = match_shapes(model, source, target)
             elapsed = time.perf_counter() - start

@@ -3,6 +3,7 @@ matcher answers per input vertex of a repaired file; ``zernet match`` writes its
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 
 import numpy as np
@@ -75,9 +76,9 @@ def test_shipped_model_matches_held_out_remeshed_bodies(held_out_bodies, one_tor
     assert np.mean(errors) < ERROR_BOUND, errors
 
 
-def _small_body() -> Surface:
+def _small_body(subdivisions: int = 3) -> Surface:
     """A small asymmetric closed mesh (bumpy ellipsoid), no anny needed."""
-    sphere = trimesh.creation.icosphere(subdivisions=3)
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
     vertices = np.asarray(sphere.vertices) * [0.3, 0.9, 0.2]
     vertices *= 1 + 0.05 * np.sin(5 * vertices[:, :1] + 3 * vertices[:, 1:2])
     return Surface(vertices, np.asarray(sphere.faces), name="blob")
@@ -110,3 +111,46 @@ def test_cli_match_writes_the_map_the_fmap_the_confidence_and_a_picture(tmp_path
     assert np.load(prefix.with_name("ab_confidence.npy")).shape == (body.n_vertices,)
     assert prefix.with_name("ab.png").stat().st_size > 10_000
     assert main(["match", str(paths[0]), str(tmp_path / "missing.ply"), "--out", str(prefix)]) == 2
+
+
+def test_a_fine_surface_is_read_through_a_coarse_copy_and_answered_per_vertex(one_torch_thread):
+    # descriptor_vertices: the model reads a copy of about that many vertices (its training resolution);
+    # the eigenbasis, the map and the answer stay on the surface itself.
+    model, _ = load_matching_model()
+    spec = dataclasses.replace(model.spec, descriptor_vertices=800)
+    model.spec = spec
+    fine = _small_body(4)  # 2,562 vertices
+    turned = Surface(fine.vertices @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).T, fine.faces)
+    source, target = (
+        prepare_shape(
+            s, spec.patch_config_objects(), spec.area, spec.feature_kind, spec.n_eigen, descriptor_vertices=800
+        )
+        for s in (fine, turned)
+    )
+    assert source.n_vertices == fine.n_vertices and source.descriptor_index.shape == (fine.n_vertices,)
+    assert 700 <= len(source.features) <= 900 and source.basis.eigenvectors.shape[0] == fine.n_vertices
+    assert abs(source.surface.area / spec.area - 1) < 0.03  # scaled by the copy's factor
+    result = match_shapes(model, source, target)
+    distance = np.linalg.norm(source.surface.vertices[result.vertex_map] - source.surface.vertices, axis=1)
+    assert distance.mean() < 0.05 * np.sqrt(spec.area)
+
+
+def test_same_scale_keeps_a_part_at_its_size(tmp_path, one_torch_thread):
+    body = _small_body()
+    kept = np.flatnonzero(body.vertices[:, 1] > 0)
+    inside = np.isin(body.faces, kept).all(axis=1)
+    renumber = np.full(body.n_vertices, -1)
+    renumber[kept] = np.arange(len(kept))
+    half = Surface(body.vertices[kept], renumber[body.faces[inside]], name="half")
+    result, source, target = match_surfaces(half, body, same_scale=True)
+    assert abs(source.surface.area / target.surface.area - half.area / body.area) < 1e-6
+    assert abs(target.surface.area - load_matching_model()[0].spec.area) < 1e-6 * target.surface.area
+    assert result.vertex_map.shape == (half.n_vertices,)
+    _, source, _ = match_surfaces(half, body)  # without: each at the model's area
+    assert abs(source.surface.area / target.surface.area - 1) < 1e-6
+    paths = [tmp_path / "half.ply", tmp_path / "body.ply"]
+    for path, surface in zip(paths, (half, body)):
+        trimesh.Trimesh(surface.vertices, surface.faces, process=False).export(path)
+    prefix = tmp_path / "hb"
+    assert main(["match", *map(str, paths), "--out", str(prefix), "--same-scale", "--no-picture"]) == 0
+    assert np.load(prefix.with_name("hb.npy")).shape == (half.n_vertices,)

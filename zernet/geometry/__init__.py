@@ -7,6 +7,7 @@ Modules, each with one job:
 - :mod:`~zernet.geometry.surface` — :class:`Surface`, :class:`SurfaceError`, :class:`SurfaceWarning`.
 - :mod:`~zernet.geometry.pointcloud` — array estimators for clouds (PCA normals, cell areas, curvature).
 - :mod:`~zernet.geometry.io` — :func:`load_surface` and the file readers.
+- :mod:`~zernet.geometry.coarsen` — :func:`coarsen_surface` (a coarse copy and where each vertex went).
 - :mod:`~zernet.geometry.validate` — :func:`validate_surface`, :func:`repair_surface` and the checks.
 - :mod:`~zernet.geometry.cloud_mesh` — :func:`mesh_from_cloud`: triangles through a cloud's own points.
 - :mod:`~zernet.geometry.sampling` — :class:`FixedScale`, :func:`normalize_area`, :class:`SurfaceSamples`, :func:`sample_surface`.
@@ -18,6 +19,7 @@ Modules, each with one job:
 """
 
 from zernet.geometry.cloud_mesh import mesh_from_cloud
+from zernet.geometry.coarsen import CoarseCopy, coarsen_surface
 from zernet.geometry.io import load_surface, read_surface
 from zernet.geometry.membrane import membrane_stress
 from zernet.geometry.polar import (
@@ -34,6 +36,8 @@ from zernet.geometry.surface import Surface, SurfaceError, SurfaceWarning
 from zernet.geometry.validate import RepairedSurface, repair_surface, validate_surface
 
 __all__ = [
+    "CoarseCopy",
+    "coarsen_surface",
     "Surface",
     "SurfaceError",
     "SurfaceWarning",

@@ -28,7 +28,6 @@ from zernet.geometry import FixedScale, Surface, read_surface, repair_surface
 from zernet.matching.fmap import cycle_confidence, functional_map, nearest_rows, pointmap_from_fmap, zoomout
 from zernet.matching.model import DescriptorModel, load_matching_model
 from zernet.matching.shapes import MatchShape, prepare_shape, rotating_columns
-from zernet.operators.spectral import partial_basis_size
 
 __all__ = [
     "MatchResult",
@@ -82,7 +81,8 @@ def shape_descriptors(model: DescriptorModel, shape: MatchShape, rotation: np.nd
         n_max = int(model.spec.patch_configs[0].get("n_max", 5))
         for columns in rotating_columns(model.spec.feature_kind, n_max):
             features[:, columns] = features[:, columns] @ rotation.T.astype(np.float32)
-    return model(torch.as_tensor(features, dtype=torch.float32), shape.geometry)
+    descriptors = model(torch.as_tensor(features, dtype=torch.float32), shape.geometry)
+    return descriptors if shape.descriptor_index is None else descriptors[torch.as_tensor(shape.descriptor_index)]
 
 
 def principal_axes(shape: MatchShape) -> np.ndarray:
@@ -110,14 +110,11 @@ def descriptor_fmap(
     descriptors_y: torch.Tensor,
     shape_x: MatchShape,
     shape_y: MatchShape,
-    k_x: int | None = None,
-    k_y: int | None = None,
 ) -> torch.Tensor:
-    """``C_xy`` (k_y, k_x): the functional-map layer on two shapes' descriptors; basis sizes default to the
-    spec's ``n_fmap`` (a part of the other shape keeps fewer: :func:`partial_basis_size`)."""
+    """``C_xy`` (k, k), k = the spec's ``n_fmap``: the functional-map layer on two shapes' descriptors."""
     k = model.spec.n_fmap
-    vectors_x, mass_x, values_x = shape_x.basis_tensors(k if k_x is None else k_x, descriptors_x.dtype)
-    vectors_y, mass_y, values_y = shape_y.basis_tensors(k if k_y is None else k_y, descriptors_y.dtype)
+    vectors_x, mass_x, values_x = shape_x.basis_tensors(k, descriptors_x.dtype)
+    vectors_y, mass_y, values_y = shape_y.basis_tensors(k, descriptors_y.dtype)
     return functional_map(
         descriptors_x,
         descriptors_y,
@@ -132,12 +129,6 @@ def descriptor_fmap(
     )
 
 
-def area_ratio(source: MatchShape, target: MatchShape) -> float:
-    """The source's area over the target's, at most 1: below 1 the source is taken for a part of the target
-    (only when both were scaled by one factor, ``same_scale``; each scaled to the model's area, it is 1)."""
-    return float(min(1.0, source.surface.area / target.surface.area))
-
-
 def match_shapes(
     model: DescriptorModel, source: MatchShape, target: MatchShape, zoomout_end: int | None = None
 ) -> MatchResult:
@@ -148,8 +139,6 @@ def match_shapes(
     seconds = {}
     start = time.perf_counter()
     descriptors_s = shape_descriptors(model, source)
-    ratio = area_ratio(source, target)
-    k_s = partial_basis_size(spec.n_fmap, ratio)
     rotations = candidate_alignments(source, target) if spec.align_target else [None]
     # The alignments are told apart on a fixed sample of source vertices: the full point map is then
     # searched once, for the one kept.
@@ -158,10 +147,10 @@ def match_shapes(
     for rotation in rotations:
         descriptors_t = shape_descriptors(model, target, rotation)
         with torch.no_grad():
-            fmap_ts = descriptor_fmap(model, descriptors_t, descriptors_s, target, source, k_y=k_s).double().numpy()
+            fmap_ts = descriptor_fmap(model, descriptors_t, descriptors_s, target, source).double().numpy()
         # C_ts carries target functions to the source, so it gives the point map source -> target.
         images = nearest_rows(
-            source.basis.eigenvectors[sample, :k_s] @ fmap_ts, target.basis.eigenvectors[:, : spec.n_fmap]
+            source.basis.eigenvectors[sample, : spec.n_fmap] @ fmap_ts, target.basis.eigenvectors[:, : spec.n_fmap]
         )
         # How well the descriptors agree under the map: a flipped or upside-down alignment maps
         # consistently (both directions agree) but pairs unlike descriptors.
@@ -173,7 +162,7 @@ def match_shapes(
     _, fmap_ts, descriptors_t = best
     vertex_map = pointmap_from_fmap(fmap_ts, target.basis, source.basis)
     with torch.no_grad():
-        fmap_st = descriptor_fmap(model, descriptors_s, descriptors_t, source, target, k_x=k_s).double().numpy()
+        fmap_st = descriptor_fmap(model, descriptors_s, descriptors_t, source, target).double().numpy()
     reverse_map = pointmap_from_fmap(fmap_st, source.basis, target.basis)
     seconds["descriptors+fmap"] = time.perf_counter() - start
     start = time.perf_counter()
@@ -194,7 +183,6 @@ def match_shapes(
             zoomout_end,
             spec.zoomout_step,
             features=features,
-            area_ratio=ratio,
         )
     seconds["zoomout"] = time.perf_counter() - start
     scale = CONFIDENCE_SCALE * np.sqrt(source.surface.area)
@@ -241,8 +229,8 @@ def match_surfaces(
         zoomout_end: see :func:`match_shapes`.
         same_scale: the two are in the same units (two scans from one scanner, one of them partial): both
             are scaled by the one factor that brings the larger to the model's area, instead of each to that
-            area, so a part keeps its size and the source, when smaller, is matched as a part of the target
-            (rectangular functional maps: :func:`zernet.operators.spectral.partial_basis_size`).
+            area, so a part keeps its size (scaled up to the model's area, a one-sided scan reads as a body
+            half again as large) and is matched into the whole.
 
     Returns:
         (result, prepared source, prepared target): ``result.vertex_map`` has one entry per *input* source
@@ -266,6 +254,7 @@ def match_surfaces(
             spec.n_eigen,
             cache_dir=cache_dir,
             name=Path(item.surface.name).stem,
+            descriptor_vertices=spec.descriptor_vertices,
         )
         for item in (repaired_source, repaired_target)
     ]

@@ -55,6 +55,8 @@ class MatchingSpec:
         zoomout_end, zoomout_step: ZoomOut from ``n_fmap`` to ``zoomout_end`` eigenpairs (0: no ZoomOut).
         zoomout_descriptor_weight: weight of the descriptors (scaled to unit typical length) appended to the
             spectral embeddings in ZoomOut's nearest-neighbour searches (0: plain ZoomOut).
+        descriptor_vertices: the model reads a larger surface through a coarse copy of about this many
+            vertices (:func:`zernet.matching.shapes.prepare_shape`; None: the surface itself).
         align_target: turn the target's pose-dependent inputs (xyz, normals) into the source's frame before
             its descriptors are computed, trying the 4 proper sign choices of the principal axes and keeping
             the most consistent match (:func:`zernet.matching.match.candidate_alignments`).
@@ -74,6 +76,7 @@ class MatchingSpec:
     zoomout_end: int = 80
     zoomout_step: int = 2
     zoomout_descriptor_weight: float = 0.0
+    descriptor_vertices: int | None = None
     align_target: bool = False
     feature_mean: tuple[float, ...] | None = None
     feature_std: tuple[float, ...] | None = None

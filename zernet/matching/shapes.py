@@ -11,13 +11,14 @@ features, all cached), plus the eigenbasis: of the mesh, or for a point cloud of
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from zernet.data import prepare_record
-from zernet.geometry import FixedScale, Surface
+from zernet.geometry import FixedScale, Surface, SurfaceWarning, coarsen_surface, validate_surface
 from zernet.operators import Geometry, PatchConfig
 from zernet.operators.spectral import SpectralBasis, heat_kernel_signature, laplacian_eigenbasis
 
@@ -31,12 +32,16 @@ class MatchShape:
     Attributes:
         name: the surface's name.
         surface: the validated surface scaled to the model's area (a point cloud: triangulated through its
-            points; same vertices, same order as the surface handed to :func:`prepare_shape`).
+            points, unless the model reads a coarse copy; same vertices, same order as the surface handed to
+            :func:`prepare_shape`).
         scale: the linear factor applied to the input's coordinates.
         is_point_cloud: whether the input had no faces.
         features: (N, C) float32 model inputs (:func:`input_features`).
         geometry: the patch operators the descriptor model reads.
         basis: the eigenbasis (k = the model's ``n_eigen``), of the scaled surface.
+        descriptor_index: None, or (N,) int64 when the model reads a coarse copy (``descriptor_vertices``):
+            ``features`` and ``geometry`` are the copy's, and vertex i takes the descriptor of the copy's
+            vertex ``descriptor_index[i]``.
     """
 
     name: str
@@ -46,6 +51,7 @@ class MatchShape:
     features: np.ndarray
     geometry: Geometry
     basis: SpectralBasis
+    descriptor_index: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -60,6 +66,9 @@ class MatchShape:
             torch.as_tensor(basis.eigenvalues, dtype=dtype),
         )
 
+
+#: A surface is read through a coarse copy only when it has more than this many times the vertices asked for.
+COARSE_MARGIN = 1.5
 
 #: Extra feature parts the matcher adds to :mod:`zernet.data.features`' parts: the heat kernel signature of
 #: the eigenbasis (16 channels), written ``hks`` in a feature kind (e.g. ``"shape+hks"``).
@@ -94,6 +103,7 @@ def prepare_shape(
     n_eigen: int,
     cache_dir: str | os.PathLike | None = None,
     name: str | None = None,
+    descriptor_vertices: int | None = None,
 ) -> MatchShape:
     """Prepare ``surface`` for matching (module docstring).
 
@@ -106,17 +116,51 @@ def prepare_shape(
         feature_kind: zernet feature parts joined by "+", optionally with ``hks``.
         n_eigen: eigenpairs to compute (the most any later step uses, ZoomOut included).
         cache_dir: cache of operators and eigenbases (None: nothing cached).
+        descriptor_vertices: a surface with more than :data:`COARSE_MARGIN` times this many vertices is read
+            by the model through a coarse copy of about this many (:func:`zernet.geometry.coarsen_surface`):
+            the resolution it was trained at, for a fraction of the time; the eigenbasis, the maps and the
+            answer stay on the surface itself.
     """
     is_cloud = surface.is_point_cloud
     zernet_kind = "+".join(part for part in feature_kind.split("+") if part != "hks")
-    record = prepare_record(
-        surface, patch_configs, cache_dir=cache_dir, target_area=area, feature_kind=zernet_kind or "ones", name=name
-    )
-    scaled = record.surface
-    spectral_surface = Surface(scaled.vertices, None, name=scaled.name) if is_cloud else scaled
-    basis = laplacian_eigenbasis(spectral_surface, n_eigen, cache_dir=cache_dir)
+    coarse = None
+    with warnings.catch_warnings():
+        # The copy is the matcher's own: what a simplifier leaves in it (non-manifold edges) is not the user's.
+        if descriptor_vertices and surface.n_vertices > COARSE_MARGIN * descriptor_vertices:
+            warnings.simplefilter("ignore", SurfaceWarning)
+            coarse = coarsen_surface(surface, descriptor_vertices)
+        record = prepare_record(
+            surface if coarse is None else coarse.surface,
+            patch_configs,
+            cache_dir=cache_dir,
+            target_area=area,
+            feature_kind=zernet_kind or "ones",
+            name=name,
+        )
+    basis = _eigenbasis(record.surface, is_cloud, n_eigen, cache_dir)
     features = input_features(record.features if zernet_kind else None, basis, feature_kind)
-    return MatchShape(record.name, scaled, record.scale, is_cloud, features, record.geometry, basis)
+    if coarse is None:
+        return MatchShape(record.name, record.surface, record.scale, is_cloud, features, record.geometry, basis)
+    # The surface itself, moved as the copy was: v' = s v + t (a scaling about the copy's centroid).
+    translation = (record.surface.vertices - record.scale * coarse.surface.vertices).mean(axis=0)
+    valid = validate_surface(surface)
+    scaled = Surface(record.scale * valid.vertices + translation, valid.faces, valid.normals, valid.fields, valid.name)
+    return MatchShape(
+        record.name,
+        scaled,
+        record.scale,
+        is_cloud,
+        features,
+        record.geometry,
+        _eigenbasis(scaled, is_cloud, n_eigen, cache_dir),
+        coarse.nearest,
+    )
+
+
+def _eigenbasis(surface: Surface, is_cloud: bool, n_eigen: int, cache_dir) -> SpectralBasis:
+    """The eigenbasis of a prepared surface: of the mesh, or for a cloud of its points (module docstring)."""
+    spectral_surface = Surface(surface.vertices, None, name=surface.name) if is_cloud else surface
+    return laplacian_eigenbasis(spectral_surface, n_eigen, cache_dir=cache_dir)
 
 
 def rotating_columns(feature_kind: str, n_max: int) -> list[slice]:

@@ -106,6 +106,7 @@ def prepare_bodies(
             spec.n_eigen,
             cache_dir=data["cache_dir"],
             name=form.name,
+            descriptor_vertices=spec.descriptor_vertices,
         )
         for form in located
     ]
