@@ -58,7 +58,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--topology", default="faust")
     parser.add_argument("--pairs", type=int, default=8)
-    parser.add_argument("--settings", default="remeshed,rotated,cloud")
+    parser.add_argument("--settings", default="remeshed,rotated,cloud,partial")
     parser.add_argument("--model", default=None, help="matching model file or run folder (default: the shipped one)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/matching"))
     parser.add_argument("--cache-dir", default=".zernet-cache")
