@@ -1,7 +1,8 @@
 """Training the descriptor model on generated bodies, supervised by their exact ground-truth maps.
 
 Each step draws a random pair of training bodies, each in its own form (:mod:`zernet.matching.bodies`:
-remeshed independently, or a noisy point cloud), runs the descriptor model on both in one block-diagonal
+remeshed independently, a noisy point cloud, or a one-sided partial scan, which keeps its whole body's
+scale and is always the source of its pair), runs the descriptor model on both in one block-diagonal
 batch, solves the functional map ``C_ts`` (target functions to the source) with the differentiable layer,
 and takes the loss (``train.loss``):
 
@@ -38,6 +39,7 @@ import numpy as np
 import torch
 import yaml
 
+from zernet.geometry import FixedScale, Surface
 from zernet.io_utils import atomic_write_bytes, plain, write_json
 from zernet.matching.bodies import LocatedForm, body_forms, ground_truth_map
 from zernet.matching.fmap import fmap_from_pointmap, pointmap_from_fmap
@@ -101,7 +103,7 @@ def prepare_bodies(
         prepare_shape(
             form.surface,
             spec.patch_config_objects(),
-            spec.area,
+            _form_scale(form, spec.area, body_vertices, faces),
             spec.feature_kind,
             spec.n_eigen,
             cache_dir=data["cache_dir"],
@@ -111,6 +113,23 @@ def prepare_bodies(
         for form in located
     ]
     return located, shapes, body_vertices, faces
+
+
+def _form_scale(form: LocatedForm, area: float, body_vertices: dict, faces: np.ndarray) -> float | FixedScale:
+    """How a form is scaled: to ``area``, but a partial scan by the factor of its whole body (as
+    ``zernet match --same-scale`` scales it), so it keeps its size."""
+    if form.form != "partial":
+        return area
+    return FixedScale(float(np.sqrt(area / Surface(body_vertices[form.body], faces).area)))
+
+
+def oriented_pair(forms: list[LocatedForm], a: int, b: int) -> tuple[int, int] | None:
+    """(source, target) positions of a pair with a partial scan as the source, never the target (the map of
+    a part into a whole is defined, the reverse is not); None for two partial scans."""
+    partial_a, partial_b = forms[a].form == "partial", forms[b].form == "partial"
+    if partial_a and partial_b:
+        return None
+    return (b, a) if partial_b else (a, b)
 
 
 def small_rotation(rng: np.random.Generator, max_degrees: float) -> np.ndarray:
@@ -260,7 +279,8 @@ def train(config: dict, run_dir: str | Path, command: str = "") -> dict:
     schedule = torch.optim.lr_scheduler.LambdaLR(
         optimiser, lambda step: 0.5 * (1 + np.cos(np.pi * min(step, steps) / steps))
     )
-    val_pairs = make_pairs(val_forms, val_shapes, val_vertices, faces, [(i, (i + 1) % n_val) for i in range(n_val)])
+    val_positions = [oriented_pair(val_forms, i, (i + 1) % n_val) for i in range(n_val)]
+    val_pairs = make_pairs(val_forms, val_shapes, val_vertices, faces, [p for p in val_positions if p is not None])
     provenance = {
         "command": command,
         "commit": _commit(),
@@ -273,8 +293,10 @@ def train(config: dict, run_dir: str | Path, command: str = "") -> dict:
     train_started = time.perf_counter()
     for step in range(1, steps + 1):
         model.train()
-        a, b = rng.choice(n_train, size=2, replace=False)
-        pair = make_pairs(forms, shapes, body_vertices, faces, [(a, b)])[0]
+        pair_positions = None
+        while pair_positions is None:
+            pair_positions = oriented_pair(forms, *rng.choice(n_train, size=2, replace=False))
+        pair = make_pairs(forms, shapes, body_vertices, faces, [pair_positions])[0]
         rotations = pair_rotations(rng, rotate, float(settings.get("rotate_jitter", 0.0))) if rotating else None
         loss = pair_loss(model, pair, settings["loss"], float(settings.get("point_weight", 1.0)), rotations, rotating)
         optimiser.zero_grad()
