@@ -79,3 +79,14 @@ def test_matching_configs_build_their_model():
         assert {"data", "spec", "train"} <= set(config)
         model = DescriptorModel(make_spec(config))
         assert model.spec.in_channels == 3 + 16 or model.spec.feature_kind != "xyz+hks"
+
+
+def test_a_partial_scan_is_always_the_source_of_its_training_pair():
+    from types import SimpleNamespace
+
+    from zernet.matching.train import oriented_pair
+
+    forms = [SimpleNamespace(form=name) for name in ("remeshed", "partial", "cloud-noisy", "partial")]
+    assert oriented_pair(forms, 0, 2) == (0, 2)
+    assert oriented_pair(forms, 0, 1) == (1, 0) and oriented_pair(forms, 1, 0) == (1, 0)
+    assert oriented_pair(forms, 1, 3) is None
