@@ -30,11 +30,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from zernet.geometry import FixedScale, Surface
+from zernet.geometry import Surface
 from zernet.io_utils import write_json
 from zernet.matching.bodies import body_forms, ground_truth_map
 from zernet.matching.fmap import zoomout
-from zernet.matching.match import match_shapes, nearest_vertex_map
+from zernet.matching.match import match_shapes, nearest_vertex_map, shared_scale
 from zernet.matching.model import load_matching_model
 from zernet.matching.shapes import prepare_shape
 from zernet.metrics import error_curve, geodesic_diameter, geodesic_errors
@@ -98,7 +98,7 @@ def main(argv=None) -> int:
             # A partial scan is matched in the units it shares with the whole body (zernet match --same-scale).
             area = spec.area
             if setting == "partial":
-                area = FixedScale(float(np.sqrt(spec.area / max(source_form.surface.area, target_surface.area))))
+                area = shared_scale(spec.area, [source_form.surface, target_surface])
             source = prepare_shape(
                 source_form.surface,
                 spec.patch_config_objects(),

@@ -38,6 +38,7 @@ __all__ = [
     "match_shapes",
     "match_surfaces",
     "nearest_vertex_map",
+    "shared_scale",
     "CONFIDENCE_SCALE",
 ]
 
@@ -242,9 +243,7 @@ def match_surfaces(
     spec = model.spec
     start = time.perf_counter()
     repaired_source, repaired_target = _load_input(source), _load_input(target)
-    area = spec.area
-    if same_scale:
-        area = FixedScale(float(np.sqrt(spec.area / max(repaired_source.surface.area, repaired_target.surface.area))))
+    area = shared_scale(spec.area, [repaired_source.surface, repaired_target.surface]) if same_scale else spec.area
     prepared = [
         prepare_shape(
             item.surface,
@@ -269,6 +268,12 @@ def match_surfaces(
     result.confidence = result.confidence[repaired_source.vertex_map]
     result.seconds = {"prepare": prepare_seconds, **result.seconds}
     return result, prepared[0], prepared[1]
+
+
+def shared_scale(area: float, surfaces: list[Surface]) -> FixedScale:
+    """The one factor that brings the largest of ``surfaces`` to ``area`` (``same_scale``: surfaces in the same
+    units, one of them a part of another)."""
+    return FixedScale(float(np.sqrt(area / max(surface.area for surface in surfaces))))
 
 
 def _first_input_vertex(vertex_map: np.ndarray, n_repaired: int) -> np.ndarray:
