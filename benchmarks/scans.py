@@ -46,6 +46,7 @@ from zernet.data.segmentation import HUMAN_PART_NAMES  # noqa: E402
 from zernet.geometry import read_surface  # noqa: E402
 from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
 from zernet.training import load_config  # noqa: E402
+from zernet.training.checkpoint import load_checkpoint  # noqa: E402
 from zernet.training.predict import predict  # noqa: E402
 from zernet.viz import render_comparison  # noqa: E402
 
@@ -262,11 +263,13 @@ def markdown(results: dict, args, scale: float) -> str:
         f"them and the partial scans of {MIXED_PARTIAL_BODIES}, at one fixed scale (`patch.scale`) instead of per-shape area normalisation. Test split: 20 bodies "
         "never seen in training, each in every form (`zernet bodies ... --forms all`). Accuracy pooled over "
         "the vertices (points) of the form, against the ground truth carried from the original body; "
-        "*drop*: points below the original form; *refused*: shapes that raised.",
+        "*drop*: points below the original form; *refused*: shapes that raised; *rings*: the refinement the "
+        "run chose on its validation split (the vertices the network is unsure of take the average of that "
+        "many rings, `eval.refine_rings`; 0: none), applied as `zernet predict` applies it.",
         f"Partial scans scaled by the training bodies' median factor {scale:.2f} (`predict(scale=...)`).",
         "",
-        "| model | form | accuracy | drop | worst shape | refused | s / shape |",
-        "|---|---|---|---|---|---|---|",
+        "| model | form | accuracy | drop | worst shape | refused | rings | s / shape |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for model, forms in results.items():
         original = forms.get("original", {}).get("accuracy")
@@ -282,6 +285,7 @@ def markdown(results: dict, args, scale: float) -> str:
                 drop,
                 "-" if worst is None else f"{100 * worst:.1f} %",
                 f"{len(row['refused'])} / {row['shapes'] + len(row['refused'])}",
+                str(row.get("refine_rings", 0)),
                 "-" if seconds is None else f"{seconds:.1f}",
             ]
             lines.append(f"| {model} | {form} | " + " | ".join(cells) + " |")
@@ -301,6 +305,7 @@ def main(argv=None) -> int:
             files = form_files(args.bodies, form)[: args.limit]
             picture = RESULTS / f"{args.out}{PICTURES[model]}_{form}.png" if model in PICTURES else None
             row = score_form(run_dir, files, scale if form == "partial" else None, picture)
+            row["refine_rings"] = int(load_checkpoint(run_dir / "best.pt").get("refine_rings", 0))
             results[model][form] = row
             accuracy = "-" if row["accuracy"] is None else f"{100 * row['accuracy']:.2f} %"
             print(f"{model:9} {form:12} {accuracy:>9}  refused {len(row['refused'])}", flush=True)

@@ -1,5 +1,6 @@
-"""Correspondence refinement: the ring average, what averaging over both neighbourhoods does to a map, and
-how evaluation scores, reports and chooses it."""
+"""Refinement of a correspondence and of a segmentation: the ring average, what averaging over both
+neighbourhoods does to a map, what averaging the unsure vertices does to parts, and how evaluation scores,
+reports and chooses it."""
 
 import json
 
@@ -16,7 +17,7 @@ from zernet.training import evaluate, predict, train
 from zernet.training.checkpoint import load_checkpoint
 from zernet.training.config import ConfigError, EvalSection
 from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
-from zernet.training.refine import refine_correspondence, ring_average
+from zernet.training.refine import SEGMENTATION_CONFIDENCE, refine_correspondence, refine_segmentation, ring_average
 
 
 def test_ring_average_is_the_mean_over_the_vertices_within_so_many_edges(tetrahedron_surface, sphere_surface):
@@ -91,6 +92,48 @@ def test_refinement_follows_a_reindexing_of_either_mesh():
     np.testing.assert_allclose(renumbered, refined[rows][:, cols], rtol=1e-5, atol=1e-7)
 
 
+def _hemispheres(surface) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) parts of a sphere (0 below the equator, 1 above) and sure (N, 2) probabilities of them."""
+    parts = (surface.vertices[:, 2] > 0).astype(np.int64)
+    probabilities = np.where(parts[:, None] == np.arange(2), 0.99, 0.01).astype(np.float32)
+    return parts, probabilities
+
+
+def test_segmentation_refinement_corrects_only_the_unsure_vertices(sphere_surface):
+    faces = sphere_surface.faces
+    parts, probabilities = _hemispheres(sphere_surface)
+    # Far from the equator: one vertex wrong and unsure, one wrong and sure.
+    top = np.flatnonzero(sphere_surface.vertices[:, 2] > 0.8)
+    unsure, sure = int(top[0]), int(top[1])
+    probabilities[unsure] = [0.6, 0.4]
+    probabilities[sure] = [(1 + SEGMENTATION_CONFIDENCE) / 2, (1 - SEGMENTATION_CONFIDENCE) / 2]
+    for rings in (1, 2):
+        refined = refine_segmentation(probabilities, faces, rings)
+        assert refined.argmax(1)[unsure] == parts[unsure] == 1  # its neighbourhood's answer
+        assert refined.argmax(1)[sure] == 0  # a sure answer is the network's, right or wrong
+        others = np.setdiff1d(np.arange(len(parts)), [unsure])
+        np.testing.assert_array_equal(refined[others], probabilities[others])
+        np.testing.assert_allclose(refined.sum(axis=1), 1.0, rtol=1e-5)
+    np.testing.assert_array_equal(refine_segmentation(probabilities, faces, 0), probabilities)
+    # A tensor is refined where it is, to the same numbers.
+    tensor = refine_segmentation(torch.from_numpy(probabilities), faces, 2)
+    assert isinstance(tensor, torch.Tensor)
+    np.testing.assert_allclose(tensor.numpy(), refine_segmentation(probabilities, faces, 2), rtol=1e-6)
+    with pytest.raises(ValueError, match="rings"):
+        refine_segmentation(probabilities, faces, -1)
+
+
+def test_segmentation_refinement_follows_a_reindexing_of_the_vertices():
+    shape = icosphere(2, noise=0.05, seed=2)
+    rng = np.random.default_rng(4)
+    probabilities = rng.dirichlet(np.full(4, 0.5), size=shape.n_vertices).astype(np.float32)
+    refined = refine_segmentation(probabilities, shape.faces, 2)
+    assert (refined != probabilities).any(axis=1).sum() > 0
+    order = rng.permutation(shape.n_vertices)
+    renumbered = refine_segmentation(probabilities[order], np.argsort(order)[shape.faces], 2)
+    np.testing.assert_allclose(renumbered, refined[order], rtol=1e-5, atol=1e-7)
+
+
 # ------------------------------------------------------------------------------- evaluation with refinement
 class _KnownMap(torch.nn.Module):
     """Predicts the identity map except that a few vertices point at the far side of the sphere."""
@@ -160,10 +203,16 @@ def test_evaluation_scores_the_refined_map_and_keeps_the_unrefined_beside(sphere
         select_refine_rings(members, dataset, [-1], device, progress=False)
 
 
-def test_refinement_is_ignored_by_segmentation_and_needs_a_validation_split(spheres_in_faust_layout):
+def test_refinement_is_chosen_for_segmentation_ignored_by_regression_and_needs_a_validation_split(
+    spheres_in_faust_layout,
+):
     dataset = spheres_in_faust_layout
+    # Sure answers (every vertex its own class): no ring changes them, so the fewest rings are chosen.
     segmentation = [(_KnownMap(dataset[0].surface.vertices, wrong=[]), {"task": "classification", "num_classes": 162})]
-    assert select_refine_rings(segmentation, dataset, [0, 4], torch.device("cpu"), progress=False) == (0, None)
+    rings, choice = select_refine_rings(segmentation, dataset, [0, 4], torch.device("cpu"), progress=False)
+    assert rings == 0 and choice["split"] == "val" and choice["accuracy"] == {"0": 1.0, "4": 1.0}
+    regression = [(segmentation[0][0], {"task": "regression"})]
+    assert select_refine_rings(regression, dataset, [0, 4], torch.device("cpu"), progress=False) == (0, None)
     correspondence = [(segmentation[0][0], {"task": "classification", "correspondence": True, "num_classes": 162})]
     no_validation = dataset.subset(dataset.splits["train"] + dataset.splits["test"])
     no_validation.splits.pop("val", None)
@@ -211,14 +260,10 @@ def test_a_trained_run_stores_its_template_and_choice_and_predict_applies_them(f
     np.testing.assert_array_equal(
         predict(tmp_path / "run", surface), predict(tmp_path / "run", surface, refine_rings=best["refine_rings"])
     )
-    # A checkpoint without a template (written before refinement existed), or of another task, says so.
-    for change, message in (
-        ({"template_faces": None}, "stores no template mesh"),
-        ({"correspondence": False}, "correspondence models only"),
-    ):
-        torch.save({**best, **change}, tmp_path / "changed.pt")
-        with pytest.raises(ValueError, match=message):
-            predict(tmp_path / "changed.pt", surface, refine_rings=1)
+    # A checkpoint without a template (written before refinement existed) says so.
+    torch.save({**best, "template_faces": None}, tmp_path / "changed.pt")
+    with pytest.raises(ValueError, match="stores no template mesh"):
+        predict(tmp_path / "changed.pt", surface, refine_rings=1)
     # evaluate chooses again on the validation split, with the same outcome as training.
     again = evaluate(tmp_path / "run", progress=False)
     assert again["refine_choice"] == metrics["refine_choice"] and again["summary"] == metrics["summary"]

@@ -26,6 +26,7 @@ import yaml
 from meshes import icosphere
 
 from zernet.cli import main
+from zernet.geometry import Surface
 from zernet.training.predict import predict
 
 N_GOOD = 6
@@ -317,6 +318,31 @@ def test_a_run_trained_on_meshes_predicts_on_the_cloud_of_a_mesh(skipped_run, tm
     assert on_cloud.shape == on_mesh.shape == (len(vertices),)
     # The cloud is triangulated through its points and read by the same front: nearly the same answers.
     assert (on_cloud == on_mesh).mean() >= 0.9
+
+
+def test_a_segmentation_run_chooses_its_refinement_on_validation_and_predict_applies_it_to_a_cloud(
+    skipped_run, tmp_path
+):
+    from zernet.training.checkpoint import load_checkpoint
+    from zernet.training.refine import SEGMENTATION_CONFIDENCE
+
+    run_dir = tmp_path / "run"
+    config = skipped_run["config"]
+    args = ["train", config, "--run-dir", str(run_dir), "--no-progress", "--workers", "0", "--skip-bad"]
+    assert main([*args, "--set", "eval.refine_rings=[0,1,2]", "eval.plots=false"]) == 0
+    metrics = strict_json(run_dir / "metrics.json")
+    choice = metrics["refine_choice"]
+    assert choice["split"] == "val" and sorted(choice["accuracy"]) == ["0", "1", "2"]
+    assert load_checkpoint(run_dir / "best.pt")["refine_rings"] == choice["rings"] == metrics["refine_rings"]
+    assert ("unrefined_summary" in metrics) == (choice["rings"] > 0)  # the test split before refinement
+    # On a cloud: the sure points keep the network's answer, the unsure ones take their rings' average.
+    cloud = Surface(trimesh.load(skipped_run["meshes"] / "test" / "shape5.obj", process=False).vertices, None)
+    raw, probabilities = predict(run_dir, cloud, probabilities=True, refine_rings=0)
+    refined = predict(run_dir, cloud, refine_rings=2)
+    assert refined.shape == raw.shape == (cloud.n_vertices,)
+    sure = probabilities.max(axis=1) >= SEGMENTATION_CONFIDENCE
+    np.testing.assert_array_equal(refined[sure], raw[sure])
+    np.testing.assert_array_equal(predict(run_dir, cloud), predict(run_dir, cloud, refine_rings=choice["rings"]))
 
 
 def test_predict_with_an_explicit_scale_equals_the_area_normalised_prediction(skipped_run):

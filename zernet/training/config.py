@@ -409,7 +409,8 @@ class EvalSection(_Section):
     renders: int = _rule(3, "int", minimum=0)  # test shapes rendered (prediction, truth, error)
     plots: bool = _rule(True, "bool")  # write plots at all
     # Correspondence: the predicted probabilities averaged over this many rings of mesh neighbours
-    # (zernet.training.refine); a number, or candidates of which the best on the validation split is used.
+    # (zernet.training.refine); segmentation: the same on the shape, at the vertices the network is unsure of.
+    # A number, or candidates of which the best on the validation split is used.
     refine_rings: list[int] = _rule((0,), "int_list")
     # Correspondence, after the rings: the global refinement (zernet.training.spectral_refine), the prediction
     # kept within this radius (a fraction of the template's geodesic diameter) of a spectral map read from it;

@@ -1,12 +1,13 @@
-"""Scoring a trained model or an ensemble on a split: metrics, baselines, the correspondence refinement
-chosen on validation, and the one-line summary.
+"""Scoring a trained model or an ensemble on a split: metrics, baselines, the refinement of a
+correspondence or a segmentation chosen on validation, and the one-line summary.
 
 A correspondence is refined on the run's device: the ring average (torch sparse products,
 :mod:`zernet.training.refine`), then optionally the global step (:mod:`zernet.training.spectral_refine`:
 the prediction kept within reach of a spectral map, which repairs flipped regions), both chosen on the
 validation split. The geodesic errors of a test shape are measured once for the unrefined, the
 ring-refined and the refined map together (:class:`zernet.metrics.GeodesicErrors`: the diameter once, each
-distinct vertex pair once)."""
+distinct vertex pair once). A segmentation is refined by the ring average of its unsure vertices
+(:func:`zernet.training.refine.refine_segmentation`), the ring count chosen on the validation split too."""
 
 from __future__ import annotations
 
@@ -21,11 +22,12 @@ from tqdm.auto import tqdm
 
 from zernet import metrics as zmetrics
 from zernet.data import SkippedShapesWarning
+from zernet.geometry.cloud_mesh import mesh_from_cloud
 from zernet.training.build import build_dataset
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
 from zernet.training.config import ConfigError
 from zernet.training.predict import model_from_checkpoint, predict_record
-from zernet.training.refine import refine_correspondence
+from zernet.training.refine import refine_correspondence, refine_segmentation
 from zernet.training.runtime import resolve_device
 from zernet.training.spectral_refine import check_radii, spectral_refiner, template_of
 from zernet.training.targets import unstandardise
@@ -48,26 +50,33 @@ def _kind(checkpoint: dict) -> str:
     return "correspondence" if checkpoint.get("correspondence", False) else "segmentation"
 
 
-def _ring_scores(probabilities: torch.Tensor, record, rings: int) -> torch.Tensor:
-    """The probabilities averaged over ``rings`` rings, where they are (the run's device). Correspondence by
+def _ring_scores(probabilities: torch.Tensor, record, rings: int, kind: str) -> torch.Tensor:
+    """The probabilities refined over ``rings`` rings, where they are (the run's device). Correspondence by
     vertex index: every shape has the template's connectivity, so the record's faces serve for both the shape
-    and the template."""
+    and the template. Segmentation: only the unsure vertices are averaged, over the shape's rings (a point
+    cloud's: its triangulation's)."""
+    if not rings:
+        return probabilities
     faces = record.surface.faces
+    if kind == "segmentation":
+        if faces is None:  # a cloud prepared for a backend that needs no triangles
+            faces = mesh_from_cloud(record.surface).faces
+        return refine_segmentation(probabilities, faces, rings)
     if faces is None:
         raise ValueError(f"shape {record.name}: refining a correspondence needs a triangle mesh")
-    return refine_correspondence(probabilities, faces, faces, rings) if rings else probabilities
+    return refine_correspondence(probabilities, faces, faces, rings)
 
 
-def _refined(probabilities: torch.Tensor, record, rings: int) -> np.ndarray:
-    """The map refined over ``rings`` rings (:func:`_ring_scores`)."""
-    return _ring_scores(probabilities, record, rings).argmax(dim=1).cpu().numpy()
+def _refined(probabilities: torch.Tensor, record, rings: int, kind: str) -> np.ndarray:
+    """The prediction refined over ``rings`` rings (:func:`_ring_scores`)."""
+    return _ring_scores(probabilities, record, rings, kind).argmax(dim=1).cpu().numpy()
 
 
 def global_refinement_unavailable(checkpoint: dict) -> str | None:
     """Why a checkpoint cannot be refined globally (:mod:`zernet.training.spectral_refine`), or None if it
     can: it must be a correspondence model that stores its template's geometry."""
     if _kind(checkpoint) != "correspondence":
-        return None  # nothing to refine: the candidates are ignored, as refine_rings is
+        return None  # nothing to refine globally: the radii are ignored
     if template_of(checkpoint) is None:
         return (
             "the checkpoint stores no template geometry (template_vertices: written before the global "
@@ -114,17 +123,19 @@ def evaluate_members(
     :func:`~zernet.training.predict.predict_record`) on the shapes at ``indices`` and the predictions of
     the first ``keep``. A correspondence is scored after refinement over ``refine_rings`` rings
     (:mod:`zernet.training.refine`) and then, if ``refine_spectral`` > 0, by the global step within that
-    radius (:mod:`zernet.training.spectral_refine`); other tasks ignore both. The unrefined scores are kept
-    beside (``unrefined_summary``), and with both steps the ring-refined ones (``ring_refined_summary``)."""
+    radius (:mod:`zernet.training.spectral_refine`); a segmentation after the rings alone; regression ignores
+    both. The unrefined scores are kept beside (``unrefined_summary``), and with both steps the ring-refined
+    ones (``ring_refined_summary``)."""
     checkpoint = members[0][1]
     task, kind = checkpoint["task"], _kind(checkpoint)
-    refine_rings = refine_rings if kind == "correspondence" else 0
+    refine_rings = refine_rings if kind != "regression" else 0
     refine_spectral = check_radii(refine_spectral)[0] if kind == "correspondence" else 0.0
     refiner = _refiner(checkpoint) if refine_spectral else None
     n_classes = None if checkpoint.get("num_classes") is None else int(checkpoint["num_classes"])
     per_shape: dict[str, dict] = {}
     kept: list[dict] = []
     errors_all, unrefined_errors, ring_errors, confusion, label_counts = [], [], [], None, None
+    unrefined_confusion = None
     for position, i in enumerate(tqdm(indices, desc="evaluating", unit="shape", leave=False, disable=not progress)):
         record = dataset[i]
         if record.target is None:
@@ -132,9 +143,15 @@ def evaluate_members(
         pred, probabilities = predict_record(members, record, device)
         target = np.asarray(record.target)
         geodesics = zmetrics.GeodesicErrors(record.surface) if kind == "correspondence" else None
-        if refine_rings or refine_spectral:
+        if refine_rings and kind == "segmentation":
+            shape_confusion = zmetrics.confusion_matrix(pred, target, n_classes)
+            unrefined_confusion = (
+                shape_confusion if unrefined_confusion is None else unrefined_confusion + shape_confusion
+            )
+            pred = _refined(torch.from_numpy(probabilities).to(device), record, refine_rings, kind)
+        elif refine_rings or refine_spectral:
             unrefined_errors.append(geodesics(pred, target))
-            scores = _ring_scores(torch.from_numpy(probabilities).to(device), record, refine_rings)
+            scores = _ring_scores(torch.from_numpy(probabilities).to(device), record, refine_rings, kind)
             pred = scores.argmax(dim=1).cpu().numpy()
             if refine_spectral:
                 if refine_rings:
@@ -166,6 +183,9 @@ def evaluate_members(
                 result[key] = {k: v for k, v in scores.items() if not k.startswith("curve_")}
     elif kind == "segmentation":
         result["summary"] = zmetrics.segmentation_scores(confusion=confusion)
+        result["refine_rings"] = refine_rings
+        if unrefined_confusion is not None:  # what the refinement changed, on the same split
+            result["unrefined_summary"] = zmetrics.segmentation_scores(confusion=unrefined_confusion)
         result["baseline"] = {"majority_class_accuracy": float(label_counts.max() / label_counts.sum())}
     else:
         aggregated = zmetrics.aggregate_scores(per_shape)
@@ -194,9 +214,9 @@ def select_refinement(
     device,
     progress: bool,
 ) -> tuple[int, float, dict | None]:
-    """The refinement to use and how it was chosen, on the ``val`` split (correspondence; other tasks get
-    none): first the ring count whose exact accuracy is highest (the fewest rings on a tie), then, after those
-    rings, the global step's radius (:mod:`zernet.training.spectral_refine`; 0: off) whose exact accuracy is
+    """The refinement to use and how it was chosen, on the ``val`` split (correspondence and segmentation;
+    regression gets none): first the ring count whose exact accuracy is highest (the fewest rings on a tie),
+    then, for a correspondence, after those rings, the global step's radius (:mod:`zernet.training.spectral_refine`; 0: off) whose exact accuracy is
     highest (off on a tie, else the widest radius). A single candidate is taken without a look at the data.
     Without a template geometry (older checkpoints) the global step is left off with a warning
     (:func:`global_refinement_unavailable`).
@@ -213,8 +233,11 @@ def select_refinement(
         radii = sorted(set(check_radii(spectral_candidates)))
     except ValueError as error:
         raise ConfigError(str(error)) from None
-    if _kind(members[0][1]) != "correspondence":
+    kind = _kind(members[0][1])
+    if kind == "regression":
         return 0, 0.0, None
+    if kind == "segmentation":
+        radii = [0.0]  # the global step maps onto a template; a segmentation has none
     unavailable = global_refinement_unavailable(members[0][1]) if any(radii) else None
     if unavailable is not None:
         warnings.warn(unavailable, UserWarning, stacklevel=2)
@@ -237,7 +260,7 @@ def select_refinement(
         total += len(target)
         probabilities = torch.from_numpy(probabilities).to(device)  # refined there, once per candidate
         for rings in candidates:
-            refined = pred if rings == 0 else _refined(probabilities, record, rings)
+            refined = pred if rings == 0 else _refined(probabilities, record, rings, kind)
             hits[rings] += int(np.sum(refined == target))
     accuracy = {rings: hits[rings] / total for rings in candidates}
     chosen = max(candidates, key=lambda rings: (accuracy[rings], -rings))
@@ -254,7 +277,7 @@ def select_refinement(
             record = dataset[i]
             target = np.asarray(record.target)
             _, probabilities = predict_record(members, record, device)
-            scores = _ring_scores(torch.from_numpy(probabilities).to(device), record, chosen)
+            scores = _ring_scores(torch.from_numpy(probabilities).to(device), record, chosen, kind)
             for candidate in radii:
                 refined = refiner.refine(scores, record.surface, candidate)
                 spectral_hits[candidate] += int(np.sum(refined == target))

@@ -499,7 +499,8 @@ def _test(
     logger,
 ) -> tuple[dict, list[dict]]:
     """The selected model (best.pt) on the test split (the validation split if there is none); a
-    correspondence refined as ``evaluation.refine_rings`` and ``evaluation.refine_spectral`` say."""
+    correspondence refined as ``evaluation.refine_rings`` and ``evaluation.refine_spectral`` say, a
+    segmentation as ``evaluation.refine_rings`` says."""
     best = load_checkpoint(run_dir / "best.pt")
     model.load_state_dict(best["model"])
     if splits.test:
@@ -534,7 +535,7 @@ def _test(
                 + ", ".join(f"{k}: {v:.4f}" for k, v in choice["spectral_accuracy"].items())
                 + ")"
             )
-    if best.get("correspondence") and (best.get("refine_rings"), best.get("refine_spectral")) != (rings, radius):
+    if best["task"] == "classification" and (best.get("refine_rings"), best.get("refine_spectral")) != (rings, radius):
         best["refine_rings"] = rings  # what `predict` applies to a new surface
         best["refine_spectral"] = radius
         atomic_save_torch(best, run_dir / "best.pt")

@@ -10,12 +10,12 @@ import numpy as np
 import torch
 
 from zernet.data import prepare_record
-from zernet.geometry import Surface, read_surface, repair_surface
+from zernet.geometry import Surface, mesh_from_cloud, read_surface, repair_surface
 from zernet.operators import PatchConfig
 from zernet.training.batch import Batch, model_basis_orders, model_directional_order
 from zernet.training.build import build_model_from_spec
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
-from zernet.training.refine import refine_correspondence
+from zernet.training.refine import refine_correspondence, refine_segmentation
 from zernet.training.runtime import resolve_device
 from zernet.training.spectral_refine import check_radii, spectral_refiner, template_of
 from zernet.training.targets import destandardise, untransform
@@ -86,9 +86,10 @@ def predict(
             operators; a point cloud is triangulated through its own points for the front backend).
         probabilities: classification only — also return the (N, C) softmax probabilities.
         progress: print what was repaired (duplicate vertices merged, degenerate faces dropped).
-        refine_rings: correspondence only: average the probabilities over this many rings of mesh neighbours
-            on the surface and on the template (:mod:`zernet.training.refine`); None: the number the run
-            chose on its validation split (0 for runs that chose none).
+        refine_rings: correspondence: average the probabilities over this many rings of mesh neighbours
+            on the surface and on the template; segmentation: average them over this many rings of the
+            surface (a cloud: of its triangulation) where the network is unsure (:mod:`zernet.training.refine`);
+            None: the number the run chose on its validation split (0 for runs that chose none).
         refine_spectral: correspondence only: after the rings, keep the prediction within this radius (a
             fraction of the template's geodesic diameter) of a spectral map read from it
             (:mod:`zernet.training.spectral_refine`; it repairs flipped regions); 0: off; None: what the run
@@ -155,11 +156,14 @@ def predict(
 
 
 def _refined_probabilities(checkpoint: dict, record, probabilities: np.ndarray, rings: int) -> np.ndarray:
-    """Correspondence refinement of a new surface's probabilities, against the template the run stored."""
-    if not checkpoint.get("correspondence"):
-        raise ValueError(
-            "refine_rings applies to correspondence models only; this one predicts "
-            + ("values" if checkpoint["task"] == "regression" else "segmentation classes")
+    """Refinement of a new surface's probabilities: a correspondence against the template the run stored, a
+    segmentation on the surface alone."""
+    if checkpoint["task"] != "classification":
+        raise ValueError("refine_rings applies to classification models only; this one predicts values")
+    if not checkpoint.get("correspondence"):  # segmentation: the shape's own rings, where the network is unsure
+        faces = record.surface.faces
+        return refine_segmentation(
+            probabilities, mesh_from_cloud(record.surface).faces if faces is None else faces, rings
         )
     template = checkpoint.get("template_faces")
     if template is None:
