@@ -9,7 +9,8 @@ uneven density, and cut to a partial scan; ground truth through the position on 
    ``best.pt`` is reused) with ``configs/bodies_segmentation.yaml``, changing only the data folders, the
    model name and the epochs (and, for ``zernet-mixed``, the training set and the scaling: ``MODELS``);
 2. predicts every form of every test body with ``zernet.training.predict`` (what ``zernet predict`` does:
-   repairs, the backend chosen by the kind of surface, one value per input vertex), and scores the
+   repairs, the backend chosen by the kind of surface, the refinement the run chose on validation, one
+   value per input vertex), and scores the
    vertex accuracy against the form's ground truth; a form that raises counts as *refused*;
 3. writes ``benchmarks/results/scans.md`` and ``scans.json`` (accuracy per model and form, pooled over the
    vertices of the 20 test bodies, its drop from the original form, refusals, seconds per shape) and one
