@@ -55,18 +55,17 @@ RESULTS = ROOT / "benchmarks" / "results"
 CONFIG = ROOT / "configs" / "bodies_segmentation.yaml"
 FORMS = ("original", "remeshed", "decimated", "cloud", "cloud-noisy", "partial")
 #: zernet and FeaStNet (the same widths and dropout) trained on the original bodies; zernet-mixed: zernet
-#: trained from scratch on the original training bodies plus every form of the first MIXED_BODIES of them
-#: and the partial scans of MIXED_PARTIAL_BODIES (augmentation by remeshing, decimation, resampling and
-#: one-sided views), at one fixed scale
+#: trained from scratch on the original training bodies plus the forms of the first training bodies
+#: (MIXED_FORM_BODIES: augmentation by remeshing, decimation, resampling and one-sided views), at one fixed
+#: scale
 #: (``patch.scale``: the training bodies' median factor to the training area) instead of per-shape area
 #: normalisation, which would enlarge a partial scan to a whole body's area.
 MODELS = ("zernet", "feastnet", "zernet-mixed")
-#: Training bodies whose forms join the mixed training set, and the forms taken; partial scans of more of
-#: them (MIXED_PARTIAL_BODIES): chosen on 10 validation bodies of another seed in every form, where 80
-#: partial scans against 40 lowered the drop of every form (partial 6.6 -> 5.6 points, noisy half clouds
-#: 9.2 -> 8.6, the rest by 0.1).
-MIXED_BODIES, MIXED_FORMS = 40, ("remeshed", "decimated", "cloud", "cloud-noisy", "partial")
-MIXED_PARTIAL_BODIES = 80
+#: Form -> how many training bodies (the first ones) join the mixed training set in that form. Partial
+#: scans of all 80 rather than 40: chosen on 10 validation bodies of another seed in every form, where it
+#: lowered the drop of every form (partial 6.6 -> 5.6 points, noisy half clouds 9.2 -> 8.6, the rest by 0.1).
+#: ``--mixed FORM=N`` changes it for one call.
+MIXED_FORM_BODIES = {"remeshed": 40, "decimated": 40, "cloud": 40, "cloud-noisy": 40, "partial": 80}
 #: Models whose predictions are drawn, and the suffix of their pictures' names.
 PICTURES = {"zernet": "", "zernet-mixed": "_mixed"}
 #: Model options only zernet takes.
@@ -88,7 +87,22 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--limit", type=int, default=None, help="only the first N test bodies")
     parser.add_argument("--out", default="scans", help="stem of the result files in benchmarks/results")
-    return parser.parse_args(argv)
+    parser.add_argument(
+        "--mixed",
+        nargs="+",
+        default=[],
+        metavar="FORM=N",
+        help="zernet-mixed: take FORM of the first N training bodies (default: MIXED_FORM_BODIES)",
+    )
+    args = parser.parse_args(argv)
+    mixed = dict(MIXED_FORM_BODIES)
+    for item in args.mixed:
+        form, _, count = item.partition("=")
+        if form not in mixed or not count.isdigit() or not 0 <= int(count) <= 80:
+            parser.error(f"--mixed {item}: expected FORM=N with FORM one of {', '.join(mixed)} and N in 0-80")
+        mixed[form] = int(count)
+    args.mixed = mixed
+    return args
 
 
 def ensure_bodies(bodies: Path) -> None:
@@ -128,7 +142,7 @@ def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
         config["model"] = {key: value for key, value in config["model"].items() if key not in ZERNET_ONLY}
         config["model"]["name"] = "feastnet"
     if model == "zernet-mixed":
-        mixed = mixed_training_folder(bodies)
+        mixed = mixed_training_folder(bodies, args.mixed)
         config["data"].update(meshes=str(mixed / "meshes"), labels=str(mixed / "labels"))
         config["patch"]["scale"] = training_scale(bodies, config["patch"].pop("area"))
     path = run_dir.parent / f"{model}.yaml"
@@ -152,12 +166,12 @@ def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
     return run_dir
 
 
-def mixed_training_folder(bodies: Path) -> Path:
-    """A segmentation folder of links: the original training and test bodies, plus the forms
-    (:data:`MIXED_FORMS`) of the first :data:`MIXED_BODIES` training bodies and the partial scans of the
-    first :data:`MIXED_PARTIAL_BODIES` (generated if missing)."""
+def mixed_training_folder(bodies: Path, form_bodies: dict[str, int]) -> Path:
+    """A segmentation folder of links: the original training and test bodies, plus each form of
+    ``form_bodies`` (:data:`MIXED_FORM_BODIES`) of that many of the first training bodies (generated if
+    missing)."""
     forms = bodies / "train-forms"
-    if not (forms / "forms" / MIXED_FORMS[0] / "meshes" / "train").is_dir():
+    if not all((forms / "forms" / form / "meshes" / "train").is_dir() for form in form_bodies):
         subprocess.run(
             [
                 sys.executable,
@@ -172,21 +186,20 @@ def mixed_training_folder(bodies: Path) -> Path:
                 "--seed",
                 "0",
                 "--forms",
-                ",".join(MIXED_FORMS),
+                ",".join(MIXED_FORM_BODIES),
                 "--forms-split",
                 "all",
             ],
             check=True,
         )
-    mixed = bodies / "mixed"
+    mixed = bodies / ("mixed-" + "-".join(f"{form}{count}" for form, count in form_bodies.items()))
     links = [
         (bodies / "segmentation" / kind / split / f"{path.stem}{suffix}", mixed / kind / split / f"{path.stem}{suffix}")
         for split in ("train", "test")
         for path in sorted((bodies / "segmentation" / "meshes" / split).glob("*.ply"))
         for kind, suffix in (("meshes", ".ply"), ("labels", ".txt"))
     ]
-    for form in MIXED_FORMS:
-        count = MIXED_PARTIAL_BODIES if form == "partial" else MIXED_BODIES
+    for form, count in form_bodies.items():
         for path in sorted((forms / "forms" / form / "meshes" / "train").glob("*.ply"))[:count]:
             for kind, suffix in (("meshes", ".ply"), ("labels", ".txt")):
                 links.append(
@@ -256,12 +269,14 @@ def score_form(run_dir: Path, files, scale: float | None, picture: Path | None) 
 
 
 def markdown(results: dict, args, scale: float) -> str:
+    mixed = args.mixed
     lines = [
         "# Scans as users bring them: segmentation on every form of 20 held-out generated bodies",
         "",
         "zernet and FeaStNet trained on the original (clean, shared-topology) training bodies only; "
-        f"zernet-mixed: zernet trained on the original training bodies plus every form of {MIXED_BODIES} of "
-        f"them and the partial scans of {MIXED_PARTIAL_BODIES}, at one fixed scale (`patch.scale`) instead of per-shape area normalisation. Test split: 20 bodies "
+        "zernet-mixed: zernet trained on the original training bodies plus "
+        + ", ".join(f"{form} forms of {count}" for form, count in mixed.items())
+        + " of them, at one fixed scale (`patch.scale`) instead of per-shape area normalisation. Test split: 20 bodies "
         "never seen in training, each in every form (`zernet bodies ... --forms all`). Accuracy pooled over "
         "the vertices (points) of the form, against the ground truth carried from the original body; "
         "*drop*: points below the original form; *refused*: shapes that raised; *rings*: the refinement the "
