@@ -79,7 +79,7 @@ from zernet.training.run_dir import (
 )
 from zernet.training.runtime import flush_denormals, resolve_device
 from zernet.training.schedule import seed_everything, set_rng_state
-from zernet.training.stopping import BUDGET, Monitor, initial_state, record_epoch, reopen_if_budget_raised
+from zernet.training.stopping import BUDGET, Monitor, initial_state, record_epoch, reopen_if_limits_raised
 from zernet.training.targets import feature_stats, target_stats
 
 __all__ = ["train", "merge_resume_config", "RESUME_CHANGEABLE"]
@@ -459,7 +459,7 @@ def _fit(
     # DistributedDataParallel in a distributed run (averages the gradients over the ranks), else the model
     # itself. Only the training forward goes through it; validation, checkpoints and evaluation use `model`.
     net = ctx.wrap(model)
-    reopen_if_budget_raised(state, train.epochs)
+    reopen_if_limits_raised(state, train.epochs, train.patience)
     while not state["stopped"] and state["epoch"] < train.epochs:
         epoch = state["epoch"] + 1
         started = time.perf_counter()

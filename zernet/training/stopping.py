@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["Monitor", "initial_state", "reopen_if_budget_raised", "record_epoch", "BUDGET"]
+__all__ = ["Monitor", "initial_state", "reopen_if_limits_raised", "record_epoch", "BUDGET"]
 
 #: stop_reason of a run that used all of train.epochs.
 BUDGET = "epoch budget"
@@ -46,10 +46,13 @@ def initial_state() -> dict:
     }
 
 
-def reopen_if_budget_raised(state: dict, epochs: int) -> None:
-    """A run that stopped at its epoch budget continues when the budget was raised on resume."""
-    if state["stopped"] and state["epoch"] < epochs and state["stop_reason"] == BUDGET:
-        state["stopped"] = False
+def reopen_if_limits_raised(state: dict, epochs: int, patience: int | None) -> None:
+    """A stopped run continues on resume when what stopped it was raised: the epoch budget, or the patience
+    of early stopping (None: no early stopping) beyond the epochs it has gone without a better model."""
+    if not state["stopped"] or state["epoch"] >= epochs:
+        return
+    if state["stop_reason"] == BUDGET or (patience is None or state["bad_epochs"] < patience):
+        state["stopped"], state["stop_reason"] = False, ""
 
 
 def record_epoch(
