@@ -48,6 +48,7 @@ from zernet.geometry import read_surface  # noqa: E402
 from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
 from zernet.training import load_config  # noqa: E402
 from zernet.training.checkpoint import load_checkpoint  # noqa: E402
+from zernet.training.config import apply_overrides  # noqa: E402
 from zernet.training.predict import predict  # noqa: E402
 from zernet.viz import render_comparison  # noqa: E402
 
@@ -94,6 +95,15 @@ def parse_args(argv=None) -> argparse.Namespace:
         default=[],
         metavar="FORM=N",
         help="zernet-mixed: take FORM of the first N training bodies (default: MIXED_FORM_BODIES)",
+    )
+    parser.add_argument(
+        "--set",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        dest="overrides",
+        help="zernet-mixed: change the recipe's configuration, as 'zernet train --set' does "
+        "(e.g. data.features=xyz+normals+hks model.input_skip=true)",
     )
     args = parser.parse_args(argv)
     mixed = dict(MIXED_FORM_BODIES)
@@ -149,6 +159,7 @@ def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
         # All the epochs, the best on validation kept: its 8 validation shapes (noisy clouds among them) move
         # by up to 2 points from one epoch to the next, and patience 4 stopped it at epoch 8 of 18.
         config["train"]["patience"] = None
+        config = apply_overrides(config, args.overrides)
     path = run_dir.parent / f"{model}.yaml"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(config))

@@ -113,3 +113,47 @@ def test_curvature_descriptors_invariant_under_rigid_motion_and_reindexing():
     # has H = 1/(2·0.8), the hemispherical caps 1/0.8: the small ball sees the cylinder value.
     middle = np.abs(surface.vertices[:, 2]) < 0.5
     np.testing.assert_allclose(a[middle, 1], 0.43 / 1.6, rtol=0.05)
+
+
+def _ellipsoid(subdivisions=3):
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    return Surface(mesh.vertices * [1.0, 1.0, 3.0], mesh.faces, name="ellipsoid")
+
+
+def test_heat_kernel_descriptors_are_constant_on_a_sphere():
+    # Every point of a sphere is alike: each column is its own area-weighted mean, 1.
+    hks = compute_features(_sphere(), "hks")
+    assert hks.shape == (_sphere().n_vertices, feature_channels("hks"))
+    np.testing.assert_allclose(hks, 1.0, rtol=0.02)
+
+
+def test_heat_kernel_descriptors_keep_more_heat_at_the_tips_of_an_ellipsoid():
+    surface = _ellipsoid()
+    hks = compute_features(surface, "hks")
+    tips = np.abs(surface.vertices[:, 2]) > 2.9
+    equator = np.abs(surface.vertices[:, 2]) < 0.2
+    # The poles of a 1 x 1 x 3 ellipsoid (Gauss curvature 9 against 1/9) hold more heat than the waist at
+    # every time but the last, where the heat has spread evenly (the constant 1); most at the middle times.
+    at_tips, at_equator = hks[tips].mean(axis=0), hks[equator].mean(axis=0)
+    assert (at_tips[:15] > at_equator[:15]).all()
+    assert (at_tips[4:9] > 1.5 * at_equator[4:9]).all()
+
+
+def test_heat_kernel_descriptors_invariant_under_similarity_and_reindexing():
+    surface = _ellipsoid()
+    rotation = Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix()
+    permutation = np.random.default_rng(0).permutation(surface.n_vertices)
+    moved = Surface(
+        (2.5 * surface.vertices @ rotation.T + [5.0, -2.0, 1.0])[permutation],
+        np.argsort(permutation)[surface.faces],
+        name="moved",
+    )
+    np.testing.assert_allclose(compute_features(moved, "hks"), compute_features(surface, "hks")[permutation], rtol=1e-3)
+
+
+def test_heat_kernel_descriptors_of_a_cloud_follow_its_mesh():
+    surface = _ellipsoid(subdivisions=4)
+    cloud = Surface(surface.vertices, None, name="cloud")
+    on_mesh, on_cloud = np.log(compute_features(surface, "hks")), np.log(compute_features(cloud, "hks"))
+    for column in (2, 6, 10):
+        assert np.corrcoef(on_mesh[:, column], on_cloud[:, column])[0, 1] > 0.95

@@ -20,6 +20,7 @@ from zernet.zernike import harmonic_pairs, index_to_nm, orders
 __all__ = [
     "FEATURE_PARTS",
     "MEMBRANE_PRESTRESSES",
+    "HKS_EIGENPAIRS",
     "BOUNDARY_SATURATION",
     "default_features",
     "feature_parts",
@@ -28,13 +29,18 @@ __all__ = [
     "shape_descriptors",
     "curvature_descriptors",
     "membrane_descriptors",
+    "heat_kernel_descriptors",
     "compute_features",
 ]
 
 #: Parts a feature kind is made of, with their channel counts (None: depends on the patch settings, see
 #: :func:`feature_channels`). A kind joins parts with "+", e.g. ``"xyz+normals"`` or
 #: ``"shape+curvature+membrane"``; the channels follow in that order.
-FEATURE_PARTS = {"xyz": 3, "normals": 3, "ones": 1, "shape": None, "curvature": None, "membrane": 3}
+FEATURE_PARTS = {"xyz": 3, "normals": 3, "ones": 1, "shape": None, "curvature": None, "membrane": 3, "hks": 16}
+
+#: Eigenpairs of the Laplacian behind the "hks" part: its times run from ``4 ln 10 / λ_64`` (a few patch
+#: radii on a body) to ``4 ln 10 / λ_1`` (the whole surface).
+HKS_EIGENPAIRS = 64
 
 #: Pre-tensions of the :func:`~zernet.geometry.membrane.membrane_stress` channels of the "membrane" feature part.
 MEMBRANE_PRESTRESSES = (0.01, 0.02, 0.04)
@@ -177,7 +183,9 @@ def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_
       first scale's r0 (rotation- and translation-invariant);
     - ``"curvature"``: :func:`curvature_descriptors` at the patch scales' radii;
     - ``"membrane"``: log of :func:`~zernet.geometry.membrane.membrane_stress` at each of
-      :data:`MEMBRANE_PRESTRESSES` (meshes only; cached in ``cache_dir`` when given).
+      :data:`MEMBRANE_PRESTRESSES` (meshes only; cached in ``cache_dir`` when given);
+    - ``"hks"``: :func:`heat_kernel_descriptors` (16; meshes and point clouds; the eigenbasis cached in
+      ``cache_dir`` when given).
 
     ``operators``: the surface's patch operators, one per scale (needed by "shape" and "curvature").
     """
@@ -198,6 +206,8 @@ def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_
             columns.append(curvature_descriptors(surface, [float(op.config.r0) for op in operators]))
         elif part == "membrane":
             columns.append(membrane_descriptors(surface, cache_dir))
+        elif part == "hks":
+            columns.append(heat_kernel_descriptors(surface, cache_dir))
     return np.concatenate(columns, axis=1).astype(np.float32)
 
 
@@ -214,3 +224,20 @@ def membrane_descriptors(surface: Surface, cache_dir=None) -> np.ndarray:
     # A vertex whose triangles all lie on the clamped rim carries no stress: keep the log finite there.
     floor = 1e-3 * max(float(stresses.mean()), np.finfo(float).tiny)
     return np.log(stresses + floor).astype(np.float32)
+
+
+def heat_kernel_descriptors(surface: Surface, cache_dir=None) -> np.ndarray:
+    """The heat kernel signature at :data:`FEATURE_PARTS` ["hks"] times, (N, 16) float32.
+
+    :func:`~zernet.operators.spectral.heat_kernel_signature` of the first :data:`HKS_EIGENPAIRS` eigenpairs
+    of robust-laplacian's Laplacian (of the mesh, or of the points of a cloud). Why: a patch sees only a few
+    radii of the surface, and the patches subtract their centre value, so a model reads nothing of where on
+    the surface a vertex is; a foot and a hand look alike to it on a cloud. The signature at large times
+    tells them apart (how much heat stays near the point: an extremity keeps more), is intrinsic (the same
+    under rigid motions and isometric poses) and scale-free, and is computed on meshes and clouds alike.
+    Use it with ``model.input_skip`` so the head sees its values, not only their differences over a patch.
+    """
+    from zernet.operators.spectral import heat_kernel_signature, laplacian_eigenbasis
+
+    basis = laplacian_eigenbasis(surface, HKS_EIGENPAIRS, cache_dir=cache_dir)
+    return heat_kernel_signature(basis, FEATURE_PARTS["hks"])

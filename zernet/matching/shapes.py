@@ -18,11 +18,12 @@ import numpy as np
 import torch
 
 from zernet.data import prepare_record
+from zernet.data.features import FEATURE_PARTS
 from zernet.geometry import FixedScale, Surface, SurfaceWarning, coarsen_surface, validate_surface
 from zernet.operators import Geometry, PatchConfig
 from zernet.operators.spectral import SpectralBasis, heat_kernel_signature, laplacian_eigenbasis
 
-__all__ = ["MatchShape", "prepare_shape", "input_features", "matching_feature_channels", "rotating_columns"]
+__all__ = ["MatchShape", "prepare_shape", "input_features", "rotating_columns"]
 
 
 @dataclass
@@ -70,28 +71,14 @@ class MatchShape:
 #: A surface is read through a coarse copy only when it has more than this many times the vertices asked for.
 COARSE_MARGIN = 1.5
 
-#: Extra feature parts the matcher adds to :mod:`zernet.data.features`' parts: the heat kernel signature of
-#: the eigenbasis (16 channels), written ``hks`` in a feature kind (e.g. ``"shape+hks"``).
-HKS_CHANNELS = 16
-
-
-def matching_feature_channels(feature_kind: str, n_max: int) -> int:
-    """Input channels of a matching feature kind: :func:`zernet.data.features.feature_channels` of its
-    zernet parts plus :data:`HKS_CHANNELS` for ``hks``."""
-    from zernet.data.features import feature_channels
-
-    parts = feature_kind.split("+")
-    zernet_parts = "+".join(part for part in parts if part != "hks")
-    channels = feature_channels(zernet_parts, n_max) if zernet_parts else 0
-    return channels + (HKS_CHANNELS if "hks" in parts else 0)
-
 
 def input_features(zernet_features: np.ndarray | None, basis: SpectralBasis, feature_kind: str) -> np.ndarray:
-    """The model input of ``feature_kind``: the zernet parts computed by :func:`prepare_record`, then the heat
-    kernel signature when ``hks`` is one of the parts."""
+    """The model input of ``feature_kind``: the other parts computed by :func:`prepare_record`, then the heat
+    kernel signature when ``hks`` is one of the parts, from the matcher's own eigenbasis (the one its maps
+    use, already computed; the data sets' ``hks`` part takes its first 64 eigenpairs instead)."""
     columns = [] if zernet_features is None else [zernet_features]
     if "hks" in feature_kind.split("+"):
-        columns.append(heat_kernel_signature(basis, HKS_CHANNELS))
+        columns.append(heat_kernel_signature(basis, FEATURE_PARTS["hks"]))
     return np.concatenate(columns, axis=1).astype(np.float32)
 
 

@@ -39,13 +39,14 @@ import numpy as np
 import torch
 import yaml
 
+from zernet.data.features import feature_channels
 from zernet.geometry import FixedScale, Surface
 from zernet.io_utils import atomic_write_bytes, plain, write_json
 from zernet.matching.bodies import LocatedForm, body_forms, ground_truth_map
 from zernet.matching.fmap import fmap_from_pointmap, pointmap_from_fmap
 from zernet.matching.match import descriptor_fmap
 from zernet.matching.model import DescriptorModel, MatchingSpec, save_matching_model
-from zernet.matching.shapes import MatchShape, matching_feature_channels, prepare_shape, rotating_columns
+from zernet.matching.shapes import MatchShape, prepare_shape, rotating_columns
 from zernet.operators import Geometry
 from zernet.training.augment import random_rotation
 
@@ -78,7 +79,7 @@ def make_spec(config: dict, feature_mean=None, feature_std=None) -> MatchingSpec
     values = dict(config["spec"])
     patch = tuple(dict(p) for p in values.pop("patch"))
     n_max = int(patch[0].get("n_max", 5))
-    in_channels = matching_feature_channels(values["feature_kind"], n_max)
+    in_channels = feature_channels(values["feature_kind"], n_max)
     return MatchingSpec(
         patch_configs=patch, in_channels=in_channels, feature_mean=feature_mean, feature_std=feature_std, **values
     )
