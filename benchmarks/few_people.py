@@ -65,6 +65,9 @@ RECIPES = {
     "pretrained": ({"train.lr": 4e-3}, True),
     # The same start at the shipped learning rate: does the lower rate alone hold the pretrained start back?
     "pretrained-shipped-lr": ({}, True),
+    # Where on the body a vertex is, read by the head: the heat kernel signature among the inputs and the
+    # inputs beside the convolutions' output (what took clouds of scans from 96.5 to 97.8 %).
+    "position": ({"data.features": "xyz+hks", "model.input_skip": True, "train.init_from": None}, False),
     "pretrained+proportions": (
         {"train.lr": 4e-3, "train.augment_anisotropy": 0.1, "train.augment_warp": 0.05},
         True,
