@@ -25,6 +25,16 @@ def icosphere(
     return Surface(vertices, np.asarray(mesh.faces, dtype=np.int64), name=name)
 
 
+#: Distinct axes of :func:`ellipsoid`: its only symmetries are the reflections of the coordinates.
+ELLIPSOID_AXES = np.array([1.0, 1.4, 1.9])
+
+
+def ellipsoid(subdivisions: int = 3, noise: float = 0.0, seed: int = 0) -> Surface:
+    """An :func:`icosphere` stretched along :data:`ELLIPSOID_AXES`; ``noise`` and ``seed`` as there."""
+    sphere = icosphere(subdivisions, noise=noise, seed=seed)
+    return Surface(sphere.vertices * ELLIPSOID_AXES, sphere.faces, name=f"ellipsoid{seed}")
+
+
 def grid_mesh(nx: int, ny: int | None = None, spacing: float = 1.0, jitter: float = 0.0, seed: int = 0):
     """Triangulated nx × ny vertex grid in the z = 0 plane centred at the origin, normals +z; (V, F).
 

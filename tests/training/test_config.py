@@ -43,6 +43,7 @@ TODAYS_FORMAT = {
         "lr_schedule_epochs": None,
         "weight_decay": 0.0,
         "loss": "auto",
+        "label_radius": 0.0,
         "standardize_targets": True,
         "target_transform": "none",
         "standardize_features": False,

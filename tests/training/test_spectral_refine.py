@@ -6,8 +6,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-import trimesh
-from meshes import icosphere
+from meshes import ellipsoid
 
 from zernet.data import LoaderOptions, load_faust
 from zernet.geometry import Surface
@@ -19,13 +18,6 @@ from zernet.training.checkpoint import load_checkpoint
 from zernet.training.config import ConfigError, EvalSection
 from zernet.training.evaluation import evaluate_members, select_refinement, summary_line
 from zernet.training.spectral_refine import SpectralRefiner, check_radii
-
-AXES = np.array([1.0, 1.4, 1.9])  # distinct axes: the only symmetries are the reflections of the coordinates
-
-
-def ellipsoid(subdivisions: int = 3, noise: float = 0.0, seed: int = 0) -> Surface:
-    sphere = icosphere(subdivisions, noise=noise, seed=seed)
-    return Surface(sphere.vertices * AXES, sphere.faces, name=f"ellipsoid{seed}")
 
 
 def mirror_indices(surface: Surface) -> np.ndarray:
@@ -136,18 +128,6 @@ class _FlippedMap(torch.nn.Module):
 
 
 PATCH = {"r0": 1.2, "n_samples": 1500, "patch_size": 30, "n_max": 2}
-
-
-@pytest.fixture(scope="module")
-def faust_root(tmp_path_factory):
-    """Five noisy ellipsoids sharing one connectivity, in FAUST's layout."""
-    root = tmp_path_factory.mktemp("faust")
-    folder = root / "MPI-FAUST" / "training" / "registrations"
-    folder.mkdir(parents=True)
-    for i in range(5):
-        shape = ellipsoid(noise=0.01, seed=i)
-        trimesh.Trimesh(shape.vertices, shape.faces, process=False).export(folder / f"tr_reg_{i:03d}.ply")
-    return root
 
 
 @pytest.fixture(scope="module")

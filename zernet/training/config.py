@@ -371,6 +371,10 @@ class TrainSection(_Section):
     lr_schedule_epochs: int | None = _rule(None, "int", minimum=1, optional=True)
     weight_decay: float = _rule(0.0, "number")
     loss: str = _rule("auto", "str", choices=LOSSES)  # auto: cross_entropy / mse by task
+    # Correspondence by template vertex only: the cross-entropy's target spread over the template vertices
+    # within this fraction of the template's geodesic diameter (a Gaussian of the distance, σ = radius / 2;
+    # zernet.training.template), so a near miss costs less than a far one. 0: the hard label.
+    label_radius: float = _rule(0.0, "number", minimum=0, below=1)
     standardize_targets: bool = _rule(True, "bool")  # regression: train on (y - mean) / std
     target_transform: str = _rule("none", "str", choices=TARGET_TRANSFORMS)  # log: the loss sees relative errors
     standardize_features: bool = _rule(False, "bool")  # (x - mean) / std per input channel

@@ -34,6 +34,8 @@ class Objective:
     loss: str  # see zernet.training.losses.resolve_loss
     target_stats: dict | None
     feature_stats: dict | None
+    # Correspondence with train.label_radius: (indices, weights), each (C, K), on the run's device.
+    soft_labels: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
 def train_one_epoch(
@@ -99,7 +101,7 @@ def train_one_epoch(
         with precision_autocast(train.precision, device.type):
             output = net(batch.features, batch.geometry)
         output = output.float()  # the loss in float32
-        loss = compute_loss(objective.loss, output, batch.target, objective.target_stats)
+        loss = compute_loss(objective.loss, output, batch.target, objective.target_stats, objective.soft_labels)
         if not torch.isfinite(loss):
             raise FloatingPointError(
                 f"the training loss became {loss.item()} at epoch {epoch}, step {step} (shapes "
@@ -144,7 +146,9 @@ def validate(
 
     for record, batch in prefetched(shape_batch, indices):
         output = model(batch.features, batch.geometry)
-        losses.append(compute_loss(objective.loss, output, batch.target, objective.target_stats).item())
+        losses.append(
+            compute_loss(objective.loss, output, batch.target, objective.target_stats, objective.soft_labels).item()
+        )
         if objective.task == "classification":
             scores.append(zmetrics.accuracy(output.argmax(dim=1), batch.target))
         else:

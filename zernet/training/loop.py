@@ -38,6 +38,7 @@ from zernet.data.preprocess import failure_listing
 from zernet.distributed import DistributedContext, is_main
 from zernet.distributed import setup as setup_distributed
 from zernet.io_utils import atomic_save_torch, plain
+from zernet.metrics import geodesic_diameter
 from zernet.training.augment import check_augmentation
 from zernet.training.batch import model_basis_orders, model_directional_order
 from zernet.training.build import (
@@ -81,6 +82,7 @@ from zernet.training.runtime import flush_denormals, resolve_device
 from zernet.training.schedule import seed_everything, set_rng_state
 from zernet.training.stopping import BUDGET, Monitor, initial_state, record_epoch, reopen_if_limits_raised
 from zernet.training.targets import feature_stats, target_stats
+from zernet.training.template import geodesic_soft_labels
 
 __all__ = ["train", "merge_resume_config", "RESUME_CHANGEABLE"]
 
@@ -242,7 +244,7 @@ def _run(
         + (f", {ctx.world_size} ranks, {ctx.backend})" if ctx.distributed else ")")
     )
     dataset, splits, preprocess_seconds = _load_dataset(config, progress, workers, ctx, logger)
-    record, objective = _describe_run(config, dataset, splits, checkpoint, logger)
+    record, objective = _describe_run(config, dataset, splits, checkpoint, logger, ctx.device)
     model, optimizer, state = _build_model(record.model_spec, config.train, checkpoint, ctx.device, logger, source)
     logger.info(
         f"model {record.model_spec['name']} ({sum(p.numel() for p in model.parameters()):,} parameters), "
@@ -357,8 +359,9 @@ def _check_class_count(dataset, kind: str, logger) -> None:
         )
 
 
-def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict | None, logger):
-    """The run's fixed record (model spec, scaling, preprocessing) and the training objective."""
+def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict | None, logger, device: torch.device):
+    """The run's fixed record (model spec, scaling, preprocessing) and the training objective (its tables on
+    ``device``)."""
     task = dataset.task
     check_augmentation(config.train, dataset.feature_kind)
     loss_name = resolve_loss(config.train.loss, task)
@@ -387,7 +390,24 @@ def _describe_run(config: RunConfig, dataset, splits: _Splits, checkpoint: dict 
         template_faces=template_faces,
         template_vertices=template_vertices,
     )
-    return record, Objective(task, loss_name, targets, features)
+    soft_labels = None
+    if config.train.label_radius > 0:
+        if not has_template:
+            raise ConfigError(
+                "train.label_radius spreads a correspondence target over the template's vertices; this run "
+                f"(data.kind {config.data.kind!r}) has no template mesh: set it to 0"
+            )
+        diameter = geodesic_diameter(first.surface.vertices, first.surface.faces)
+        indices, weights = geodesic_soft_labels(
+            first.surface.vertices, first.surface.faces, config.train.label_radius, diameter
+        )
+        soft_labels = (indices.to(device), weights.to(device))
+        logger.info(
+            f"soft labels: each target spread over the template vertices within {config.train.label_radius} of "
+            f"its diameter ({float((weights > 0).sum(dim=1).float().mean()):.1f} on average, the true one "
+            f"weighing {float(weights.max(dim=1).values.mean()):.2f})"
+        )
+    return record, Objective(task, loss_name, targets, features, soft_labels)
 
 
 def _target_scaling(train: TrainSection, task: str, dataset, splits: _Splits, checkpoint, logger) -> dict | None:

@@ -27,16 +27,28 @@ def resolve_loss(loss: str, task: str) -> str:
 
 
 def compute_loss(
-    name: str, output: torch.Tensor, target: torch.Tensor, target_stats: dict | None = None
+    name: str,
+    output: torch.Tensor,
+    target: torch.Tensor,
+    target_stats: dict | None = None,
+    soft_labels: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Training loss; ``output`` and ``target`` are in the trained units (see
     :func:`zernet.training.targets.standardise`).
+
+    ``soft_labels`` (cross-entropy only): ``(indices, weights)``, each (C, K), from
+    :func:`zernet.training.template.geodesic_soft_labels`; a vertex of class ``t`` is scored against the
+    distribution that puts ``weights[t, k]`` on class ``indices[t, k]`` instead of all on ``t``.
 
     ``relative_l1`` is the mean of ``|ŷ - y| / |y|`` in the target's own units, i.e. the MAPE the regression
     is scored with. Its minimiser is not the median that ``l1`` estimates: where a vertex's value is
     uncertain (e.g. near a cut boundary) it predicts lower, because over-predicting a small value costs
     more relative error than under-predicting it by the same factor.
     """
+    if name == "cross_entropy" and soft_labels is not None:
+        indices, weights = (table.to(output.device) for table in soft_labels)
+        log_probabilities = F.log_softmax(output, dim=1).gather(1, indices[target])
+        return -(weights[target] * log_probabilities).sum(dim=1).mean()
     if name == "cross_entropy":
         return F.cross_entropy(output, target)
     output = output.reshape(target.shape)

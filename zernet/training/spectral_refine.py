@@ -44,13 +44,12 @@ import hashlib
 from collections import OrderedDict
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.csgraph
 import torch
 
 from zernet.geometry import Surface
 from zernet.metrics import geodesic_diameter
 from zernet.operators.spectral import SpectralBasis, fmap_from_pointmap, laplacian_eigenbasis, pointmap_from_fmap
+from zernet.training.template import edge_graph, edge_neighbourhoods, padded_neighbourhoods
 
 __all__ = [
     "K_START",
@@ -99,12 +98,7 @@ class SpectralRefiner:
         self.k_start, self.k_end, self.step = int(k_start), int(k_end), int(step)
         self.basis = laplacian_eigenbasis(self.template, self.k_end)
         self.diameter = geodesic_diameter(self.template.vertices, self.template.faces)
-        faces = self.template.faces
-        edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-        lengths = np.linalg.norm(self.template.vertices[edges[:, 0]] - self.template.vertices[edges[:, 1]], axis=1)
-        n = self.template.n_vertices
-        graph = sp.coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
-        self._graph = graph.maximum(graph.T).tocsr()
+        self._graph = edge_graph(self.template.vertices, self.template.faces)
         self._neighbourhoods: OrderedDict[tuple, torch.Tensor] = OrderedDict()
         self._shape_bases: OrderedDict[str, SpectralBasis] = OrderedDict()
 
@@ -118,15 +112,7 @@ class SpectralRefiner:
         longest list; kept per radius and device."""
         key = (float(radius), str(torch.device(device)))
         if key not in self._neighbourhoods:
-            n, limit = self.n_vertices, float(radius) * self.diameter
-            lists = []
-            for start in range(0, n, 512):
-                sources = np.arange(start, min(n, start + 512))
-                reached = np.isfinite(scipy.sparse.csgraph.dijkstra(self._graph, indices=sources, limit=limit))
-                lists += [np.flatnonzero(row) for row in reached]
-            table = np.repeat(np.arange(n)[:, None], max(len(row) for row in lists), axis=1)
-            for i, row in enumerate(lists):
-                table[i, : len(row)] = row
+            table, _ = padded_neighbourhoods(edge_neighbourhoods(self._graph, float(radius) * self.diameter))
             self._neighbourhoods[key] = torch.from_numpy(table).to(device)
             while len(self._neighbourhoods) > 4:
                 self._neighbourhoods.popitem(last=False)
