@@ -183,19 +183,23 @@ def ship_backbone(run_dir: Path, name: str, topology: str, count: int) -> None:
     print(f"wrote {target} ({written['bytes'] / 1e6:.1f} MB) and its provenance", flush=True)
 
 
-def epoch_scores(run_dir: Path, dataset, rings: int) -> list[dict]:
-    """Test scores of every kept epoch (unrefined and refined over the run's chosen ``rings``), kept in
-    ``RUN/epochs/test_scores.json`` so that a later invocation only adds recipes."""
+def epoch_scores(run_dir: Path, dataset, rings: int, every: int) -> list[dict]:
+    """Test scores of every ``every``-th kept epoch and the last (unrefined and refined over the run's chosen
+    ``rings``), kept in ``RUN/epochs/test_scores.json`` so that a later invocation only adds recipes."""
     stored = run_dir / "epochs" / "test_scores.json"
     if stored.is_file():
         return json.loads(stored.read_text())
+    paths = sorted((run_dir / "epochs").glob("epoch_*.pt"))
     rows = []
-    for path in sorted((run_dir / "epochs").glob("epoch_*.pt")):
+    for path in paths:
+        epoch = int(path.stem.split("_")[1])
+        if epoch % every and path != paths[-1]:
+            continue
         result = evaluate(path, dataset=dataset, split="test", progress=False, refine_rings=[rings])
         refined, unrefined = result["summary"], result.get("unrefined_summary", result["summary"])
         rows.append(
             {
-                "epoch": int(path.stem.split("_")[1]),
+                "epoch": epoch,
                 "test_exact_unrefined": unrefined["accuracy"],
                 "test_exact_refined": refined["accuracy"],
                 "test_within_1pct_refined": refined["within_0.01"],
@@ -205,6 +209,17 @@ def epoch_scores(run_dir: Path, dataset, rings: int) -> list[dict]:
         )
     write_json(stored, rows)
     return rows
+
+
+def per_epoch_rows(history: list[dict], scores: list[dict]) -> list[dict]:
+    """One row per trained epoch: its training and validation loss and accuracy (the gap between them),
+    with the test scores where the epoch was scored."""
+    scored = {row["epoch"]: row for row in scores}
+    keys = ("train_loss", "train_accuracy", "val_loss", "val_accuracy")
+    return [
+        {"epoch": entry["epoch"], **{key: entry.get(key) for key in keys}, **scored.get(entry["epoch"], {})}
+        for entry in history
+    ]
 
 
 def run_recipe(name: str, data_root: Path, runs: Path, pretrained: Path | None, args) -> dict:
@@ -217,9 +232,7 @@ def run_recipe(name: str, data_root: Path, runs: Path, pretrained: Path | None, 
     history = load_checkpoint(run_dir / "last.pt")["state"]["history"]
     rings = int(metrics.get("refine_rings", 0))
     dataset = build_dataset(parse_config(config), progress=False)
-    per_epoch = epoch_scores(run_dir, dataset, rings)
-    for row, entry in zip(per_epoch, history):
-        row.update({"train_accuracy": entry.get("train_accuracy"), "val_accuracy": entry.get("val_accuracy")})
+    per_epoch = per_epoch_rows(history, epoch_scores(run_dir, dataset, rings, args.score_every))
     unrefined = metrics.get("unrefined_summary", metrics["summary"])
     return {
         "recipe": name,
@@ -274,14 +287,21 @@ def markdown(result: dict) -> str:
             "",
             f"Per epoch, {entry['recipe']}:",
             "",
-            "| epoch | train acc | val exact | test exact unrefined | refined | beyond 10 % unrefined |",
-            "|---|---|---|---|---|---|",
+            "| epoch | train loss / val loss | train acc | val exact | gap | test exact unrefined | refined | "
+            "beyond 10 % unrefined |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for row in entry["per_epoch"]:
-            lines.append(
-                f"| {row['epoch']} | {row.get('train_accuracy') or 0:.3f} | {row.get('val_accuracy') or 0:.3f} | "
+            train_acc, val_acc = row.get("train_accuracy") or 0.0, row.get("val_accuracy") or 0.0
+            test = (
                 f"{100 * row['test_exact_unrefined']:.1f} % | {100 * row['test_exact_refined']:.1f} % | "
-                f"{100 * row['test_beyond_10pct_unrefined']:.2f} % |"
+                f"{100 * row['test_beyond_10pct_unrefined']:.2f} %"
+                if "test_exact_refined" in row
+                else "- | - | -"
+            )
+            lines.append(
+                f"| {row['epoch']} | {row.get('train_loss') or 0:.3f} / {row.get('val_loss') or 0:.3f} | "
+                f"{train_acc:.3f} | {val_acc:.3f} | {train_acc - val_acc:+.3f} | {test} |"
             )
     return "\n".join(lines) + "\n"
 
@@ -293,7 +313,10 @@ def plot(result: dict, path: Path) -> None:
             curve = entry["error_curve"]
             curves.plot(curve["radii"], curve["fractions"], label=entry["recipe"])
         rows = entry["per_epoch"]
-        line = epochs.plot([r["epoch"] for r in rows], [r["test_exact_refined"] for r in rows], label=entry["recipe"])
+        tested = [r for r in rows if "test_exact_refined" in r]
+        line = epochs.plot(
+            [r["epoch"] for r in tested], [r["test_exact_refined"] for r in tested], "o-", label=entry["recipe"]
+        )
         epochs.plot(
             [r["epoch"] for r in rows], [r.get("val_accuracy") or np.nan for r in rows], "--", color=line[0].get_color()
         )
@@ -332,6 +355,9 @@ def main() -> None:
         default=None,
         help="only pretrain, then ship the pretrained backbone as zernet/pretrained/NAME.pt with NAME.json "
         "(its provenance); no recipe is trained",
+    )
+    parser.add_argument(
+        "--score-every", type=int, default=1, help="score every K-th epoch on the test people (and the last)"
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=None)
