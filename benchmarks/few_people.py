@@ -73,6 +73,8 @@ RECIPES = {
     # Where on the body a vertex is, read by the head: the heat kernel signature among the inputs and the
     # inputs beside the convolutions' output (what took clouds of scans from 96.5 to 97.8 %).
     "position": ({"data.features": "xyz+hks", "model.input_skip": True, "train.init_from": None}, False),
+    # The same from a backbone pretrained with these inputs on other people (as the shipped one is for xyz).
+    "position-pretrained": ({"data.features": "xyz+hks", "model.input_skip": True}, True),
     # A near miss costs less than a far one: each target spread over the template vertices within 1 % of the
     # diameter (about one ring at FAUST size; train.label_radius), from the config's shipped backbone.
     "soft-labels": ({"train.label_radius": 0.01}, False),
@@ -174,25 +176,44 @@ def recipe_config(
     return config
 
 
+def architecture_overrides(recipe: str) -> dict:
+    """The recipe's overrides that shape the model and its inputs (``data.*``, ``model.*``): a backbone
+    pretrained for the recipe must have them too."""
+    return {key: value for key, value in RECIPES[recipe][0].items() if key.split(".")[0] in ("data", "model")}
+
+
 def pretrain(
-    data_root: Path, run_dir: Path, epochs: int | None, threads: int | None, n_vertices: int, cache_dir: str
+    data_root: Path,
+    run_dir: Path,
+    recipe: str,
+    epochs: int | None,
+    threads: int | None,
+    n_vertices: int,
+    cache_dir: str,
 ) -> Path:
-    """The weights pretrained on other people (trained once, then reused)."""
+    """The weights pretrained on other people for ``recipe``'s model and inputs, from scratch (trained once,
+    then reused)."""
     if not (run_dir / "best.pt").is_file():
         config = recipe_config(data_root, "shipped", epochs, threads, n_vertices, cache_dir)
+        for key, value in architecture_overrides(recipe).items():
+            section, name = key.split(".")
+            config[section][name] = value
         count = len(list(data_root.glob("training/registrations/tr_reg_*.ply")))
         config["data"].update({"train_indices": f"0:{count - 2}", "test_indices": f"{count - 2}:{count}"})
-        config["train"]["keep_epochs"] = False
+        config["train"].update({"keep_epochs": False, "init_from": None})
         train(config, run_dir, progress=False, overwrite=True)
     return run_dir
 
 
-def pretrained_run(args) -> Path:
-    """The run pretrained on ``--pretrain-count`` bodies of other people (generated and trained once)."""
+def pretrained_run(args, recipe: str) -> Path:
+    """The run pretrained for ``recipe`` on ``--pretrain-count`` bodies of other people (generated and trained
+    once; one per model and input set: ``RUNS/pretrain``, or ``RUNS/pretrain-RECIPE`` for a recipe that
+    changes them)."""
     topology = args.pretrain_topology or args.topology
     others = other_bodies(args.others, topology, args.seed, args.pretrain_count, args.cache_dir)
+    name = f"pretrain-{recipe}" if architecture_overrides(recipe) else "pretrain"
     return pretrain(
-        others, args.runs / "pretrain", args.pretrain_epochs, args.threads, N_VERTICES[topology], args.cache_dir
+        others, args.runs / name, recipe, args.pretrain_epochs, args.threads, N_VERTICES[topology], args.cache_dir
     )
 
 
@@ -409,8 +430,8 @@ def main() -> None:
         "--export-backbone",
         metavar="NAME",
         default=None,
-        help="only pretrain, then ship the pretrained backbone as zernet/pretrained/NAME.pt with NAME.json "
-        "(its provenance); no recipe is trained",
+        help="only pretrain (for the model and inputs of the first of --recipes), then ship the pretrained "
+        "backbone as zernet/pretrained/NAME.pt with NAME.json (its provenance); no recipe is trained",
     )
     parser.add_argument(
         "--score-every", type=int, default=1, help="score every K-th epoch on the test people (and the last)"
@@ -423,18 +444,17 @@ def main() -> None:
 
     topology = args.pretrain_topology or args.topology
     if args.export_backbone:
-        ship_backbone(pretrained_run(args), args.export_backbone, topology, args.pretrain_count)
+        ship_backbone(pretrained_run(args, args.recipes[0]), args.export_backbone, topology, args.pretrain_count)
         return
     data_root = people_bodies(args.data, args.topology, args.seed, args.cache_dir)
     args.unseen_root = unseen_people(args.unseen, args.topology, args.seed, args.cache_dir)
-    pretrained = pretrained_run(args) if any(RECIPES[name][1] for name in args.recipes) else None
     result = {
         "topology": args.topology,
         "n_vertices": N_VERTICES[args.topology],
         "seed": args.seed,
         "epochs": args.epochs or load_config(CONFIG)["train"]["epochs"],
         "pretraining": None
-        if pretrained is None
+        if not any(RECIPES[name][1] for name in args.recipes)
         else {
             "topology": args.pretrain_topology or args.topology,
             "bodies": args.pretrain_count,
@@ -446,7 +466,8 @@ def main() -> None:
     }
     for name in args.recipes:
         print(f"recipe {name} ...", flush=True)
-        result["recipes"].append(run_recipe(name, data_root, args.runs, pretrained if RECIPES[name][1] else None, args))
+        pretrained = pretrained_run(args, name) if RECIPES[name][1] else None
+        result["recipes"].append(run_recipe(name, data_root, args.runs, pretrained, args))
         write_json(args.output.with_suffix(".json"), result)
     text = markdown(result)
     atomic_write_bytes(args.output.with_suffix(".md"), text.encode())
