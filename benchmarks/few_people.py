@@ -240,9 +240,10 @@ def ship_backbone(run_dir: Path, name: str, topology: str, count: int) -> None:
     print(f"wrote {target} ({written['bytes'] / 1e6:.1f} MB) and its provenance", flush=True)
 
 
-def epoch_scores(run_dir: Path, dataset, rings: int, every: int) -> list[dict]:
-    """Test scores of every ``every``-th kept epoch and the last (unrefined and refined over the run's chosen
-    ``rings``), kept in ``RUN/epochs/test_scores.json`` so that a later invocation only adds recipes."""
+def epoch_scores(run_dir: Path, dataset, rings: int, radius: float, every: int) -> list[dict]:
+    """Test scores of every ``every``-th kept epoch and the last (unrefined and refined as the run chose: its
+    ``rings``, then its global ``radius``), kept in ``RUN/epochs/test_scores.json`` so that a later
+    invocation only adds recipes."""
     stored = run_dir / "epochs" / "test_scores.json"
     if stored.is_file():
         return json.loads(stored.read_text())
@@ -252,7 +253,9 @@ def epoch_scores(run_dir: Path, dataset, rings: int, every: int) -> list[dict]:
         epoch = int(path.stem.split("_")[1])
         if epoch % every and path != paths[-1]:
             continue
-        result = evaluate(path, dataset=dataset, split="test", progress=False, refine_rings=[rings])
+        result = evaluate(
+            path, dataset=dataset, split="test", progress=False, refine_rings=[rings], refine_spectral=[radius]
+        )
         refined, unrefined = result["summary"], result.get("unrefined_summary", result["summary"])
         rows.append(
             {
@@ -289,13 +292,12 @@ def run_recipe(name: str, data_root: Path, runs: Path, pretrained: Path | None, 
     history = load_checkpoint(run_dir / "last.pt")["state"]["history"]
     rings = int(metrics.get("refine_rings", 0))
     dataset = build_dataset(parse_config(config), progress=False)
-    per_epoch = per_epoch_rows(history, epoch_scores(run_dir, dataset, rings, args.score_every))
+    radius = float(metrics.get("refine_spectral") or 0)
+    per_epoch = per_epoch_rows(history, epoch_scores(run_dir, dataset, rings, radius, args.score_every))
     unrefined = metrics.get("unrefined_summary", metrics["summary"])
     stored = run_dir / "unseen_scores.json"
     if not stored.is_file():
-        write_json(
-            stored, unseen_scores(run_dir, config, args.unseen_root, rings, float(metrics.get("refine_spectral") or 0))
-        )
+        write_json(stored, unseen_scores(run_dir, config, args.unseen_root, rings, radius))
     return {
         "recipe": name,
         "overrides": RECIPES[name][0],
