@@ -190,10 +190,10 @@ def test_the_shipped_weights_load():
 
 
 def test_the_faust_config_starts_from_the_shipped_backbone():
-    """configs/faust_single_scale.yaml names pretrained:bodies, and the model it builds takes every weight
-    but its 6,890-way output layer from it."""
+    """configs/faust_single_scale.yaml names a shipped backbone for its inputs (xyz + hks, input skip), and
+    the model it builds takes every weight but its 6,890-way output layer from it."""
     config = parse_config(load_config(Path(__file__).resolve().parents[2] / "configs" / "faust_single_scale.yaml"))
-    assert config.train.init_from == "pretrained:bodies"
+    assert config.train.init_from == "pretrained:bodies-xyz-hks"
     degrees = [int(scale["n_max"]) for scale in config.patch.scales]
     in_channels = feature_channels(config.data.options["features"], degrees)
     spec = model_spec(config.model, in_channels, 6890, [PatchConfig(r0=1.0, n_max=n) for n in degrees])
