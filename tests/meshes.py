@@ -120,3 +120,11 @@ def patch_like_operator(k: int, n: int = 15, seed: int = 0, per_patch: int = 5):
             cols += list(neighbours)
     matrix = sp.csr_matrix((rng.normal(size=len(rows)), (rows, cols)), shape=(n * k, n))
     return MatrixOperator(matrix, k, random_frames(rng, n))
+
+
+def write_faust_layout(root, surfaces) -> None:
+    """Write ``surfaces`` as ``root/MPI-FAUST/training/registrations/tr_reg_XXX.ply`` (the FAUST layout)."""
+    folder = root / "MPI-FAUST" / "training" / "registrations"
+    folder.mkdir(parents=True)
+    for i, surface in enumerate(surfaces):
+        trimesh.Trimesh(surface.vertices, surface.faces, process=False).export(folder / f"tr_reg_{i:03d}.ply")

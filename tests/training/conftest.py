@@ -4,8 +4,7 @@ correspondence data set in FAUST's layout."""
 from __future__ import annotations
 
 import pytest
-import trimesh
-from meshes import ellipsoid
+from meshes import ellipsoid, write_faust_layout
 
 
 @pytest.fixture(scope="session")
@@ -15,12 +14,8 @@ def cache_dir(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def faust_root(tmp_path_factory):
+def ellipsoid_faust_root(tmp_path_factory):
     """Five noisy ellipsoids sharing one connectivity (642 vertices), in FAUST's layout."""
     root = tmp_path_factory.mktemp("faust")
-    folder = root / "MPI-FAUST" / "training" / "registrations"
-    folder.mkdir(parents=True)
-    for i in range(5):
-        shape = ellipsoid(noise=0.01, seed=i)
-        trimesh.Trimesh(shape.vertices, shape.faces, process=False).export(folder / f"tr_reg_{i:03d}.ply")
+    write_faust_layout(root, [ellipsoid(noise=0.01, seed=i) for i in range(5)])
     return root

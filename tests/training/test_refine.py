@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from meshes import icosphere
+from meshes import icosphere, write_faust_layout
+from tiny_configs import faust_run_config
 
 from zernet.cli import main
 from zernet.data import LoaderOptions, load_faust
@@ -158,11 +159,7 @@ PATCH = {"r0": 1.2, "n_samples": 1500, "patch_size": 30, "n_max": 2}
 def faust_root(tmp_path_factory):
     """Five noisy icospheres sharing one connectivity, in FAUST's layout."""
     root = tmp_path_factory.mktemp("faust")
-    folder = root / "MPI-FAUST" / "training" / "registrations"
-    folder.mkdir(parents=True)
-    for i in range(5):
-        sphere = icosphere(2, noise=0.02, seed=i)
-        trimesh.Trimesh(sphere.vertices, sphere.faces, process=False).export(folder / f"tr_reg_{i:03d}.ply")
+    write_faust_layout(root, [icosphere(2, noise=0.02, seed=i) for i in range(5)])
     return root
 
 
@@ -230,22 +227,7 @@ def test_the_eval_section_takes_a_number_or_candidates():
 
 
 def test_a_trained_run_stores_its_template_and_choice_and_predict_applies_them(faust_root, tmp_path):
-    config = {
-        "data": {
-            "kind": "faust",
-            "root": str(faust_root),
-            "train_indices": [0, 1, 2],
-            "test_indices": [3, 4],
-            "val_count": 1,
-            "n_vertices": 162,
-            "workers": 0,
-        },
-        "patch": {"area": 100.0, "scales": [PATCH]},
-        "model": {"name": "zernet", "widths": [8, 16], "angular_resolution": 2, "dropout": 0.0},
-        "train": {"epochs": 1, "seed": 0, "threads": 1, "lr": 1e-2},
-        "eval": {"renders": 0, "plots": False, "refine_rings": [0, 1, 2]},
-        "cache_dir": str(faust_root / "cache"),
-    }
+    config = faust_run_config(faust_root, 162, PATCH, eval={"refine_rings": [0, 1, 2]})
     metrics = train(config, tmp_path / "run", progress=False)
     best = load_checkpoint(tmp_path / "run" / "best.pt")
     assert best["refine_rings"] == metrics["refine_choice"]["rings"] == metrics["refine_rings"]

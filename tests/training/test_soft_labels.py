@@ -6,7 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from meshes import grid_mesh
-from tiny_configs import tiny_config
+from tiny_configs import faust_run_config, tiny_config
 
 from zernet.training import train
 from zernet.training.checkpoint import load_checkpoint
@@ -74,24 +74,15 @@ def test_the_radius_is_a_fraction_of_the_diameter():
 
 
 def test_a_correspondence_run_trains_on_soft_labels_and_a_run_without_a_template_refuses_them(
-    faust_root, cache_dir, tmp_path
+    ellipsoid_faust_root, cache_dir, tmp_path
 ):
-    config = {
-        "data": {
-            "kind": "faust",
-            "root": str(faust_root),
-            "train_indices": [0, 1, 2],
-            "test_indices": [3, 4],
-            "val_count": 1,
-            "n_vertices": 642,
-            "workers": 0,
-        },
-        "patch": {"area": 100.0, "scales": [{"r0": 1.2, "n_samples": 1500, "patch_size": 30, "n_max": 2}]},
-        "model": {"name": "zernet", "widths": [8, 16], "angular_resolution": 2, "dropout": 0.0},
-        "train": {"epochs": 2, "seed": 0, "threads": 1, "lr": 1e-2, "label_radius": 0.05},
-        "eval": {"renders": 0, "plots": False, "refine_rings": [0]},
-        "cache_dir": str(faust_root / "cache"),
-    }
+    config = faust_run_config(
+        ellipsoid_faust_root,
+        642,
+        {"r0": 1.2, "n_samples": 1500, "patch_size": 30, "n_max": 2},
+        train={"epochs": 2, "label_radius": 0.05},
+        eval={"refine_rings": [0]},
+    )
     train(config, tmp_path / "soft", progress=False)
     history = load_checkpoint(tmp_path / "soft" / "last.pt")["state"]["history"]
     log = (tmp_path / "soft" / "train.log").read_text()

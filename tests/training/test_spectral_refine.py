@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 from meshes import ellipsoid
+from tiny_configs import faust_run_config
 
 from zernet.data import LoaderOptions, load_faust
 from zernet.geometry import Surface
@@ -131,13 +132,17 @@ PATCH = {"r0": 1.2, "n_samples": 1500, "patch_size": 30, "n_max": 2}
 
 
 @pytest.fixture(scope="module")
-def ellipsoids(faust_root):
+def ellipsoids(ellipsoid_faust_root):
     """3 train (1 of them validation), 2 test."""
     options = LoaderOptions(
-        patch_configs=[PatchConfig(**PATCH)], cache_dir=faust_root / "cache", n_val=1, workers=0, progress=False
+        patch_configs=[PatchConfig(**PATCH)],
+        cache_dir=ellipsoid_faust_root / "cache",
+        n_val=1,
+        workers=0,
+        progress=False,
     )
     return load_faust(
-        faust_root, train_indices=range(3), test_indices=[3, 4], n_vertices=None, area=100.0, options=options
+        ellipsoid_faust_root, train_indices=range(3), test_indices=[3, 4], n_vertices=None, area=100.0, options=options
     )
 
 
@@ -207,23 +212,10 @@ def test_a_checkpoint_without_template_geometry_leaves_the_global_step_off_and_s
         assert select_refinement(members, ellipsoids, [1], [0], device, progress=False) == (1, 0.0, None)
 
 
-def test_a_run_stores_its_template_geometry_and_radius_and_predict_applies_them(faust_root, tmp_path):
-    config = {
-        "data": {
-            "kind": "faust",
-            "root": str(faust_root),
-            "train_indices": [0, 1, 2],
-            "test_indices": [3, 4],
-            "val_count": 1,
-            "n_vertices": 642,
-            "workers": 0,
-        },
-        "patch": {"area": 100.0, "scales": [PATCH]},
-        "model": {"name": "zernet", "widths": [8, 16], "angular_resolution": 2, "dropout": 0.0},
-        "train": {"epochs": 1, "seed": 0, "threads": 1, "lr": 1e-2},
-        "eval": {"renders": 0, "plots": False, "refine_rings": [0, 1], "refine_spectral": [0, 0.2]},
-        "cache_dir": str(faust_root / "cache"),
-    }
+def test_a_run_stores_its_template_geometry_and_radius_and_predict_applies_them(ellipsoid_faust_root, tmp_path):
+    config = faust_run_config(
+        ellipsoid_faust_root, 642, PATCH, eval={"refine_rings": [0, 1], "refine_spectral": [0, 0.2]}
+    )
     metrics = train(config, tmp_path / "run", progress=False)
     best = load_checkpoint(tmp_path / "run" / "best.pt")
     first = ellipsoid(noise=0.01, seed=0)

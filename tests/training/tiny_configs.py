@@ -54,3 +54,24 @@ def ddp_config(cache_dir) -> dict:
         dropout=0.0,
         renders=0,
     )
+
+
+def faust_run_config(root, n_vertices: int, patch: dict, train: dict | None = None, eval: dict | None = None) -> dict:
+    """A correspondence run on the five meshes of a FAUST-layout folder ``root`` (3 train, 1 of them
+    validation, 2 test), one epoch of a small model; ``train`` and ``eval`` entries override the defaults."""
+    return {
+        "data": {
+            "kind": "faust",
+            "root": str(root),
+            "train_indices": [0, 1, 2],
+            "test_indices": [3, 4],
+            "val_count": 1,
+            "n_vertices": n_vertices,
+            "workers": 0,
+        },
+        "patch": {"area": 100.0, "scales": [patch]},
+        "model": {"name": "zernet", "widths": [8, 16], "angular_resolution": 2, "dropout": 0.0},
+        "train": {"epochs": 1, "seed": 0, "threads": 1, "lr": 1e-2, **(train or {})},
+        "eval": {"renders": 0, "plots": False, **(eval or {})},
+        "cache_dir": str(root / "cache"),
+    }
