@@ -137,7 +137,13 @@ def laplacian_eigenbasis(surface: Surface, k: int, cache_dir: str | os.PathLike 
     # A shift below 0 keeps L - σM positive definite (L is only semi-definite); scaled by the Laplacian's
     # own size so it means the same at any area.
     shift = -1e-8 * float(stiffness.diagonal().sum() / mass.sum())
-    eigenvalues, eigenvectors = scipy.sparse.linalg.eigsh(stiffness, k=k, M=mass_matrix, sigma=shift, which="LM")
+    # A fixed start vector: ARPACK's own random one advances from call to call within a process, so the same
+    # surface could get another basis (or, at the edge of a degenerate cluster, another eigenvalue) depending
+    # on what ran before it.
+    start = np.random.default_rng(0).standard_normal(stiffness.shape[0])
+    eigenvalues, eigenvectors = scipy.sparse.linalg.eigsh(
+        stiffness, k=k, M=mass_matrix, sigma=shift, which="LM", v0=start
+    )
     order = np.argsort(eigenvalues)
     basis = SpectralBasis(np.maximum(eigenvalues[order], 0.0), np.ascontiguousarray(eigenvectors[:, order]), mass)
     if path is not None:
