@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import gc
 import os
 import random
 from collections.abc import Callable, Iterator, Sequence
@@ -256,9 +257,19 @@ class DistributedContext:
         if self.is_main:
             dist.barrier()
 
-    def close(self) -> None:
-        """Leave the process group if :func:`setup` created it."""
+    def close(self, completed: bool = True) -> None:
+        """Leave the process group if :func:`setup` created it.
+
+        After a completed run every rank first meets at a barrier, so none leaves while another still has a
+        collective in flight, and the objects that hold Gloo's pending work (DDP's reducer) are collected
+        while the interpreter is whole: freed during interpreter shutdown instead, a rank was once
+        aborted at exit ("terminate called without an active exception") after the run had finished. A
+        failed run skips the barrier (the other ranks may never reach it).
+        """
         if self.owns_group and dist.is_initialized():
+            if completed:
+                dist.barrier()
+            gc.collect()
             dist.destroy_process_group()
             self.owns_group = False
 

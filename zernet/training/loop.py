@@ -139,7 +139,7 @@ def train(
         config = _fresh_run_config(config, run_dir, overwrite)
     run_dir.mkdir(parents=True, exist_ok=True)
     logger = open_log(run_dir, main=is_main())
-    ctx = None
+    ctx, completed = None, False
     try:
         if resume_note:
             logger.warning(resume_note)
@@ -150,10 +150,12 @@ def train(
         ctx = setup_distributed(resolve_device(config.train.device))
         if ctx.is_main:
             write_config_yaml(run_dir, config.to_dict())
-        return _run(config, run_dir, checkpoint, progress and ctx.is_main, logger, workers, ctx, source)
+        metrics = _run(config, run_dir, checkpoint, progress and ctx.is_main, logger, workers, ctx, source)
+        completed = True
+        return metrics
     finally:
         if ctx is not None:
-            ctx.close()
+            ctx.close(completed)
         close_log(logger)
 
 
