@@ -13,7 +13,7 @@ import trimesh
 from zernet.cli import main
 from zernet.geometry import Surface
 from zernet.matching import PRETRAINED_MODEL, load_matching_model, match_surfaces
-from zernet.matching.match import match_shapes
+from zernet.matching.match import load_matcher, match_shapes
 from zernet.matching.shapes import prepare_shape
 
 needs_bodies = pytest.mark.skipif(
@@ -135,22 +135,26 @@ def test_a_fine_surface_is_read_through_a_coarse_copy_and_answered_per_vertex(on
     assert distance.mean() < 0.05 * np.sqrt(spec.area)
 
 
-def test_same_scale_keeps_a_part_at_its_size(tmp_path, one_torch_thread):
+@pytest.mark.parametrize("kind", ["template", "descriptors"])
+def test_same_scale_keeps_a_part_at_its_size(tmp_path, one_torch_thread, kind):
+    model = load_matcher() if kind == "template" else load_matching_model()[0]
+    area = model.area if kind == "template" else model.spec.area
     body = _small_body()
     kept = np.flatnonzero(body.vertices[:, 1] > 0)
     inside = np.isin(body.faces, kept).all(axis=1)
     renumber = np.full(body.n_vertices, -1)
     renumber[kept] = np.arange(len(kept))
     half = Surface(body.vertices[kept], renumber[body.faces[inside]], name="half")
-    result, source, target = match_surfaces(half, body, same_scale=True)
+    result, source, target = match_surfaces(half, body, model, same_scale=True)
     assert abs(source.surface.area / target.surface.area - half.area / body.area) < 1e-6
-    assert abs(target.surface.area - load_matching_model()[0].spec.area) < 1e-6 * target.surface.area
+    assert abs(target.surface.area - area) < 1e-6 * target.surface.area
     assert result.vertex_map.shape == (half.n_vertices,)
-    _, source, _ = match_surfaces(half, body)  # without: each at the model's area
+    _, source, _ = match_surfaces(half, body, model)  # without: each at the model's area
     assert abs(source.surface.area / target.surface.area - 1) < 1e-6
     paths = [tmp_path / "half.ply", tmp_path / "body.ply"]
     for path, surface in zip(paths, (half, body)):
         trimesh.Trimesh(surface.vertices, surface.faces, process=False).export(path)
     prefix = tmp_path / "hb"
-    assert main(["match", *map(str, paths), "--out", str(prefix), "--same-scale", "--no-picture"]) == 0
+    options = ["--same-scale", "--no-picture"] + (["--descriptors"] if kind == "descriptors" else [])
+    assert main(["match", *map(str, paths), "--out", str(prefix), *options]) == 0
     assert np.load(prefix.with_name("hb.npy")).shape == (half.n_vertices,)

@@ -1,5 +1,6 @@
-"""``zernet match SOURCE TARGET --out PREFIX [--run RUN]``: a vertex map between two surfaces, with the
-shipped descriptor model unless a run or model file is given.
+"""``zernet match SOURCE TARGET --out PREFIX [--run RUN | --descriptors]``: a vertex map between two
+surfaces, with the shipped template model (human bodies) unless a model file or run is given, or with the
+shipped descriptor model and functional maps (``--descriptors``).
 
 Writes ``PREFIX.npy`` and ``PREFIX.txt`` (the target vertex of each source vertex, 0-based, one per line),
 ``PREFIX_fmap.npy`` (the functional map, :class:`zernet.matching.match.MatchResult`),
@@ -26,9 +27,9 @@ def add_match_command(sub, parents: list[argparse.ArgumentParser]) -> None:
         parents=parents,
         help="a vertex-to-vertex correspondence between two surfaces",
         description="Match two surfaces (meshes or point clouds, any pose, placement, scale and "
-        "triangulation) with learned descriptors and functional maps (docs/MATCHING.md). "
-        "Without --run, the descriptor model shipped with zernet (trained on "
-        "generated human bodies) is used.",
+        "triangulation; docs/MATCHING.md). Without --run, the template model shipped with zernet "
+        "(trained on generated human bodies) names where on a body each point lies, and points are "
+        "paired by that; --descriptors uses the shipped descriptor model and functional maps instead.",
     )
     p.add_argument("source", type=Path, metavar="SOURCE", help="mesh or point-cloud file")
     p.add_argument("target", type=Path, metavar="TARGET", help="mesh or point-cloud file")
@@ -45,7 +46,14 @@ def add_match_command(sub, parents: list[argparse.ArgumentParser]) -> None:
         type=Path,
         default=None,
         metavar="RUN",
-        help="a matching model file or training run folder (default: the shipped model)",
+        help="a template or descriptor model file, or a descriptor training run folder (default: the "
+        "shipped template model)",
+    )
+    p.add_argument(
+        "--descriptors",
+        action="store_true",
+        help="use the shipped descriptor model (descriptors, functional maps and ZoomOut) instead of the "
+        "template model: for shapes other than human bodies, with a model of your own (--run)",
     )
     p.add_argument(
         "--cache-dir",
@@ -87,11 +95,13 @@ def transfer_field(field_on_source: np.ndarray, reverse_map: np.ndarray) -> np.n
 
 def run_match(args) -> int:
     from zernet.geometry import read_surface
-    from zernet.matching.match import match_surfaces
+    from zernet.matching.match import load_matcher, match_surfaces
     from zernet.matching.model import load_matching_model
     from zernet.viz import render_side_by_side
 
-    model, _ = load_matching_model(args.run)
+    if args.descriptors and args.run is not None:
+        raise ValueError("--descriptors picks the shipped descriptor model; with --run, give one model only")
+    model = load_matching_model()[0] if args.descriptors else load_matcher(args.run)
     source, target = read_surface(args.source), read_surface(args.target)
     result, _, _ = match_surfaces(source, target, model, cache_dir=args.cache_dir, same_scale=args.same_scale)
     prefix = args.out
@@ -115,9 +125,15 @@ def run_match(args) -> int:
     seconds = ", ".join(f"{name} {value:.2f} s" for name, value in result.seconds.items())
     print(
         f"matched {len(result.vertex_map)} source vertices to {len(result.reverse_map)} target vertices "
-        f"(model: {'shipped' if args.run is None else args.run}; mean confidence "
+        f"(model: {_model_name(args)}; mean confidence "
         f"{float(result.confidence.mean()):.2f}; {seconds})"
     )
     for path in written:
         print(f"  {path}")
     return 0
+
+
+def _model_name(args) -> str:
+    if args.run is not None:
+        return str(args.run)
+    return "shipped descriptor model" if args.descriptors else "shipped template model"

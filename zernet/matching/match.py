@@ -1,4 +1,5 @@
-"""Matching two surfaces: descriptors -> functional map -> point map -> ZoomOut -> confidence.
+"""Matching two surfaces: descriptors -> functional map -> point map -> ZoomOut -> confidence, or through a
+template model (:mod:`zernet.matching.template`, the default for :func:`match_surfaces`: human bodies).
 
 A model whose inputs depend on the pose (xyz) and whose spec says ``align_target`` sees the target turned
 into the source's frame: the 4 rotations that carry the target's principal axes onto the source's
@@ -28,6 +29,15 @@ from zernet.geometry import FixedScale, Surface, read_surface, repair_surface
 from zernet.matching.fmap import cycle_confidence, functional_map, nearest_rows, pointmap_from_fmap, zoomout
 from zernet.matching.model import DescriptorModel, load_matching_model
 from zernet.matching.shapes import MatchShape, prepare_shape, rotating_columns
+from zernet.matching.template import (
+    TEMPLATE_FORMAT,
+    TemplateModel,
+    TemplateShape,
+    load_template_model,
+    match_template_shapes,
+    template_shape,
+)
+from zernet.operators.spectral import fmap_from_pointmap, laplacian_eigenbasis
 
 __all__ = [
     "MatchResult",
@@ -37,6 +47,7 @@ __all__ = [
     "descriptor_fmap",
     "match_shapes",
     "match_surfaces",
+    "load_matcher",
     "nearest_vertex_map",
     "shared_scale",
     "CONFIDENCE_SCALE",
@@ -211,23 +222,41 @@ def _load_input(surface: Surface | str | os.PathLike):
     return repair_surface(surface)
 
 
+def load_matcher(path: str | os.PathLike | None = None) -> TemplateModel | DescriptorModel:
+    """The model in a file or run folder: a template model (:mod:`zernet.matching.template`) or a descriptor
+    model (:func:`zernet.matching.model.load_matching_model`); None: the shipped template model."""
+    if path is None:
+        return load_template_model()
+    path = Path(path)
+    if path.is_file():
+        try:
+            stored = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception:  # load_matching_model names what is wrong with the file
+            stored = None
+        if isinstance(stored, dict) and stored.get("format") == TEMPLATE_FORMAT:
+            return load_template_model(path)
+    return load_matching_model(path)[0]
+
+
 def match_surfaces(
     source: Surface | str | os.PathLike,
     target: Surface | str | os.PathLike,
-    model: DescriptorModel | str | os.PathLike | None = None,
+    model: TemplateModel | DescriptorModel | str | os.PathLike | None = None,
     cache_dir: str | os.PathLike | None = None,
     zoomout_end: int | None = None,
     same_scale: bool = False,
-) -> tuple[MatchResult, MatchShape, MatchShape]:
+) -> tuple[MatchResult, MatchShape | TemplateShape, MatchShape | TemplateShape]:
     """Match two surfaces or files, answering per input vertex.
 
     Args:
         source, target: :class:`~zernet.geometry.Surface` objects or mesh / point-cloud files (PLY, OBJ,
             OFF, STL, ...), in any pose, placement and scale; repaired where they can be (duplicate vertices
             merged, degenerate faces dropped).
-        model: a :class:`DescriptorModel`, a model file or run folder, or None: the shipped model.
+        model: a :class:`~zernet.matching.template.TemplateModel` (human bodies, through the template the
+            classifier names), a :class:`DescriptorModel` (descriptors and functional maps), a file or run
+            folder holding either (:func:`load_matcher`), or None: the shipped template model.
         cache_dir: cache of patch operators and eigenbases (None: nothing cached).
-        zoomout_end: see :func:`match_shapes`.
+        zoomout_end: see :func:`match_shapes` (descriptor models only).
         same_scale: the two are in the same units (two scans from one scanner, one of them partial): both
             are scaled by the one factor that brings the larger to the model's area, instead of each to that
             area, so a part keeps its size (scaled up to the model's area, a one-sided scan reads as a body
@@ -238,12 +267,17 @@ def match_surfaces(
         vertex, an index into the *input* target's vertices (likewise ``reverse_map`` and ``confidence``);
         the prepared shapes are the repaired surfaces, for pictures.
     """
-    if not isinstance(model, DescriptorModel):
-        model, _ = load_matching_model(model)
-    spec = model.spec
+    if not isinstance(model, (DescriptorModel, TemplateModel)):
+        model = load_matcher(model)
     start = time.perf_counter()
     repaired_source, repaired_target = _load_input(source), _load_input(target)
-    area = shared_scale(spec.area, [repaired_source.surface, repaired_target.surface]) if same_scale else spec.area
+    model_area = model.area if isinstance(model, TemplateModel) else model.spec.area
+    surfaces = [repaired_source.surface, repaired_target.surface]
+    area = shared_scale(model_area, surfaces) if same_scale else model_area
+    if isinstance(model, TemplateModel):
+        result, prepared = _match_through_template(model, surfaces, area, cache_dir)
+        return _per_input_vertex(result, prepared, repaired_source, repaired_target), *prepared
+    spec = model.spec
     prepared = [
         prepare_shape(
             item.surface,
@@ -259,15 +293,48 @@ def match_surfaces(
     ]
     prepare_seconds = time.perf_counter() - start
     result = match_shapes(model, prepared[0], prepared[1], zoomout_end)
+    result.seconds = {"prepare": prepare_seconds, **result.seconds}
+    return _per_input_vertex(result, prepared, repaired_source, repaired_target), prepared[0], prepared[1]
+
+
+#: Eigenpairs of the functional map a template match is also given as.
+TEMPLATE_FMAP_SIZE = 80
+
+
+def _match_through_template(
+    model: TemplateModel, surfaces: list[Surface], area, cache_dir
+) -> tuple[MatchResult, list[TemplateShape]]:
+    """Match two repaired surfaces through the template model (:mod:`zernet.matching.template`); the result's
+    functional map is the point map's, on the first 80 eigenfunctions of each surface."""
+    start = time.perf_counter()
+    prepared = [template_shape(model, surface, area, cache_dir) for surface in surfaces]
+    seconds = {"template positions": time.perf_counter() - start}
+    scale = CONFIDENCE_SCALE * np.sqrt(prepared[0].surface.area)
+    vertex_map, reverse_map, confidence, seconds["point maps"] = match_template_shapes(*prepared, scale)
+    start = time.perf_counter()
+    bases = [
+        laplacian_eigenbasis(
+            Surface(shape.surface.vertices, shape.surface.faces, name=shape.surface.name),
+            TEMPLATE_FMAP_SIZE,
+            cache_dir=cache_dir,
+        )
+        for shape in prepared
+    ]
+    fmap = fmap_from_pointmap(vertex_map, bases[1], bases[0])
+    seconds["functional map"] = time.perf_counter() - start
+    return MatchResult(vertex_map, reverse_map, fmap, confidence, seconds), prepared
+
+
+def _per_input_vertex(result: MatchResult, prepared, repaired_source, repaired_target) -> MatchResult:
+    """The result on the input surfaces' vertices (before the repair)."""
     # Back to input vertices: a merged duplicate answers with its kept copy; a repaired vertex is answered
     # with one of the input vertices merged into it.
-    first_target = _first_input_vertex(repaired_target.vertex_map, prepared[1].n_vertices)
-    first_source = _first_input_vertex(repaired_source.vertex_map, prepared[0].n_vertices)
+    first_target = _first_input_vertex(repaired_target.vertex_map, prepared[1].surface.n_vertices)
+    first_source = _first_input_vertex(repaired_source.vertex_map, prepared[0].surface.n_vertices)
     result.vertex_map = first_target[result.vertex_map[repaired_source.vertex_map]]
     result.reverse_map = first_source[result.reverse_map[repaired_target.vertex_map]]
     result.confidence = result.confidence[repaired_source.vertex_map]
-    result.seconds = {"prepare": prepare_seconds, **result.seconds}
-    return result, prepared[0], prepared[1]
+    return result
 
 
 def shared_scale(area: float, surfaces: list[Surface]) -> FixedScale:

@@ -1,0 +1,280 @@
+"""Matching two human bodies through a template: a classifier names where on the body each point lies.
+
+A template model is a zernet classifier trained to name, for every vertex or point of a body in any form
+(a mesh of any triangulation, a noisy point cloud, a one-sided scan), the vertex of a template body it lies
+at (generated bodies in every form, :func:`zernet.data.bodies.forms.make_forms`, labelled with the template
+vertex through their barycentric ground truth). Each vertex of a surface is then given a **template
+position**: the mean of the template vertices' rest positions weighted by its class probabilities (a
+vertex torn between two neighbouring classes lands between them), and two surfaces are matched by pairing
+nearest template positions. Nothing assumes the two are isometric, unlike a functional map and ZoomOut
+(:mod:`zernet.matching.match`), and a part of a body (a one-sided scan) reads its own positions, unlike a
+spectral method, whose eigenbasis changes with the missing side.
+
+Pose. The classifier reads positions, in the frame its training bodies were generated in (y up, facing
++z). A surface in another frame is turned first: the candidates are the surface as given and the rotations
+that carry its principal axes onto those of the training frame (:func:`candidate_rotations`), and the one
+under which the classifier is most confident (its mean top probability) is kept. The principal candidates
+do not depend on how the surface was turned, so neither does the match.
+
+Resolution. Like the descriptor model, the classifier reads a surface of more than 1.5 times
+``coarse_vertices`` through a coarse copy (:func:`zernet.geometry.coarsen_surface`); every vertex takes the
+template position interpolated from its nearest copy vertices (inverse distance, 4 of them).
+
+A template model file is a plain dictionary loaded with ``torch.load(weights_only=True)``:
+``{"format": TEMPLATE_FORMAT, "model_spec", "model" (state dict), "patch_configs", "feature_kind",
+"feature_stats", "area", "coarse_vertices", "template_positions" (C, 3), "provenance"}``; made from a
+training run by :func:`save_template_model`. The model shipped with zernet is
+:data:`PRETRAINED_TEMPLATE_MODEL`.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from zernet.data import prepare_record
+from zernet.geometry import FixedScale, Surface, SurfaceWarning, coarsen_surface
+from zernet.io_utils import atomic_save_torch, plain
+from zernet.matching.fmap import cycle_confidence
+from zernet.matching.shapes import rotating_columns
+from zernet.operators import PatchConfig
+
+__all__ = [
+    "TEMPLATE_FORMAT",
+    "PRETRAINED_TEMPLATE_MODEL",
+    "TemplateModel",
+    "TemplateShape",
+    "save_template_model",
+    "load_template_model",
+    "candidate_rotations",
+    "template_shape",
+    "match_template_shapes",
+]
+
+TEMPLATE_FORMAT = "zernet-template-1"
+#: The template model shipped in the package (trained on generated bodies only; provenance beside it).
+PRETRAINED_TEMPLATE_MODEL = Path(__file__).resolve().parent / "pretrained" / "bodies_template.pt"
+
+#: Rigid refinements of the chosen alignment (each one more pass of the classifier).
+ALIGNMENT_STEPS = 3
+
+#: Copy vertices a template position is interpolated from.
+INTERPOLATION_NEIGHBOURS = 4
+
+#: The training frame's principal axes, largest spread first (rows): up (y), across the shoulders (x), and
+#: front to back (z) to make a right-handed frame.
+TRAINING_AXES = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+@dataclass
+class TemplateModel:
+    """A loaded template model (module docstring)."""
+
+    network: torch.nn.Module
+    patch_configs: list[PatchConfig]
+    feature_kind: str
+    feature_stats: dict | None
+    area: float
+    coarse_vertices: int | None
+    template_positions: np.ndarray  # (C, 3) rest positions of the template vertices (the classes)
+    provenance: dict
+
+    @property
+    def n_classes(self) -> int:
+        return len(self.template_positions)
+
+
+@dataclass
+class TemplateShape:
+    """A surface read by a template model.
+
+    Attributes:
+        surface: the surface scaled as the model reads it (to its area, or by a fixed factor).
+        positions: (N, 3) template position of each vertex.
+        confidence: (N,) the classifier's top probability (on the copy's vertex nearest each vertex).
+        rotation: (3, 3) the turn applied to its pose-dependent inputs (identity: read as given).
+    """
+
+    surface: Surface
+    positions: np.ndarray
+    confidence: np.ndarray
+    rotation: np.ndarray
+
+    @property
+    def n_vertices(self) -> int:
+        return self.surface.n_vertices
+
+
+def save_template_model(run_checkpoint: dict, template_positions: np.ndarray, path, provenance: dict) -> Path:
+    """Write a template model file from a training run's checkpoint (a classifier whose classes are the
+    template's vertices) and the template's rest positions (C, 3); weights in float16."""
+    preprocess = run_checkpoint["preprocess"]
+    if run_checkpoint["task"] != "classification" or run_checkpoint["num_classes"] != len(template_positions):
+        raise ValueError(
+            f"a template model needs a classifier with one class per template vertex "
+            f"({len(template_positions)}), got a {run_checkpoint['task']} model with "
+            f"{run_checkpoint.get('num_classes')} classes"
+        )
+    unit_scale = preprocess.get("unit_scale")
+    area = preprocess["area"]
+    if area is None:  # trained at a fixed scale: surfaces are brought to the training bodies' median area
+        area = provenance["training_area"]
+    payload = {
+        "format": TEMPLATE_FORMAT,
+        "model_spec": plain(run_checkpoint["model_spec"]),
+        "model": {key: value.half() for key, value in run_checkpoint["model"].items()},
+        "patch_configs": plain(preprocess["patch_configs"]),
+        "feature_kind": preprocess["feature_kind"],
+        "feature_stats": plain(run_checkpoint.get("feature_stats")),
+        "area": float(area),
+        "coarse_vertices": provenance.get("coarse_vertices"),
+        "template_positions": torch.as_tensor(np.asarray(template_positions, dtype=np.float32)),
+        "provenance": plain({**provenance, "unit_scale": unit_scale}),
+    }
+    path = Path(path)
+    atomic_save_torch(payload, path)
+    return path
+
+
+def load_template_model(path: str | os.PathLike | None = None, device: str | torch.device = "cpu") -> TemplateModel:
+    """A template model from its file (None: the shipped one)."""
+    from zernet.training.build import build_model_from_spec
+
+    path = PRETRAINED_TEMPLATE_MODEL if path is None else Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no template model file there")
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(payload, dict) or payload.get("format") != TEMPLATE_FORMAT:
+        raise ValueError(f"{path}: not a zernet template model (format {TEMPLATE_FORMAT!r} expected)")
+    network = build_model_from_spec(payload["model_spec"])
+    network.load_state_dict({key: value.float() for key, value in payload["model"].items()})
+    network.to(device).eval()
+    return TemplateModel(
+        network,
+        [PatchConfig(**config) for config in payload["patch_configs"]],
+        payload["feature_kind"],
+        payload["feature_stats"],
+        float(payload["area"]),
+        payload["coarse_vertices"],
+        payload["template_positions"].double().numpy(),
+        payload["provenance"],
+    )
+
+
+def principal_frame(vertices: np.ndarray) -> np.ndarray:
+    """(3, 3) rows: the principal axes of a point set, largest spread first, right-handed."""
+    centred = vertices - vertices.mean(axis=0)
+    _, vectors = np.linalg.eigh(centred.T @ centred)
+    axes = vectors[:, ::-1].T.copy()
+    axes[2] = np.cross(axes[0], axes[1])
+    return axes
+
+
+def candidate_rotations(vertices: np.ndarray) -> list[np.ndarray]:
+    """Rotations (3, 3) to try on a surface: the identity (read as given), then the 8 that carry its principal
+    axes onto :data:`TRAINING_AXES`: 4 proper choices of the axes' signs, with the second and third axes in
+    either order (a posed body can be deeper than it is wide)."""
+    axes = principal_frame(vertices)
+    swapped = np.array([axes[0], axes[2], -axes[1]])  # still right-handed
+    signs = [np.diag(s) for s in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))]
+    return [np.eye(3)] + [TRAINING_AXES.T @ sign @ frame for frame in (axes, swapped) for sign in signs]
+
+
+@torch.no_grad()
+def template_shape(
+    model: TemplateModel,
+    surface: Surface,
+    area: float | FixedScale | None = None,
+    cache_dir: str | os.PathLike | None = None,
+) -> TemplateShape:
+    """Read ``surface`` with the template model: the template position of every vertex (module docstring).
+
+    ``area``: the area the surface is scaled to (None: the model's), or a
+    :class:`~zernet.geometry.FixedScale` (a surface matched as a part of another in the same units).
+    """
+    from zernet.training.batch import Batch, model_basis_orders, model_directional_order
+    from zernet.training.targets import standardise_features
+
+    area = model.area if area is None else area
+    factor = area.factor if isinstance(area, FixedScale) else float(np.sqrt(area / surface.area))
+    surface = Surface(surface.vertices * factor, surface.faces, name=surface.name)
+    coarse = None
+    with warnings.catch_warnings():
+        # The copy is the matcher's own: what a simplifier leaves in it (non-manifold edges) is not the user's.
+        warnings.simplefilter("ignore", SurfaceWarning)
+        if model.coarse_vertices and surface.n_vertices > 1.5 * model.coarse_vertices:
+            coarse = coarsen_surface(surface, model.coarse_vertices)
+        read = surface if coarse is None else coarse.surface
+        record = prepare_record(
+            read, model.patch_configs, cache_dir=cache_dir, target_area=FixedScale(1.0), feature_kind=model.feature_kind
+        )
+    device = next(model.network.parameters()).device
+    batch = Batch(
+        [record], device, None, None, model_directional_order(model.network), model_basis_orders(model.network)
+    )
+    n_max = model.patch_configs[0].n_max
+    template = torch.as_tensor(model.template_positions, device=device)
+
+    def read_turned(rotation: np.ndarray):
+        """(mean top probability, template positions (n, 3), top probabilities (n,), rotation)."""
+        features = np.array(record.features, dtype=np.float32)
+        for columns in rotating_columns(model.feature_kind, n_max):
+            features[:, columns] = features[:, columns] @ rotation.T.astype(np.float32)
+        inputs = torch.from_numpy(features).to(device)
+        if model.feature_stats is not None:
+            inputs = standardise_features(inputs, model.feature_stats)
+        probabilities = torch.softmax(model.network(inputs, batch.geometry).float(), dim=1)
+        top = probabilities.max(dim=1).values
+        positions = (probabilities.double() @ template).cpu().numpy()
+        return float(top.mean()), positions, top.cpu().numpy(), rotation
+
+    best = max((read_turned(rotation) for rotation in candidate_rotations(record.surface.vertices)), key=lambda r: r[0])
+    # A principal frame is only roughly the training frame: the turn that best carries the surface onto the
+    # template positions it was read at (weighted by confidence) is tried next, while it helps.
+    for _ in range(ALIGNMENT_STEPS):
+        turned = read_turned(_fitted_rotation(record.surface.vertices, best[1], best[2]))
+        if turned[0] <= best[0]:
+            break
+        best = turned
+    _, positions, confidence, rotation = best
+    if coarse is not None:
+        positions, confidence = _interpolated(read.vertices, surface.vertices, positions, confidence)
+    return TemplateShape(surface, positions, confidence, rotation)
+
+
+def _fitted_rotation(vertices: np.ndarray, positions: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(3, 3) the rotation R minimising the weighted squared distances between R (centred ``vertices``) and the
+    centred template ``positions`` (Kabsch)."""
+    weights = weights / weights.sum()
+    x = vertices - weights @ vertices
+    y = positions - weights @ positions
+    u, _, vt = np.linalg.svd((y * weights[:, None]).T @ x)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
+
+def _interpolated(copy_vertices, vertices, positions, confidence) -> tuple[np.ndarray, np.ndarray]:
+    """Template positions (inverse-distance weighted) and confidences (nearest) of a coarse copy carried to
+    the surface's own vertices."""
+    distances, nearest = cKDTree(copy_vertices).query(vertices, k=INTERPOLATION_NEIGHBOURS)
+    weights = 1.0 / np.maximum(distances, 1e-12 * max(float(np.ptp(copy_vertices)), 1e-300))
+    weights /= weights.sum(axis=1, keepdims=True)
+    return np.einsum("nk,nkd->nd", weights, positions[nearest]), confidence[nearest[:, 0]]
+
+
+def match_template_shapes(source: TemplateShape, target: TemplateShape, confidence_scale: float):
+    """(vertex_map source -> target, reverse_map, confidence): nearest template positions both ways; the
+    confidence is the round trip's agreement (:func:`zernet.matching.fmap.cycle_confidence`, distances over
+    ``confidence_scale``, in the source's units)."""
+    start = time.perf_counter()
+    _, vertex_map = cKDTree(target.positions).query(source.positions)
+    _, reverse_map = cKDTree(source.positions).query(target.positions)
+    vertex_map, reverse_map = np.asarray(vertex_map, np.int64), np.asarray(reverse_map, np.int64)
+    confidence = cycle_confidence(vertex_map, reverse_map, source.surface.vertices, confidence_scale)
+    return vertex_map, reverse_map, confidence, time.perf_counter() - start
