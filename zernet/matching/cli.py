@@ -1,4 +1,4 @@
-"""``zernet match SOURCE TARGET --out PREFIX [--run RUN | --descriptors]``: a vertex map between two
+"""``zernet match SOURCE TARGET --out PREFIX [--run RUN] [--descriptors]``: a vertex map between two
 surfaces, with the shipped template model (human bodies) unless a model file or run is given, or with the
 shipped descriptor model and functional maps (``--descriptors``).
 

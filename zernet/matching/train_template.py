@@ -118,6 +118,8 @@ def main(argv=None) -> int:
     from zernet.matching.template import save_template_model
     from zernet.training.checkpoint import load_checkpoint
 
+    # The commit the model is trained from, taken before the hours of training a later commit may land in.
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     if not (args.bodies / "forms" / FORMS[-1]).is_dir():
         command = [sys.executable, "-m", "zernet.cli", "bodies", str(args.bodies), "--count", str(args.count)]
         command += ["--n-test", "10", "--seed", str(args.seed), "--topology", TOPOLOGY]
@@ -137,7 +139,6 @@ def main(argv=None) -> int:
     atomic_write_bytes(config_path, yaml.safe_dump(config, sort_keys=False).encode())
     command = [sys.executable, "-m", "zernet.cli", "train", str(config_path), "--run-dir", str(args.run / "run")]
     subprocess.run([*command, "--set", f"train.threads={args.threads}", "--no-progress"], check=True)
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     provenance = {
         "what": "ZerNet template classifier (1,229 template vertices) for matching human bodies",
         "command": "python -m zernet.matching.train_template " + " ".join(argv or sys.argv[1:]),
