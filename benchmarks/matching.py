@@ -18,7 +18,10 @@ within 0-10 % of the target's geodesic diameter. Time per pair: both shapes prep
 cache: operators, features, eigenbases) plus the match, one thread.
 
     python benchmarks/matching.py [--topology faust] [--pairs 8] [--model FILE] [--template FILE]
-        [--out benchmarks/results/matching]
+        [--split test|validation] [--methods template,descriptors,zoomout] [--out benchmarks/results/matching]
+
+``--split validation`` pairs bodies 400, 401, ... of the train stream instead (never trained on by either
+shipped model): the pairs a model is chosen on, so the test pairs stay unseen by every choice.
 """
 
 from __future__ import annotations
@@ -43,6 +46,14 @@ from zernet.metrics import error_curve, geodesic_diameter, geodesic_errors
 from zernet.training.augment import random_rotation
 from zernet.viz import plot_error_curve, render_side_by_side
 
+#: --split: (stream of zernet.matching.bodies.body_forms, first body index).
+SPLITS = {"test": ("test", 0), "validation": ("train", 400)}
+#: --methods: the columns each name adds.
+METHODS = {
+    "template": ("template model",),
+    "descriptors": ("descriptor model", "descriptor model, no ZoomOut"),
+    "zoomout": ("ZoomOut alone (rigid start)",),
+}
 #: ZoomOut alone starts from this many eigenpairs (the rigid map is only trusted at low frequency).
 ZOOMOUT_ALONE_START = 10
 
@@ -56,6 +67,57 @@ def errors_on_target(
     return 100 * relative, relative * root_area / diameter
 
 
+def descriptor_and_zoomout_maps(
+    model, source_form, target_surface: Surface, setting: str, seconds: list, pair: int
+) -> dict[str, np.ndarray]:
+    """The descriptor model's maps (with and without ZoomOut) and ZoomOut alone from a rigid start; the time
+    of the remeshed pairs appended to ``seconds`` (both shapes prepared from scratch, then the match)."""
+    spec = model.spec
+    start = time.perf_counter()
+    # A partial scan is matched in the units it shares with the whole body (zernet match --same-scale).
+    area = spec.area
+    if setting == "partial":
+        area = shared_scale(spec.area, [source_form.surface, target_surface])
+    source, target = (
+        prepare_shape(
+            surface,
+            spec.patch_config_objects(),
+            area,
+            spec.feature_kind,
+            spec.n_eigen,
+            cache_dir=None,
+            name=name,
+            descriptor_vertices=spec.descriptor_vertices,
+        )
+        for surface, name in ((source_form.surface, source_form.name), (target_surface, target_surface.name))
+    )
+    result = match_shapes(model, source, target)
+    if setting == "remeshed":
+        seconds.append(
+            {
+                "pair": pair,
+                "source_vertices": source.n_vertices,
+                "target_vertices": target.n_vertices,
+                "seconds": time.perf_counter() - start,
+                **{f"{k}_seconds": v for k, v in result.seconds.items()},
+            }
+        )
+    layer_only = match_shapes(model, source, target, zoomout_end=0).vertex_map
+    rigid, _ = zoomout(
+        nearest_vertex_map(source, target),
+        target.basis,
+        source.basis,
+        ZOOMOUT_ALONE_START,
+        spec.zoomout_end,
+        spec.zoomout_step,
+    )
+    return {
+        "descriptor model": result.vertex_map,
+        "descriptor model, no ZoomOut": layer_only,
+        "ZoomOut alone (rigid start)": rigid,
+    }
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--topology", default="faust")
@@ -65,29 +127,30 @@ def main(argv=None) -> int:
     parser.add_argument("--template", default=None, help="template model file (default: the shipped one)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/matching"))
     parser.add_argument("--cache-dir", default=".zernet-cache")
+    parser.add_argument("--split", choices=sorted(SPLITS), default="test", help="test pairs, or validation pairs")
+    parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of " + ",".join(METHODS))
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     model, provenance = load_matching_model(args.model)
     template_model = load_template_model(args.template)
-    spec = model.spec
     settings = args.settings.split(",")
-    indices = range(args.pairs + 1)
+    stream, first = SPLITS[args.split]
+    indices = range(first, first + args.pairs + 1)
     targets, target_bodies, faces = body_forms(
-        indices, "test", {"remeshed": 1.0}, 0, args.topology, "varied", 0, args.cache_dir
+        indices, stream, {"remeshed": 1.0}, 0, args.topology, "varied", 0, args.cache_dir
     )
     sources = {"remeshed": targets, "rotated": targets}
     for setting, form in (("cloud", "cloud-noisy"), ("partial", "partial")):
         if setting in settings:
-            sources[setting] = body_forms(indices, "test", {form: 1.0}, 0, args.topology, "varied", 0, args.cache_dir)[
+            sources[setting] = body_forms(indices, stream, {form: 1.0}, 0, args.topology, "varied", 0, args.cache_dir)[
                 0
             ]
     rng = np.random.default_rng(0)
-    methods = {
-        "template model": {},
-        "descriptor model": {},
-        "descriptor model, no ZoomOut": {},
-        "ZoomOut alone (rigid start)": {},
-    }
+    chosen = args.methods.split(",")
+    unknown = set(chosen) - set(METHODS)
+    if unknown:
+        parser.error(f"--methods: unknown {sorted(unknown)}; choose from {sorted(METHODS)}")
+    methods = [name for key in METHODS if key in chosen for name in METHODS[key]]
     results = {
         setting: {name: {"errors": [], "diameter_errors": [], "pair_means": []} for name in methods}
         for setting in settings
@@ -103,83 +166,40 @@ def main(argv=None) -> int:
             if setting == "rotated":
                 rotation = random_rotation(rng, "any")
                 target_surface = Surface(target_surface.vertices @ rotation.T, target_surface.faces, name="rotated")
-            start = time.perf_counter()
-            # A partial scan is matched in the units it shares with the whole body (zernet match --same-scale).
-            area = spec.area
-            if setting == "partial":
-                area = shared_scale(spec.area, [source_form.surface, target_surface])
-            source = prepare_shape(
-                source_form.surface,
-                spec.patch_config_objects(),
-                area,
-                spec.feature_kind,
-                spec.n_eigen,
-                cache_dir=None,
-                name=source_form.name,
-                descriptor_vertices=spec.descriptor_vertices,
-            )
-            target = prepare_shape(
-                target_surface,
-                spec.patch_config_objects(),
-                area,
-                spec.feature_kind,
-                spec.n_eigen,
-                cache_dir=None,
-                name=target_form.name,
-                descriptor_vertices=spec.descriptor_vertices,
-            )
-            result = match_shapes(model, source, target)
-            elapsed = time.perf_counter() - start
-            if setting == "remeshed":
-                seconds.append(
-                    {
-                        "pair": i,
-                        "source_vertices": source.n_vertices,
-                        "target_vertices": target.n_vertices,
-                        "seconds": elapsed,
-                        **{f"{k}_seconds": v for k, v in result.seconds.items()},
-                    }
+            predictions = {}
+            if "descriptors" in chosen or "zoomout" in chosen:
+                timed = seconds if "descriptors" in chosen else []  # the descriptor model's time, when it is measured
+                predictions.update(descriptor_and_zoomout_maps(model, source_form, target_surface, setting, timed, i))
+            if "template" in chosen:
+                # The template model from the surfaces as a user has them (match_surfaces: repair, scaling, all).
+                start = time.perf_counter()
+                template_result, _, _ = match_surfaces(
+                    source_form.surface, target_surface, template_model, same_scale=setting == "partial"
                 )
-            layer_only = match_shapes(model, source, target, zoomout_end=0).vertex_map
-            rigid, _ = zoomout(
-                nearest_vertex_map(source, target),
-                target.basis,
-                source.basis,
-                ZOOMOUT_ALONE_START,
-                spec.zoomout_end,
-                spec.zoomout_step,
-            )
+                if setting == "remeshed":
+                    template_seconds.append(
+                        {"pair": i, "seconds": time.perf_counter() - start, **template_result.seconds}
+                    )
+                    if example is None:
+                        example = (source_form.surface, target_surface, template_result)
+                predictions["template model"] = template_result.vertex_map
             # Errors are measured on the target in its own units (rotation does not change them).
-            diameter = geodesic_diameter(target.surface)
-            # The template model from the surfaces as a user has them (match_surfaces: repair, scaling, all).
-            start = time.perf_counter()
-            template_result, _, _ = match_surfaces(
-                source_form.surface, target_surface, template_model, same_scale=setting == "partial"
-            )
-            if setting == "remeshed":
-                template_seconds.append({"pair": i, "seconds": time.perf_counter() - start, **template_result.seconds})
-            for name, predicted in (
-                ("template model", template_result.vertex_map),
-                ("descriptor model", result.vertex_map),
-                ("descriptor model, no ZoomOut", layer_only),
-                ("ZoomOut alone (rigid start)", rigid),
-            ):
-                area_errors, diameter_errors = errors_on_target(target.surface, predicted, truth, diameter)
+            diameter = geodesic_diameter(target_surface)
+            for name in methods:
+                area_errors, diameter_errors = errors_on_target(target_surface, predictions[name], truth, diameter)
                 entry = results[setting][name]
                 entry["errors"].append(area_errors)
                 entry["diameter_errors"].append(diameter_errors)
                 entry["pair_means"].append(float(area_errors.mean()))
             print(
                 f"pair {i} {setting}: "
-                + ", ".join(f"{name} {results[setting][name]['pair_means'][-1]:.2f}" for name in methods)
-                + f" ({elapsed:.1f} s)",
+                + ", ".join(f"{name} {results[setting][name]['pair_means'][-1]:.2f}" for name in methods),
                 flush=True,
             )
-            if setting == "remeshed" and example is None:
-                example = (source, target, template_result)
     summary = {
         "topology": args.topology,
         "pairs": args.pairs,
+        "split": args.split,
         "model": str(args.model or "shipped"),
         "model_provenance": {k: provenance.get(k) for k in ("commit", "command", "step", "val_error")},
         "template": str(args.template or "shipped"),
@@ -215,6 +235,7 @@ def main(argv=None) -> int:
                 )
             )
             for name in ("template model", "descriptor model")
+            if name in methods
         }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_json(args.out.with_suffix(".json"), summary)
@@ -227,9 +248,9 @@ def main(argv=None) -> int:
         from zernet.matching.cli import source_colour_field, transfer_field
 
         source, target, result = example
-        field = source_colour_field(source.surface.vertices)
+        field = source_colour_field(source.vertices)
         render_side_by_side(
-            [source.surface, target.surface],
+            [source, target],
             [field, transfer_field(field, result.reverse_map)],
             args.out.with_name(args.out.name + "_example.png"),
             ["source", "target"],
@@ -242,7 +263,8 @@ def main(argv=None) -> int:
 
 def write_markdown(summary: dict, path: Path, command: str) -> None:
     lines = [
-        f"# Matching held-out generated bodies ({summary['topology']} topology, {summary['pairs']} pairs)",
+        f"# Matching held-out generated bodies ({summary['topology']} topology, {summary['pairs']} "
+        f"{summary['split']} pairs)",
         "",
         f"`{command}` (one thread). Template model: {summary['template']} "
         f"(commit {str(summary['template_provenance'].get('commit'))[:10]}); descriptor model: {summary['model']} "
@@ -270,11 +292,16 @@ def write_markdown(summary: dict, path: Path, command: str) -> None:
         sizes = [(s["source_vertices"], s["target_vertices"]) for s in summary["time_per_pair"]]
         lines += [
             "",
-            f"Time per pair (remeshed, {min(min(s) for s in sizes)}-{max(max(s) for s in sizes)} vertices, "
-            f"both shapes prepared from scratch, one thread): mean {summary['mean_seconds_per_pair']:.1f} s, "
-            f"max {max(s['seconds'] for s in summary['time_per_pair']):.1f} s (descriptor model); "
-            f"template model, from the surfaces as a user has them (`match_surfaces`, the functional map "
-            f"included): mean {summary['template_mean_seconds_per_pair']:.1f} s, "
+            f"Time per pair with the descriptor model (remeshed, {min(min(s) for s in sizes)}-"
+            f"{max(max(s) for s in sizes)} vertices, both shapes prepared from scratch, one thread): mean "
+            f"{summary['mean_seconds_per_pair']:.1f} s, max {max(s['seconds'] for s in summary['time_per_pair']):.1f} s.",
+        ]
+    if summary["template_time_per_pair"]:
+        lines += [
+            "",
+            "Time per pair with the template model (remeshed, from the surfaces as a user has them: "
+            f"`match_surfaces`, the functional map included, one thread): mean "
+            f"{summary['template_mean_seconds_per_pair']:.1f} s, "
             f"max {max(s['seconds'] for s in summary['template_time_per_pair']):.1f} s.",
         ]
     path.write_text("\n".join(lines) + "\n")
