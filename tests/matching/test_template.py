@@ -27,9 +27,9 @@ needs_bodies = pytest.mark.skipif(
     reason="needs the bodies extra (anny, pymeshlab)",
 )
 
-#: Mean geodesic-free error bound (Euclidean, x100 / sqrt(target area)) of the shipped template model on the
-#: two coarse-615 pairs below, whole and with the target turned; see the test for the measured values.
-ERROR_BOUND = 6.0
+#: Bound on the shipped template model's mean Euclidean error (x100 / sqrt(target area)) on the two coarse-615
+#: pairs below, whole and with the target turned: measured 0.87 and 0.85 (the same turned).
+ERROR_BOUND = 1.5
 
 
 def _ellipsoid_points(rng) -> np.ndarray:
@@ -42,10 +42,10 @@ def test_principal_candidates_do_not_depend_on_the_pose():
     turn = random_rotation(rng, "any")
     given = candidate_rotations(points)
     turned = candidate_rotations(points @ turn.T)
-    assert np.allclose(given[0], np.eye(3))  # the surface as given comes first
+    assert len(given) == 8
     # Each candidate of the turned points, applied after the turn, is a candidate of the points themselves.
-    for candidate in turned[1:]:
-        assert min(np.abs(candidate @ turn - other).max() for other in given[1:]) < 1e-8
+    for candidate in turned:
+        assert min(np.abs(candidate @ turn - other).max() for other in given) < 1e-8
     for candidate in given:
         assert np.allclose(candidate @ candidate.T, np.eye(3)) and np.isclose(np.linalg.det(candidate), 1.0)
 
@@ -115,7 +115,8 @@ def test_shipped_template_model_matches_held_out_bodies_in_any_pose(held_out_bod
         turned_errors.append(_error(forms, body_vertices, faces, a, b, turned))
     assert np.mean(errors) < ERROR_BOUND, errors
     assert np.mean(turned_errors) < ERROR_BOUND, turned_errors
-    assert abs(np.mean(turned_errors) - np.mean(errors)) < 1.0, (errors, turned_errors)
+    # Every candidate starts from the principal axes: the turn changes nothing but rounding.
+    np.testing.assert_allclose(turned_errors, errors, atol=0.05)
 
 
 @needs_bodies
@@ -200,3 +201,24 @@ def test_the_training_folder_and_config_of_the_recipe(tmp_path):
     assert set(np.loadtxt(folder / "labels" / "train" / "body_000_partial.txt", dtype=int)) == {3}
     config = parse_config(template_config(folder, len(sphere.vertices), 90.0, 8, "pretrained:bodies-xyz-hks"))
     assert config.data.options["num_classes"] == len(sphere.vertices) and config.train.epochs == 8
+
+
+@pytest.mark.parametrize("as_cloud", [False, True])
+def test_smoothing_damps_a_degree_one_harmonic_by_one_over_one_plus_two_t(as_cloud):
+    from meshes import icosphere
+
+    from zernet.matching.template import smoothed_along
+    from zernet.operators.spectral import laplacian
+
+    sphere = icosphere(4)
+    surface = Surface(sphere.vertices) if as_cloud else sphere
+    # On the unit sphere x, y, z are eigenfunctions of the Laplacian with eigenvalue 2: one implicit heat step
+    # of length t divides them by 1 + 2t; a constant stays as it is and the mass-weighted mean is kept.
+    time = 0.05
+    values = np.column_stack([surface.vertices, np.ones(surface.n_vertices)])
+    smoothed = smoothed_along(surface, values, time)
+    np.testing.assert_allclose(smoothed[:, 3], 1.0, atol=1e-10)
+    np.testing.assert_allclose(smoothed[:, :3], surface.vertices / (1 + 2 * time), atol=0.01)
+    _, mass = laplacian(surface)
+    np.testing.assert_allclose(mass @ smoothed, mass @ values, atol=1e-10)
+    assert smoothed_along(surface, values, 0.0) is values
