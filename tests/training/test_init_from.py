@@ -201,3 +201,24 @@ def test_the_faust_config_starts_from_the_shipped_backbone():
     info = initialise_from(model, load_init_source(config.train.init_from))
     assert sorted(info["reinitialised"]) == ["output.bias", "output.weight"]
     assert info["copied"] == len(model.state_dict()) - 2
+
+
+def test_a_template_model_file_is_a_start_to_fine_tune(source_run, tmp_path):
+    """zernet match's classifier, fine-tuned on bodies of one's own: its network is taken whole."""
+    import numpy as np
+
+    from zernet.matching.template import save_template_model
+
+    checkpoint = load_checkpoint(source_run / "best.pt")
+    provenance = {"command": "test", "commit": "abc", "config": {}, "training_area": 100.0}
+    path = save_template_model(checkpoint, np.zeros((checkpoint["num_classes"], 3)), tmp_path / "t.pt", provenance)
+    source = load_init_source(path)
+    assert source.task == "classification" and source.num_classes == checkpoint["num_classes"]
+    model = build_model_from_spec(source.model_spec)
+    info = initialise_from(model, source)
+    assert info["reinitialised"] == [] and info["copied"] == len(model.state_dict())
+    for name, value in model.state_dict().items():  # stored in float16
+        torch.testing.assert_close(value, checkpoint["model"][name].half().float(), msg=name)
+    (tmp_path / "other.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="not a readable zernet checkpoint"):
+        load_init_source(tmp_path / "other.pt")

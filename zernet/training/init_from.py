@@ -75,7 +75,8 @@ class InitSource:
 
 
 def load_init_source(run: str | Path) -> InitSource:
-    """The weights to start from: ``run`` is a run folder (its ``best.pt``) or a checkpoint file.
+    """The weights to start from: ``run`` is a run folder (its ``best.pt``), a checkpoint file, or a template
+    model file (:mod:`zernet.matching.template`: fine-tuning ``zernet match``'s classifier on bodies of one's own).
 
     Raises FileNotFoundError (no such folder or file, or a folder without best.pt) or ValueError (not a
     readable zernet checkpoint), both reported by the CLI as one line with exit code 2.
@@ -90,10 +91,35 @@ def load_init_source(run: str | Path) -> InitSource:
     if not run.exists():
         raise FileNotFoundError(f"--init-from: {run} does not exist (give a run folder or a .pt checkpoint)")
     path = checkpoint_path(run)
-    checkpoint = load_checkpoint(path)
+    try:
+        checkpoint = load_checkpoint(path)
+    except ValueError:
+        checkpoint = _template_model_weights(path)
+        if checkpoint is None:
+            raise
     if not isinstance(checkpoint.get("model"), dict):
         raise ValueError(f"--init-from: {path} holds no model weights")
     return InitSource(path, checkpoint)
+
+
+def _template_model_weights(path: Path) -> dict | None:
+    """A template model file (``zernet match``'s classifier) read as a checkpoint to fine-tune, or None when
+    ``path`` is something else: its network (one output per template vertex) is a classification run's."""
+    from zernet.matching.template import TEMPLATE_FORMAT
+
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # load_checkpoint has said what is wrong with it
+        return None
+    if not isinstance(payload, dict) or payload.get("format") != TEMPLATE_FORMAT:
+        return None
+    classes = len(payload["template_positions"])
+    return {
+        "model_spec": payload["model_spec"],
+        "model": payload["model"],
+        "task": "classification",
+        "num_classes": classes,
+    }
 
 
 def initialise_from(model: torch.nn.Module, source: InitSource) -> dict:
