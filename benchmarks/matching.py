@@ -18,7 +18,12 @@ within 0-10 % of the target's geodesic diameter. Time per pair: both shapes prep
 cache: operators, features, eigenbases) plus the match, one thread.
 
     python benchmarks/matching.py [--topology faust] [--pairs 8] [--model FILE] [--template FILE]
-        [--split test|validation] [--methods template,descriptors,zoomout] [--out benchmarks/results/matching]
+        [--split test|validation] [--methods template,descriptors,zoomout] [--fine-tuned FILE]
+        [--out benchmarks/results/matching]
+
+``--fine-tuned FILE`` adds a column for a template model fine-tuned from the shipped one on a small labelled
+set (``python -m zernet.matching.train_template BODIES RUN --out FILE --init-from
+zernet/matching/pretrained/bodies_template.pt``).
 
 ``--split validation`` pairs bodies 400, 401, ... of the train stream instead (never trained on by either
 shipped model): the pairs a model is chosen on, so the test pairs stay unseen by every choice.
@@ -51,6 +56,7 @@ SPLITS = {"test": ("test", 0), "validation": ("train", 400)}
 #: --methods: the columns each name adds.
 METHODS = {
     "template": ("template model",),
+    "fine-tuned": ("template model, fine-tuned",),
     "descriptors": ("descriptor model", "descriptor model, no ZoomOut"),
     "zoomout": ("ZoomOut alone (rigid start)",),
 }
@@ -125,10 +131,18 @@ def main(argv=None) -> int:
     parser.add_argument("--settings", default="remeshed,rotated,cloud,partial")
     parser.add_argument("--model", default=None, help="descriptor model file or run folder (default: the shipped one)")
     parser.add_argument("--template", default=None, help="template model file (default: the shipped one)")
+    parser.add_argument(
+        "--fine-tuned",
+        default=None,
+        help="a template model fine-tuned from the shipped one on a small labelled set (train_template "
+        "--init-from): adds its column",
+    )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/matching"))
     parser.add_argument("--cache-dir", default=".zernet-cache")
     parser.add_argument("--split", choices=sorted(SPLITS), default="test", help="test pairs, or validation pairs")
-    parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of " + ",".join(METHODS))
+    parser.add_argument(
+        "--methods", default="template,descriptors,zoomout", help="comma-separated subset of " + ",".join(METHODS)
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     model, provenance = load_matching_model(args.model)
@@ -146,7 +160,10 @@ def main(argv=None) -> int:
                 0
             ]
     rng = np.random.default_rng(0)
-    chosen = args.methods.split(",")
+    chosen = args.methods.split(",") + (["fine-tuned"] if args.fine_tuned else [])
+    if "fine-tuned" in chosen and not args.fine_tuned:
+        parser.error("--methods fine-tuned needs --fine-tuned FILE")
+    fine_tuned_model = load_template_model(args.fine_tuned) if args.fine_tuned else None
     unknown = set(chosen) - set(METHODS)
     if unknown:
         parser.error(f"--methods: unknown {sorted(unknown)}; choose from {sorted(METHODS)}")
@@ -183,6 +200,11 @@ def main(argv=None) -> int:
                     if example is None:
                         example = (source_form.surface, target_surface, template_result)
                 predictions["template model"] = template_result.vertex_map
+            if fine_tuned_model is not None:
+                tuned, _, _ = match_surfaces(
+                    source_form.surface, target_surface, fine_tuned_model, same_scale=setting == "partial"
+                )
+                predictions["template model, fine-tuned"] = tuned.vertex_map
             # Errors are measured on the target in its own units (rotation does not change them).
             diameter = geodesic_diameter(target_surface)
             for name in methods:
@@ -204,6 +226,10 @@ def main(argv=None) -> int:
         "model_provenance": {k: provenance.get(k) for k in ("commit", "command", "step", "val_error")},
         "template": str(args.template or "shipped"),
         "template_provenance": {k: template_model.provenance.get(k) for k in ("commit", "command")},
+        "fine_tuned": args.fine_tuned,
+        "fine_tuned_provenance": {k: fine_tuned_model.provenance.get(k) for k in ("commit", "command")}
+        if fine_tuned_model is not None
+        else None,
         "template_time_per_pair": template_seconds,
         "template_mean_seconds_per_pair": float(np.mean([s["seconds"] for s in template_seconds]))
         if template_seconds
@@ -234,7 +260,7 @@ def main(argv=None) -> int:
                     np.abs(np.subtract(results["rotated"][name]["pair_means"], results["remeshed"][name]["pair_means"]))
                 )
             )
-            for name in ("template model", "descriptor model")
+            for name in ("template model", "template model, fine-tuned", "descriptor model")
             if name in methods
         }
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -303,6 +329,12 @@ def write_markdown(summary: dict, path: Path, command: str) -> None:
             f"`match_surfaces`, the functional map included, one thread): mean "
             f"{summary['template_mean_seconds_per_pair']:.1f} s, "
             f"max {max(s['seconds'] for s in summary['template_time_per_pair']):.1f} s.",
+        ]
+    if summary.get("fine_tuned"):
+        lines += [
+            "",
+            f"Fine-tuned template model: `{summary['fine_tuned']}`, made from the shipped one by "
+            f"`{summary['fine_tuned_provenance'].get('command')}`.",
         ]
     path.write_text("\n".join(lines) + "\n")
 
