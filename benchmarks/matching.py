@@ -19,11 +19,14 @@ cache: operators, features, eigenbases) plus the match, one thread.
 
     python benchmarks/matching.py [--topology faust] [--pairs 8] [--model FILE] [--template FILE]
         [--split test|validation] [--methods template,descriptors,zoomout] [--fine-tuned FILE]
-        [--out benchmarks/results/matching]
+        [--classifier RUN] [--out benchmarks/results/matching]
 
 ``--fine-tuned FILE`` adds a column for a template model fine-tuned from the shipped one on a small labelled
 set (``python -m zernet.matching.train_template BODIES RUN --out FILE --init-from
 zernet/matching/pretrained/bodies_template.pt``).
+
+``--classifier RUN`` adds, for reference, a 6,890-way correspondence run (``configs/bodies_correspondence.yaml``)
+on the same pairs as generated, where source and target share the template's topology.
 
 ``--split validation`` pairs bodies 400, 401, ... of the train stream instead (never trained on by either
 shipped model): the pairs a model is chosen on, so the test pairs stay unseen by every choice.
@@ -124,6 +127,30 @@ def descriptor_and_zoomout_maps(
     }
 
 
+def classifier_reference(run: str, bodies: dict, faces: np.ndarray, indices) -> dict:
+    """The 6,890-way correspondence classifier of a run (``configs/bodies_correspondence.yaml``) on the same
+    pairs, where shapes share the template's topology: each source body as generated is labelled with a
+    template vertex per vertex, which is the target vertex of that index (as ``zernet predict`` applies the
+    run, its refinement included); the error is measured on the target as generated."""
+    from zernet.training.predict import predict
+
+    errors, pair_means = [], []
+    for source_index, target_index in zip(indices[:-1], indices[1:]):
+        target = Surface(bodies[target_index], faces)
+        labels = predict(run, Surface(bodies[source_index], faces))
+        truth = np.arange(len(labels))  # a registered source vertex i is target vertex i
+        area_errors, _ = errors_on_target(target, labels, truth, geodesic_diameter(target))
+        errors.append(area_errors)
+        pair_means.append(float(area_errors.mean()))
+    every = np.concatenate(errors)
+    return {
+        "run": run,
+        "mean_error_x100": float(every.mean()),
+        "median_error_x100": float(np.median(every)),
+        "pair_means": pair_means,
+    }
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--topology", default="faust")
@@ -140,6 +167,12 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/matching"))
     parser.add_argument("--cache-dir", default=".zernet-cache")
     parser.add_argument("--split", choices=sorted(SPLITS), default="test", help="test pairs, or validation pairs")
+    parser.add_argument(
+        "--classifier",
+        default=None,
+        help="a 6,890-way correspondence run (configs/bodies_correspondence.yaml, faust topology): adds its "
+        "error on the same pairs as generated (shared topology), for reference",
+    )
     parser.add_argument(
         "--methods", default="template,descriptors,zoomout", help="comma-separated subset of " + ",".join(METHODS)
     )
@@ -239,6 +272,8 @@ def main(argv=None) -> int:
         "mean_seconds_per_pair": float(np.mean([s["seconds"] for s in seconds])) if seconds else None,
         "settings": {},
     }
+    if args.classifier:
+        summary["classifier_reference"] = classifier_reference(args.classifier, target_bodies, faces, list(indices))
     curves = {}
     for setting in settings:
         summary["settings"][setting] = {}
@@ -329,6 +364,14 @@ def write_markdown(summary: dict, path: Path, command: str) -> None:
             f"`match_surfaces`, the functional map included, one thread): mean "
             f"{summary['template_mean_seconds_per_pair']:.1f} s, "
             f"max {max(s['seconds'] for s in summary['template_time_per_pair']):.1f} s.",
+        ]
+    if summary.get("classifier_reference"):
+        reference = summary["classifier_reference"]
+        lines += [
+            "",
+            f"For reference, where shapes share the template's topology (each body as generated, not remeshed): "
+            f"the 6,890-way correspondence classifier `{reference['run']}`, as `zernet predict` applies it, "
+            f"{reference['mean_error_x100']:.2f} ({reference['median_error_x100']:.2f}).",
         ]
     if summary.get("fine_tuned"):
         lines += [
