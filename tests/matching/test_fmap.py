@@ -1,6 +1,6 @@
 """The Laplace-Beltrami eigenbasis and the functional-map layer: orthonormality and the cache, the identity
 map of a shape onto itself, a rotated and re-indexed copy recovered vertex by vertex, ZoomOut, and the
-layer's gradients (float64 gradcheck)."""
+layer's gradients (float64 gradcheck), and heat smoothing against the sphere's degree-one harmonics."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from zernet.matching.fmap import (
     resolvent_mask,
     zoomout,
 )
-from zernet.operators.spectral import heat_kernel_signature, laplacian_eigenbasis
+from zernet.operators.spectral import heat_kernel_signature, heat_smoothed, laplacian, laplacian_eigenbasis
 
 
 def bumpy_ellipsoid() -> Surface:
@@ -190,3 +190,19 @@ def test_zoomout_maps_a_part_into_its_whole():
         return np.linalg.norm(x.vertices[pointmap] - x.vertices[kept], axis=1).mean()
 
     assert mean_error(refined) < 0.1 * mean_error(noisy)
+
+
+@pytest.mark.parametrize("as_cloud", [False, True])
+def test_smoothing_damps_a_degree_one_harmonic_by_one_over_one_plus_two_t(as_cloud):
+    sphere = icosphere(4)
+    surface = Surface(sphere.vertices) if as_cloud else sphere
+    # On the unit sphere x, y, z are eigenfunctions of the Laplacian with eigenvalue 2: one implicit heat step
+    # of length t divides them by 1 + 2t; a constant stays as it is and the mass-weighted mean is kept.
+    time = 0.05
+    values = np.column_stack([surface.vertices, np.ones(surface.n_vertices)])
+    smoothed = heat_smoothed(surface, values, time)
+    np.testing.assert_allclose(smoothed[:, 3], 1.0, atol=1e-10)
+    np.testing.assert_allclose(smoothed[:, :3], surface.vertices / (1 + 2 * time), atol=0.01)
+    _, mass = laplacian(surface)
+    np.testing.assert_allclose(mass @ smoothed, mass @ values, atol=1e-10)
+    assert heat_smoothed(surface, values, 0.0) is values

@@ -201,24 +201,3 @@ def test_the_training_folder_and_config_of_the_recipe(tmp_path):
     assert set(np.loadtxt(folder / "labels" / "train" / "body_000_partial.txt", dtype=int)) == {3}
     config = parse_config(template_config(folder, len(sphere.vertices), 90.0, 8, "pretrained:bodies-xyz-hks"))
     assert config.data.options["num_classes"] == len(sphere.vertices) and config.train.epochs == 8
-
-
-@pytest.mark.parametrize("as_cloud", [False, True])
-def test_smoothing_damps_a_degree_one_harmonic_by_one_over_one_plus_two_t(as_cloud):
-    from meshes import icosphere
-
-    from zernet.matching.template import smoothed_along
-    from zernet.operators.spectral import laplacian
-
-    sphere = icosphere(4)
-    surface = Surface(sphere.vertices) if as_cloud else sphere
-    # On the unit sphere x, y, z are eigenfunctions of the Laplacian with eigenvalue 2: one implicit heat step
-    # of length t divides them by 1 + 2t; a constant stays as it is and the mass-weighted mean is kept.
-    time = 0.05
-    values = np.column_stack([surface.vertices, np.ones(surface.n_vertices)])
-    smoothed = smoothed_along(surface, values, time)
-    np.testing.assert_allclose(smoothed[:, 3], 1.0, atol=1e-10)
-    np.testing.assert_allclose(smoothed[:, :3], surface.vertices / (1 + 2 * time), atol=0.01)
-    _, mass = laplacian(surface)
-    np.testing.assert_allclose(mass @ smoothed, mass @ values, atol=1e-10)
-    assert smoothed_along(surface, values, 0.0) is values

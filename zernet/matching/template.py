@@ -24,8 +24,8 @@ Resolution. Like the descriptor model, the classifier reads a surface of more th
 template position interpolated from its nearest copy vertices (inverse distance, 4 of them).
 
 Smoothing. The classifier answers each vertex on its own; the template positions are then smoothed along the
-surface by a short heat diffusion (:func:`smoothed_along`, :data:`SMOOTHING_TIME`), which averages out
-its independent errors (a third off the mean matching error between remeshed bodies).
+surface by a short heat diffusion (:func:`zernet.operators.spectral.heat_smoothed`,
+:data:`SMOOTHING_TIME`), which averages out its independent errors (a third off the mean matching error between remeshed bodies).
 
 A template model file is a plain dictionary loaded with ``torch.load(weights_only=True)``:
 ``{"format": TEMPLATE_FORMAT, "model_spec", "model" (state dict), "patch_configs", "feature_kind",
@@ -43,8 +43,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse
-import scipy.sparse.linalg
 import torch
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
@@ -55,6 +53,7 @@ from zernet.io_utils import atomic_save_torch, plain
 from zernet.matching.fmap import cycle_confidence
 from zernet.matching.shapes import rotating_columns
 from zernet.operators import PatchConfig
+from zernet.operators.spectral import heat_smoothed
 
 __all__ = [
     "TEMPLATE_FORMAT",
@@ -65,7 +64,6 @@ __all__ = [
     "load_template_model",
     "candidate_rotations",
     "template_shape",
-    "smoothed_along",
     "match_template_shapes",
 ]
 
@@ -283,23 +281,8 @@ def template_shape(
     _, positions, confidence, rotation = best
     if coarse is not None:
         positions, confidence = _interpolated(read.vertices, surface.vertices, positions, confidence)
-    positions = smoothed_along(surface, positions, SMOOTHING_TIME * model.area if smoothing is None else smoothing)
+    positions = heat_smoothed(surface, positions, SMOOTHING_TIME * model.area if smoothing is None else smoothing)
     return TemplateShape(surface, positions, confidence, rotation)
-
-
-def smoothed_along(surface: Surface, values: np.ndarray, time: float) -> np.ndarray:
-    """(N, ...) per-vertex ``values`` after heat diffusion for ``time`` along the surface: one implicit step,
-    ``(M + time L)⁻¹ M values`` with robust-laplacian's operators (meshes and point clouds alike), so the
-    result does not depend on the sampling, and the mass-weighted mean is kept."""
-    if time <= 0:
-        return values
-    from zernet.operators.spectral import laplacian
-
-    stiffness, mass = laplacian(surface)
-    # A vertex no face reaches has no mass; a trace of it keeps the system regular and the vertex as it is.
-    mass = np.maximum(mass, 1e-12 * max(float(mass.mean()), 1e-300))
-    system = (scipy.sparse.diags(mass) + time * stiffness).tocsc()
-    return scipy.sparse.linalg.splu(system).solve(mass[:, None] * values.reshape(len(mass), -1)).reshape(values.shape)
 
 
 def _turn(rotation_vector: np.ndarray) -> np.ndarray:

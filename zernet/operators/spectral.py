@@ -1,5 +1,5 @@
 """The Laplace-Beltrami eigenbasis of a surface (mesh or point cloud), cached on disk, and the point maps it
-carries: functional maps from point maps and back, ZoomOut.
+carries: functional maps from point maps and back, ZoomOut; and heat smoothing of per-vertex values.
 
 Shared by matching two surfaces (:mod:`zernet.matching`) and the global refinement of a predicted
 correspondence (:mod:`zernet.training.spectral_refine`), which sits below matching: the pure numerical pieces
@@ -49,6 +49,7 @@ __all__ = [
     "CLOUD_NEIGHBOURS",
     "SpectralBasis",
     "laplacian",
+    "heat_smoothed",
     "laplacian_eigenbasis",
     "spectral_cache_key",
     "heat_kernel_signature",
@@ -105,6 +106,20 @@ def laplacian(surface: Surface) -> tuple[scipy.sparse.csr_matrix, np.ndarray]:
     else:
         stiffness, mass = robust_laplacian.mesh_laplacian(vertices, np.ascontiguousarray(surface.faces, dtype=np.int64))
     return scipy.sparse.csr_matrix(stiffness), np.asarray(mass.diagonal(), dtype=np.float64)
+
+
+def heat_smoothed(surface: Surface, values: np.ndarray, time: float) -> np.ndarray:
+    """(N, ...) per-vertex ``values`` after heat diffusion for ``time`` along the surface: one implicit step,
+    ``(M + time L)⁻¹ M values`` with the Laplacian above (meshes and point clouds alike), so the result does
+    not depend on the sampling, and the mass-weighted mean is kept. ``time <= 0``: ``values`` as they are."""
+    if time <= 0:
+        return values
+    stiffness, mass = laplacian(surface)
+    # A vertex no face reaches has no mass; a trace of it keeps the system regular and the vertex as it is.
+    mass = np.maximum(mass, 1e-12 * max(float(mass.mean()), 1e-300))
+    system = (scipy.sparse.diags(mass) + time * stiffness).tocsc()
+    flat = mass[:, None] * values.reshape(len(mass), -1)
+    return scipy.sparse.linalg.splu(system).solve(flat).reshape(values.shape)
 
 
 def spectral_cache_key(surface: Surface, k: int) -> str:
