@@ -201,3 +201,28 @@ def test_the_training_folder_and_config_of_the_recipe(tmp_path):
     assert set(np.loadtxt(folder / "labels" / "train" / "body_000_partial.txt", dtype=int)) == {3}
     config = parse_config(template_config(folder, len(sphere.vertices), 90.0, 8, "pretrained:bodies-xyz-hks"))
     assert config.data.options["num_classes"] == len(sphere.vertices) and config.train.epochs == 8
+
+
+@needs_bodies
+def test_the_template_feature_says_where_on_the_body_a_vertex_lies_in_any_pose(tmp_path, one_torch_thread):
+    from zernet.data.bodies import BodyGenerator
+    from zernet.data.features import compute_features, feature_channels
+
+    # A held-out body in the model's own topology: its vertex i lies at template vertex i.
+    body = BodyGenerator("coarse-1229", "varied", seed=0, cache_dir=tmp_path).body(0, "test").surface()
+    model = load_template_model()
+    features = compute_features(body, "xyz+template", cache_dir=tmp_path)
+    assert features.shape == (body.n_vertices, feature_channels("xyz+template")) == (body.n_vertices, 6)
+    positions = features[:, 3:]
+    scale = model.provenance["unit_scale"] * np.sqrt(body.area / model.area)
+    height = np.ptp(model.template_positions[:, 1])
+    errors = np.linalg.norm(positions / scale - model.template_positions, axis=1)
+    assert np.median(errors) < 0.02 * height, np.median(errors) / height
+    # Turned and moved, the body reads the same positions (unlike its xyz).
+    turn = random_rotation(np.random.default_rng(3), "any")
+    moved = Surface(body.vertices @ turn.T + [10.0, -4.0, 2.0], body.faces)
+    moved_positions = compute_features(moved, "template")
+    assert np.median(np.linalg.norm(moved_positions - positions, axis=1)) < 0.005 * height * scale
+    # Read back from the cache: the same values.
+    np.testing.assert_array_equal(compute_features(body, "template", cache_dir=tmp_path), positions)
+    assert len(list((tmp_path / "template").glob("*.npz"))) == 1

@@ -36,7 +36,16 @@ __all__ = [
 #: Parts a feature kind is made of, with their channel counts (None: depends on the patch settings, see
 #: :func:`feature_channels`). A kind joins parts with "+", e.g. ``"xyz+normals"`` or
 #: ``"shape+curvature+membrane"``; the channels follow in that order.
-FEATURE_PARTS = {"xyz": 3, "normals": 3, "ones": 1, "shape": None, "curvature": None, "membrane": 3, "hks": 16}
+FEATURE_PARTS = {
+    "xyz": 3,
+    "normals": 3,
+    "ones": 1,
+    "shape": None,
+    "curvature": None,
+    "membrane": 3,
+    "hks": 16,
+    "template": 3,
+}
 
 #: Eigenpairs of the Laplacian behind the "hks" part: its times run from ``4 ln 10 / λ_64`` (a few patch
 #: radii on a body) to ``4 ln 10 / λ_1`` (the whole surface).
@@ -185,7 +194,11 @@ def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_
     - ``"membrane"``: log of :func:`~zernet.geometry.membrane.membrane_stress` at each of
       :data:`MEMBRANE_PRESTRESSES` (meshes only; cached in ``cache_dir`` when given);
     - ``"hks"``: :func:`heat_kernel_descriptors` (16; meshes and point clouds; the eigenbasis cached in
-      ``cache_dir`` when given).
+      ``cache_dir`` when given);
+    - ``"template"``: human bodies only: where on the template body each vertex lies, read by the template
+      model shipped with zernet (:func:`~zernet.matching.template.body_template_positions`; 3; meshes and
+      point clouds in any pose; cached in ``cache_dir`` when given). The same for one place on every person,
+      unlike xyz: a model trained on a few people carries to new ones.
 
     ``operators``: the surface's patch operators, one per scale (needed by "shape" and "curvature").
     """
@@ -208,6 +221,11 @@ def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_
             columns.append(membrane_descriptors(surface, cache_dir))
         elif part == "hks":
             columns.append(heat_kernel_descriptors(surface, cache_dir))
+        elif part == "template":
+            # Imported here: the template model is itself a zernet model built on this module.
+            from zernet.matching.template import body_template_positions
+
+            columns.append(body_template_positions(surface, cache_dir))
     return np.concatenate(columns, axis=1).astype(np.float32)
 
 
