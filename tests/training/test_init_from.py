@@ -4,9 +4,11 @@ the classes differ), refuses what does not fit with an error naming the paramete
 from __future__ import annotations
 
 import copy
+import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -222,3 +224,32 @@ def test_a_template_model_file_is_a_start_to_fine_tune(source_run, tmp_path):
     (tmp_path / "other.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="not a readable zernet checkpoint"):
         load_init_source(tmp_path / "other.pt")
+
+
+@pytest.mark.skipif(importlib.util.find_spec("anny") is None, reason="needs the bodies extra (anny)")
+def test_the_output_layer_follows_the_template_to_another_vertex_order(source_run, tmp_path, one_torch_thread):
+    from zernet.data.bodies import BodyGenerator
+    from zernet.training.init_from import InitSource
+
+    body = BodyGenerator("coarse-1229", "varied", seed=0, cache_dir=tmp_path).body(1, "test").surface()
+    vertices, faces = body.vertices * 90.0, body.faces
+    spec = _spec(source_run, out_channels=len(vertices))
+    torch.manual_seed(0)
+    weights = build_model_from_spec(spec).state_dict()
+    source = InitSource(
+        tmp_path / "corr.pt",
+        {"model_spec": spec, "model": weights, "template_vertices": vertices, "template_faces": faces},
+    )
+    # The same body with its vertices in another order: new vertex i is the source's vertex order[i].
+    order = np.random.default_rng(0).permutation(len(vertices))
+    renumbered = np.empty_like(order)
+    renumbered[order] = np.arange(len(order))
+    model = build_model_from_spec(spec)
+    info = initialise_from(model, source, (vertices[order], renumbered[faces]))
+    assert info["reinitialised"] == [] and "through a match" in info["head"]
+    rows = model.output.weight.detach()
+    same = (rows == weights["output.weight"][torch.as_tensor(order)]).all(dim=1)
+    assert same.float().mean() > 0.99, same.float().mean()
+    # The same connectivity: the rows are copied as they are.
+    info = initialise_from(model, source, (vertices, faces))
+    assert info["head"] == "copied" and torch.equal(model.output.weight, weights["output.weight"])

@@ -8,6 +8,12 @@ own. :func:`load_init_source` reads the other run's selected checkpoint (a run f
   layers);
 - the output layer (``output.*``) keeps its fresh initialisation when its shape differs, i.e. when the new
   task has another number of classes (e.g. from correspondence to segmentation, or to another template);
+- except between two correspondence runs whose templates differ (another vertex order or count, as between
+  generated bodies and a user's copy of FAUST): then each of the new template's vertices takes the output
+  row of the vertex it lands on in the other template, through a match of the two templates by zernet's
+  template model (:func:`carried_head`; the checkpoint stores its template, ``template_vertices`` and
+  ``template_faces``). A model trained on many people then starts the few people's run knowing where every
+  vertex of their template lies, instead of learning 6,890 classes again from 8 people;
 - any other difference (another model family, other widths, another number of input channels, another
   Zernike degree) is a :class:`~zernet.training.config.ConfigError` naming the first parameter that does not
   fit: silently training a half-initialised model would look like a working fine-tune.
@@ -16,8 +22,10 @@ Weights shipped with zernet are named ``pretrained:NAME`` (:data:`PRETRAINED_PRE
 ``zernet/pretrained/NAME.pt`` with its provenance beside it (``NAME.json``). They hold a *backbone*: every
 tensor but the output layer's (:func:`export_backbone`), so the output layer always starts fresh for the new
 task and template, also when its shape happens to agree (a template of another vertex order would otherwise
-be taken silently). A run starts from them with ``train.init_from: pretrained:NAME`` in its configuration
-(or ``--init-from pretrained:NAME``).
+be taken silently); or a correspondence model with its output layer and its template
+(``export_backbone(..., with_output=True)``), whose output layer is carried to the new template as above. A
+run starts from them with ``train.init_from: pretrained:NAME`` in its configuration (or ``--init-from
+pretrained:NAME``).
 
 The optimiser, the learning-rate schedule, the epoch count and the RNG states start afresh: only weights are
 taken. What was taken is returned as a plain dictionary, which the loop keeps in its state (so a resumed run
@@ -29,6 +37,7 @@ from __future__ import annotations
 import importlib.resources
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from zernet.io_utils import atomic_save_torch
@@ -42,6 +51,7 @@ __all__ = [
     "pretrained_names",
     "load_init_source",
     "initialise_from",
+    "carried_head",
     "export_backbone",
     "describe",
 ]
@@ -72,6 +82,9 @@ class InitSource:
         self.epoch = int(state.get("epoch", 0))
         self.task = checkpoint.get("task")
         self.num_classes = checkpoint.get("num_classes")
+        # (vertices (M, 3), faces (F, 3)) of a correspondence model's template, else None.
+        vertices, faces = checkpoint.get("template_vertices"), checkpoint.get("template_faces")
+        self.template = None if vertices is None or faces is None else (np.asarray(vertices), np.asarray(faces))
 
 
 def load_init_source(run: str | Path) -> InitSource:
@@ -122,12 +135,15 @@ def _template_model_weights(path: Path) -> dict | None:
     }
 
 
-def initialise_from(model: torch.nn.Module, source: InitSource) -> dict:
+def initialise_from(model: torch.nn.Module, source: InitSource, template=None) -> dict:
     """Copy ``source``'s weights into ``model`` (see the module docstring); returns what was done.
 
+    ``template``: (vertices, faces) of the new run's template when it is a correspondence run, else None.
+
     Returns:
-        ``{"source": path, "source_epoch": e, "source_model": name, "copied": n, "reinitialised": [names]}``
-        with ``copied`` the number of tensors taken and ``reinitialised`` the output-layer tensors kept fresh.
+        ``{"source": path, "source_epoch": e, "source_model": name, "copied": n, "reinitialised": [names],
+        "head": how the output layer was set}`` with ``copied`` the number of tensors taken and
+        ``reinitialised`` the output-layer tensors kept fresh.
 
     Raises:
         ConfigError: a tensor other than the output layer's is missing on either side or has another shape.
@@ -149,15 +165,27 @@ def initialise_from(model: torch.nn.Module, source: InitSource) -> dict:
             f"(checkpoint model {source_name!r}, new model {model_name!r}); start from a run of the "
             "same model family and widths"
         )
+    weights, head = dict(source.weights), "copied" if not backbone else "fresh (a backbone)"
+    if (
+        not backbone
+        and template is not None
+        and source.template is not None
+        and not _same_mesh(template, source.template)
+    ):
+        rows = carried_head(template, source.template)
+        for name in [name for name in weights if name.startswith(HEAD_PREFIX)]:
+            weights[name] = weights[name][torch.as_tensor(rows)]
+        head = f"carried from the checkpoint's template ({len(source.template[0])} vertices) through a match"
     copied, reinitialised = {}, []
     for name, value in target.items():
-        stored = source.weights.get(name)
+        stored = weights.get(name)
         if stored is None:  # a backbone's output layer: fresh
             reinitialised.append(name)
         elif tuple(stored.shape) == tuple(value.shape):
             copied[name] = stored.to(dtype=value.dtype)
         elif name.startswith(HEAD_PREFIX):
             reinitialised.append(name)
+            head = "fresh (another number of outputs)"
         else:
             raise ConfigError(
                 f"{prefix}: parameter {name!r} has shape {tuple(stored.shape)} in the checkpoint "
@@ -173,19 +201,39 @@ def initialise_from(model: torch.nn.Module, source: InitSource) -> dict:
         "source_classes": source.num_classes,
         "copied": len(copied),
         "reinitialised": reinitialised,
+        "head": head,
     }
 
 
-def export_backbone(run: str | Path, path: str | Path) -> dict:
+def _same_mesh(one, other) -> bool:
+    """Whether two (vertices, faces) templates share their connectivity (then their vertices correspond)."""
+    return one[1].shape == other[1].shape and bool(np.array_equal(one[1], other[1]))
+
+
+def carried_head(template, source_template) -> np.ndarray:
+    """(N,) for each vertex of ``template`` (vertices, faces), the vertex of ``source_template`` it lands on,
+    matched by the shipped template model (:func:`zernet.matching.match_surfaces`, human bodies: about 1 %
+    of the body's size off on remeshed bodies, ``docs/MATCHING.md``): the output row it starts from."""
+    from zernet.geometry import Surface
+    from zernet.matching import match_surfaces
+
+    result, _, _ = match_surfaces(Surface(*template, name="template"), Surface(*source_template, name="source"))
+    return np.asarray(result.vertex_map, dtype=np.int64)
+
+
+def export_backbone(run: str | Path, path: str | Path, with_output: bool = False) -> dict:
     """Write the backbone of ``run``'s selected model (a run folder or checkpoint file) to ``path``: a
-    checkpoint of every weight but the output layer's, in float16 (half the size; a model starting from it
-    trains in its own precision), with the run's configuration and model spec and without its optimiser.
+    checkpoint of every weight but the output layer's (``with_output``: every weight, for a correspondence
+    model whose template the checkpoint stores), in float16 (half the size; a model starting from it trains
+    in its own precision), with the run's configuration and model spec and without its optimiser.
     Returns what was written: ``{"tensors": n, "parameters": p, "bytes": b}``."""
     source = load_checkpoint(checkpoint_path(Path(run).expanduser()))
+    if with_output and (source.get("template_vertices") is None or source.get("template_faces") is None):
+        raise ValueError(f"{run}: only a correspondence model that stores its template ships its output layer")
     weights = {
         name: value.half() if value.is_floating_point() else value
         for name, value in source["model"].items()
-        if not name.startswith(HEAD_PREFIX)
+        if with_output or not name.startswith(HEAD_PREFIX)
     }
     kept = {key: value for key, value in source.items() if key not in ("optimizer", "rng", "model")}
     kept["model"] = weights
@@ -202,7 +250,7 @@ def describe(info: dict) -> str:
     fresh = ", ".join(info["reinitialised"]) if info["reinitialised"] else "none"
     return (
         f"init-from: {info['copied']} weight tensors from {info['source']} (epoch {info['source_epoch']}, "
-        f"model {info['source_model']}); re-initialised: {fresh}"
+        f"model {info['source_model']}); re-initialised: {fresh}; output layer: {info.get('head', 'copied')}"
     )
 
 

@@ -247,7 +247,7 @@ def _run(
     )
     dataset, splits, preprocess_seconds = _load_dataset(config, progress, workers, ctx, logger)
     record, objective = _describe_run(config, dataset, splits, checkpoint, logger, ctx.device)
-    model, optimizer, state = _build_model(record.model_spec, config.train, checkpoint, ctx.device, logger, source)
+    model, optimizer, state = _build_model(record, config.train, checkpoint, ctx.device, logger, source)
     logger.info(
         f"model {record.model_spec['name']} ({sum(p.numel() for p in model.parameters()):,} parameters), "
         f"loss {objective.loss}, lr {config.train.lr} ({config.train.lr_schedule}), "
@@ -436,14 +436,20 @@ def _feature_scaling(train: TrainSection, dataset, splits: _Splits, checkpoint, 
 
 
 def _build_model(
-    spec: dict, train: TrainSection, checkpoint: dict | None, device, logger, source: InitSource | None = None
+    record: RunRecord, train: TrainSection, checkpoint: dict | None, device, logger, source: InitSource | None = None
 ):
     """The model, its Adam optimiser and the loop state: fresh from ``train.seed`` (then, with ``source``,
-    taking another run's weights), or as checkpointed."""
+    taking another run's weights, its output layer carried to this run's template if it has one), or as
+    checkpointed."""
     # Seed right before the model is built, so its initialisation depends only on train.seed.
     seed_everything(train.seed)
-    model = build_model_from_spec(spec)
-    init_info = initialise_from(model, source) if source is not None and checkpoint is None else None
+    model = build_model_from_spec(record.model_spec)
+    init_info = None
+    if source is not None and checkpoint is None:
+        template = None
+        if record.template_vertices is not None:
+            template = (record.template_vertices.numpy(), record.template_faces.numpy())
+        init_info = initialise_from(model, source, template)
     model = model.to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=train.lr, weight_decay=train.weight_decay)
     state = initial_state()
