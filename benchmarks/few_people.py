@@ -61,6 +61,9 @@ MANY_PEOPLE_COMMANDS = (
     "data.train_indices=0:80 data.test_indices=80:100 train.epochs=4"
 )
 MANY_PEOPLE = ROOT / "runs" / "corr" / "best.pt"
+#: The same with the inputs xyz + hks + template and the input skip (MANY_PEOPLE_COMMANDS with --run-dir
+#: runs/corr-template and data.features=xyz+hks+template model.input_skip=true).
+MANY_PEOPLE_TEMPLATE = ROOT / "runs" / "corr-template" / "best.pt"
 RENUMBERED = ROOT / "runs" / "corr-renumbered.pt"
 CONFIG = ROOT / "configs" / "faust_single_scale.yaml"
 N_PEOPLE, N_POSES = 10, 10
@@ -108,6 +111,18 @@ RECIPES = {
             "data.features": "xyz",
             "model.input_skip": False,
             "train.init_from": str(MANY_PEOPLE),
+            "train.lr": 3e-3,
+            "train.epochs": 3,
+        },
+        False,
+    ),
+    # The same start and rate with the template feature part (the many people's run read it too:
+    # MANY_PEOPLE_TEMPLATE).
+    "many-people-template": (
+        {
+            "data.features": "xyz+hks+template",
+            "model.input_skip": True,
+            "train.init_from": str(MANY_PEOPLE_TEMPLATE),
             "train.lr": 3e-3,
             "train.epochs": 3,
         },
@@ -284,8 +299,8 @@ def ship_backbone(run_dir: Path, name: str, trained_on: str, command: str, with_
     ``zernet/pretrained/NAME.pt`` and its provenance to NAME.json."""
     target = ROOT / "zernet" / "pretrained" / f"{name}.pt"
     written = export_backbone(run_dir, target, with_output=with_output)
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    history = load_checkpoint(run_dir / "last.pt")["state"]["history"]
+    state = load_checkpoint(run_dir / "last.pt")["state"]
+    history = state["history"]
     commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     provenance = {
         "what": "ZerNet correspondence model on human bodies, float16: "
@@ -300,7 +315,7 @@ def ship_backbone(run_dir: Path, name: str, trained_on: str, command: str, with_
         "commit": commit,
         "epochs": len(history),
         "val_accuracy": [entry.get("val_accuracy") for entry in history],
-        "best_epoch": metrics.get("best_epoch"),
+        "best_epoch": state.get("best_epoch"),
         **written,
     }
     write_json(target.with_suffix(".json"), provenance)
@@ -506,8 +521,9 @@ def main() -> None:
         "--export-many-people",
         metavar="NAME",
         default=None,
-        help="ship the many-people correspondence run (MANY_PEOPLE), output layer and template included, as "
-        "zernet/pretrained/NAME.pt with NAME.json; no recipe is trained",
+        help="ship the many-people correspondence run (MANY_PEOPLE, or MANY_PEOPLE_TEMPLATE when the first of "
+        "--recipes is many-people-template), output layer and template included, as zernet/pretrained/NAME.pt "
+        "with NAME.json; no recipe is trained",
     )
     parser.add_argument(
         "--score-every", type=int, default=1, help="score every K-th epoch on the test people (and the last)"
@@ -531,10 +547,15 @@ def main() -> None:
     if args.export_many_people:
         trained_on = (
             "80 generated bodies of independently drawn people (faust topology, 6,890 vertices; 72 training, 8 "
-            "validation carved by the FAUST loader; 20 more of them tested), never the benchmark's people"
+            "validation carved by the FAUST loader), never the benchmark's people"
         )
+        run = MANY_PEOPLE_TEMPLATE if args.recipes[0] == "many-people-template" else MANY_PEOPLE
         command = MANY_PEOPLE_COMMANDS + " ; then benchmarks/few_people.py " + " ".join(sys.argv[1:])
-        ship_backbone(MANY_PEOPLE.parent, args.export_many_people, trained_on, command, with_output=True)
+        if run == MANY_PEOPLE_TEMPLATE:
+            command = command.replace("runs/corr ", "runs/corr-template ").replace(
+                "train.epochs=4", "train.epochs=4 data.features=xyz+hks+template model.input_skip=true train.threads=1"
+            )
+        ship_backbone(run.parent, args.export_many_people, trained_on, command, with_output=True)
         return
     data_root = people_bodies(args.data, args.topology, args.seed, args.cache_dir)
     args.unseen_root = unseen_people(args.unseen, args.topology, args.seed, args.cache_dir)
