@@ -64,6 +64,7 @@ MANY_PEOPLE = ROOT / "runs" / "corr" / "best.pt"
 #: The same with the inputs xyz + hks + template and the input skip (MANY_PEOPLE_COMMANDS with --run-dir
 #: runs/corr-template and data.features=xyz+hks+template model.input_skip=true).
 MANY_PEOPLE_TEMPLATE = ROOT / "runs" / "corr-template" / "best.pt"
+RENUMBERED_TEMPLATE = ROOT / "runs" / "corr-template-renumbered.pt"
 RENUMBERED = ROOT / "runs" / "corr-renumbered.pt"
 CONFIG = ROOT / "configs" / "faust_single_scale.yaml"
 N_PEOPLE, N_POSES = 10, 10
@@ -133,6 +134,17 @@ RECIPES = {
             "data.features": "xyz",
             "model.input_skip": False,
             "train.init_from": str(RENUMBERED),
+            "train.lr": 3e-3,
+            "train.epochs": 3,
+        },
+        False,
+    ),
+    # The shipped start as a user's FAUST meets it: many-people-template from a renumbered copy.
+    "many-people-template-matched": (
+        {
+            "data.features": "xyz+hks+template",
+            "model.input_skip": True,
+            "train.init_from": str(RENUMBERED_TEMPLATE),
             "train.lr": 3e-3,
             "train.epochs": 3,
         },
@@ -577,6 +589,8 @@ def main() -> None:
     }
     if "many-people-matched" in args.recipes:
         renumbered_checkpoint(MANY_PEOPLE, RENUMBERED)
+    if "many-people-template-matched" in args.recipes:
+        renumbered_checkpoint(MANY_PEOPLE_TEMPLATE, RENUMBERED_TEMPLATE)
     for name in args.recipes:
         print(f"recipe {name} ...", flush=True)
         pretrained = pretrained_run(args, name) if RECIPES[name][1] else None
