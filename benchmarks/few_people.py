@@ -103,8 +103,8 @@ RECIPES = {
     # many people teach, then the 8.
     "many-people": ({"data.features": "xyz", "model.input_skip": False, "train.init_from": str(MANY_PEOPLE)}, False),
     # The same model with its template's vertices numbered in another order (RENUMBERED, made by
-    # renumbered_checkpoint): the output layer reaches the people's template through a match of the two
-    # templates, as it reaches a user's copy of FAUST, whose vertex order the generated bodies do not share.
+    # renumbered_checkpoint): the output layer reaches the people's template by the model's vote on 8 of their
+    # training scans, as it reaches a user's copy of FAUST, whose vertex order the generated bodies do not share.
     # The many people's start kept closer: a lower rate for fewer epochs (the model starts at 88 % exact on
     # the test people before it sees any of the 8).
     "many-people-gentle": (
@@ -317,7 +317,7 @@ def ship_backbone(run_dir: Path, name: str, trained_on: str, command: str, with_
     provenance = {
         "what": "ZerNet correspondence model on human bodies, float16: "
         + (
-            "every weight and its template (the output layer follows a new template through a match)"
+            "every weight and its template (the output layer follows a new template by the model's vote)"
             if with_output
             else "every weight but the output layer"
         ),

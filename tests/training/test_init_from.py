@@ -4,7 +4,6 @@ the classes differ), refuses what does not fit with an error naming the paramete
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
 from pathlib import Path
 
@@ -12,13 +11,16 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from tiny_configs import tiny_config
+from meshes import ellipsoid, write_faust_layout
+from tiny_configs import faust_run_config, tiny_config
 
 import zernet.training.init_from as init_from_module
 from zernet.cli import main
+from zernet.data import LoaderOptions, load_faust
 from zernet.data.features import feature_channels
+from zernet.geometry import Surface
 from zernet.operators import PatchConfig
-from zernet.training import ConfigError, load_checkpoint, load_config, parse_config, train
+from zernet.training import ConfigError, load_checkpoint, load_config, parse_config, predict, train
 from zernet.training.build import build_model_from_spec, model_spec
 from zernet.training.init_from import export_backbone, initialise_from, load_init_source, pretrained_names
 
@@ -200,7 +202,7 @@ def test_the_shipped_weights_load():
 def test_the_faust_config_starts_from_the_shipped_model():
     """configs/faust_single_scale.yaml names the shipped model for its inputs (xyz + hks + template, input
     skip), and the model it builds takes every weight from it, its 6,890-way output layer included (carried
-    through a match when the run's template has another vertex order: tested above)."""
+    by the model's vote when the run's template has another vertex order: tested above)."""
     config = parse_config(load_config(Path(__file__).resolve().parents[2] / "configs" / "faust_single_scale.yaml"))
     assert config.train.init_from == "pretrained:bodies-faust-template"
     degrees = [int(scale["n_max"]) for scale in config.patch.scales]
@@ -234,30 +236,48 @@ def test_a_template_model_file_is_a_start_to_fine_tune(source_run, tmp_path):
         load_init_source(tmp_path / "other.pt")
 
 
-@pytest.mark.skipif(importlib.util.find_spec("anny") is None, reason="needs the bodies extra (anny)")
-def test_the_output_layer_follows_the_template_to_another_vertex_order(source_run, tmp_path, one_torch_thread):
-    from zernet.data.bodies import BodyGenerator
-    from zernet.training.init_from import InitSource
-
-    body = BodyGenerator("coarse-1229", "varied", seed=0, cache_dir=tmp_path).body(1, "test").surface()
-    vertices, faces = body.vertices * 90.0, body.faces
-    spec = _spec(source_run, out_channels=len(vertices))
-    torch.manual_seed(0)
-    weights = build_model_from_spec(spec).state_dict()
-    source = InitSource(
-        tmp_path / "corr.pt",
-        {"model_spec": spec, "model": weights, "template_vertices": vertices, "template_faces": faces},
-    )
-    # The same body with its vertices in another order: new vertex i is the source's vertex order[i].
-    order = np.random.default_rng(0).permutation(len(vertices))
+def test_the_output_layer_follows_the_template_to_another_vertex_order(ellipsoid_faust_root, tmp_path):
+    """Between correspondence runs whose templates differ, each new template vertex takes the output row of
+    the class the source model gives it on the new training shapes (softmax summed over them): the carried
+    model predicts on renumbered shapes what the source predicts, renumbered, where the vote is unanimous."""
+    patch = {"r0": 1.2, "n_samples": 1500, "patch_size": 30, "n_max": 2}
+    # 150 epochs: the source names nearly every vertex of its 2 training shapes.
+    config = faust_run_config(ellipsoid_faust_root, 642, patch, train={"epochs": 150})
+    train(config, tmp_path / "source", progress=False)
+    source = load_init_source(tmp_path / "source")
+    # The same ellipsoids with their vertices in another order: new vertex i is the old vertex order[i].
+    order = np.random.default_rng(0).permutation(642)
     renumbered = np.empty_like(order)
-    renumbered[order] = np.arange(len(order))
-    model = build_model_from_spec(spec)
-    info = initialise_from(model, source, (vertices[order], renumbered[faces]))
-    assert info["reinitialised"] == [] and "through a match" in info["head"]
-    rows = model.output.weight.detach()
-    same = (rows == weights["output.weight"][torch.as_tensor(order)]).all(dim=1)
+    renumbered[order] = np.arange(642)
+    shapes = [ellipsoid(noise=0.01, seed=i) for i in range(5)]
+    write_faust_layout(tmp_path / "new", [Surface(s.vertices[order], renumbered[s.faces]) for s in shapes])
+    options = LoaderOptions(
+        patch_configs=[PatchConfig(**patch)], cache_dir=tmp_path / "cache", n_val=1, workers=0, progress=False
+    )
+    dataset = load_faust(tmp_path / "new", range(3), [3, 4], n_vertices=None, area=100.0, options=options)
+    voters = [dataset[i] for i in dataset.splits["train"]]
+    template = (shapes[0].vertices[order], renumbered[shapes[0].faces])
+
+    model = build_model_from_spec(source.model_spec)
+    info = initialise_from(model, source, template, voters)
+    assert info["reinitialised"] == [] and "vote on 2 training shapes; 0 vertices without a vote" in info["head"]
+    # The vote, recomputed from the source model's own predictions on the renumbered training shapes.
+    summed = sum(
+        predict(tmp_path / "source", record.surface, probabilities=True, refine_rings=0)[1] for record in voters
+    )
+    rows = summed.argmax(axis=1)
+    assert (rows == order).mean() > 0.95  # the source learnt its 2 shapes: the vote undoes the renumbering
+    carried = model.output.weight.detach()
+    same = (carried == source.weights["output.weight"][torch.as_tensor(rows)]).all(dim=1)
     assert same.float().mean() > 0.99, same.float().mean()
+    # On a renumbered test shape the carried model names vertex i where the source named old vertex order[i].
+    test_shape = Surface(shapes[3].vertices[order], renumbered[shapes[3].faces])
+    before = predict(tmp_path / "source", shapes[3], refine_rings=0)[order]
+    torch.save({**load_checkpoint(tmp_path / "source" / "best.pt"), "model": model.state_dict()}, tmp_path / "c.pt")
+    after = predict(tmp_path / "c.pt", test_shape, refine_rings=0)
+    unanimous = np.bincount(rows, minlength=642)[before] == 1
+    assert unanimous.mean() > 0.9
+    assert (rows[after] == before)[unanimous].mean() > 0.95
     # The same connectivity: the rows are copied as they are.
-    info = initialise_from(model, source, (vertices, faces))
-    assert info["head"] == "copied" and torch.equal(model.output.weight, weights["output.weight"])
+    info = initialise_from(model, source, (shapes[0].vertices, shapes[0].faces), voters)
+    assert info["head"] == "copied" and torch.equal(model.output.weight, source.weights["output.weight"])

@@ -9,11 +9,14 @@ own. :func:`load_init_source` reads the other run's selected checkpoint (a run f
 - the output layer (``output.*``) keeps its fresh initialisation when its shape differs, i.e. when the new
   task has another number of classes (e.g. from correspondence to segmentation, or to another template);
 - except between two correspondence runs whose templates differ (another vertex order or count, as between
-  generated bodies and a user's copy of FAUST): then each of the new template's vertices takes the output
-  row of the vertex it lands on in the other template, through a match of the two templates by zernet's
-  template model (:func:`carried_head`; the checkpoint stores its template, ``template_vertices`` and
-  ``template_faces``). A model trained on many people then starts the few people's run knowing where every
-  vertex of their template lies, instead of learning 6,890 classes again from 8 people;
+  generated bodies and a user's copy of FAUST; the checkpoint stores its template, ``template_vertices`` and
+  ``template_faces``): then each of the new template's vertices takes the output row of the class the
+  checkpoint's own model gives that vertex on the new run's training shapes, its softmax summed over
+  :data:`VOTING_SHAPES` of them spread over the training split (:func:`carried_head`). A model trained on many
+  people then starts the few people's run knowing where every vertex of their template lies, instead of
+  learning 6,890 classes again from 8 people. Why the model's own vote rather than a match of the two
+  templates: on generated people renumbered, the vote of 8 scans names the exact source vertex for 94 % of
+  the template's vertices, zernet's template match for 43 % (``docs/RECIPES.md``);
 - any other difference (another model family, other widths, another number of input channels, another
   Zernike degree) is a :class:`~zernet.training.config.ConfigError` naming the first parameter that does not
   fit: silently training a half-initialised model would look like a working fine-tune.
@@ -35,18 +38,23 @@ still reports it), writes to ``train.log`` and to ``metrics.json`` (``init_from`
 from __future__ import annotations
 
 import importlib.resources
+import itertools
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from zernet.io_utils import atomic_save_torch
+from zernet.training.batch import Batch, model_basis_orders, model_directional_order
+from zernet.training.build import build_model_from_spec
 from zernet.training.checkpoint import checkpoint_path, load_checkpoint
 from zernet.training.config import ConfigError
 
 __all__ = [
     "HEAD_PREFIX",
     "PRETRAINED_PREFIX",
+    "VOTING_SHAPES",
     "InitSource",
     "pretrained_names",
     "load_init_source",
@@ -60,6 +68,9 @@ __all__ = [
 HEAD_PREFIX = "output."
 #: ``pretrained:NAME`` names weights shipped in ``zernet/pretrained/NAME.pt``.
 PRETRAINED_PREFIX = "pretrained:"
+#: Training shapes on which a correspondence checkpoint votes for the output row of each vertex of a new
+#: template (:func:`carried_head`): 8 scans of one person name the exact source vertex for 94 % of them.
+VOTING_SHAPES = 8
 
 
 def _pretrained_folder() -> Path:
@@ -82,6 +93,7 @@ class InitSource:
         self.epoch = int(state.get("epoch", 0))
         self.task = checkpoint.get("task")
         self.num_classes = checkpoint.get("num_classes")
+        self.feature_stats = checkpoint.get("feature_stats")
         # (vertices (M, 3), faces (F, 3)) of a correspondence model's template, else None.
         vertices, faces = checkpoint.get("template_vertices"), checkpoint.get("template_faces")
         self.template = None if vertices is None or faces is None else (np.asarray(vertices), np.asarray(faces))
@@ -135,10 +147,14 @@ def _template_model_weights(path: Path) -> dict | None:
     }
 
 
-def initialise_from(model: torch.nn.Module, source: InitSource, template=None) -> dict:
+def initialise_from(
+    model: torch.nn.Module, source: InitSource, template=None, voters: Iterable = (), device=None
+) -> dict:
     """Copy ``source``'s weights into ``model`` (see the module docstring); returns what was done.
 
-    ``template``: (vertices, faces) of the new run's template when it is a correspondence run, else None.
+    ``template``: (vertices, faces) of the new run's template when it is a correspondence run, else None;
+    ``voters``: that run's training records (read only when the output layer is carried to the template:
+    :func:`carried_head`), voting on ``device`` (default CPU).
 
     Returns:
         ``{"source": path, "source_epoch": e, "source_model": name, "copied": n, "reinitialised": [names],
@@ -172,10 +188,17 @@ def initialise_from(model: torch.nn.Module, source: InitSource, template=None) -
         and source.template is not None
         and not _same_mesh(template, source.template)
     ):
-        rows = carried_head(template, source.template)
+        rows, votes = carried_head(source, voters, len(template[0]), device)
+        voted = torch.as_tensor(votes > 0)
         for name in [name for name in weights if name.startswith(HEAD_PREFIX)]:
-            weights[name] = weights[name][torch.as_tensor(rows)]
-        head = f"carried from the checkpoint's template ({len(source.template[0])} vertices) through a match"
+            carried = target[name].clone()  # a vertex no training shape votes for keeps its fresh row
+            carried[voted] = weights[name][torch.as_tensor(rows)[voted]].to(carried.dtype)
+            weights[name] = carried
+        head = (
+            f"carried from the checkpoint's template ({len(source.template[0])} vertices) by its model's vote "
+            f"on {int(votes.max(initial=0))} training shapes; {int((~voted).sum())} vertices without a vote kept "
+            "a fresh row"
+        )
     copied, reinitialised = {}, []
     for name, value in target.items():
         stored = weights.get(name)
@@ -210,15 +233,30 @@ def _same_mesh(one, other) -> bool:
     return one[1].shape == other[1].shape and bool(np.array_equal(one[1], other[1]))
 
 
-def carried_head(template, source_template) -> np.ndarray:
-    """(N,) for each vertex of ``template`` (vertices, faces), the vertex of ``source_template`` it lands on,
-    matched by the shipped template model (:func:`zernet.matching.match_surfaces`, human bodies: about 1 %
-    of the body's size off on remeshed bodies, ``docs/MATCHING.md``): the output row it starts from."""
-    from zernet.geometry import Surface
-    from zernet.matching import match_surfaces
+def carried_head(source: InitSource, voters: Iterable, num_classes: int, device=None) -> tuple[np.ndarray, np.ndarray]:
+    """For each class of a new correspondence run (a vertex of its template), the class of ``source`` whose
+    output row it starts from: the one ``source``'s model gives the training vertices of that class, its
+    softmax summed over the first :data:`VOTING_SHAPES` records of ``voters`` (the run's training shapes,
+    each target the template vertex of every vertex).
 
-    result, _, _ = match_surfaces(Surface(*template, name="template"), Surface(*source_template, name="source"))
-    return np.asarray(result.vertex_map, dtype=np.int64)
+    Returns:
+        rows: (num_classes,) int64 source class per class (0 where no vertex voted).
+        votes: (num_classes,) int64 number of shapes that voted for each class (0: keep a fresh row).
+    """
+    device = torch.device(device or "cpu")
+    model = build_model_from_spec(source.model_spec)
+    model.load_state_dict({name: value.float() for name, value in source.weights.items()})
+    model.to(device).eval()
+    directional, basis_orders = model_directional_order(model), model_basis_orders(model)
+    scores = torch.zeros(num_classes, source.weights[HEAD_PREFIX + "weight"].shape[0], device=device)
+    votes = torch.zeros(num_classes, dtype=torch.int64)
+    with torch.no_grad():
+        for record in itertools.islice(voters, VOTING_SHAPES):
+            batch = Batch([record], device, None, source.feature_stats, directional, basis_orders)
+            target = torch.as_tensor(record.target, dtype=torch.int64, device=device)
+            scores.index_add_(0, target, torch.softmax(model(batch.features, batch.geometry).float(), dim=1))
+            votes[torch.unique(target).cpu()] += 1
+    return scores.argmax(dim=1).cpu().numpy(), votes.numpy()
 
 
 def export_backbone(run: str | Path, path: str | Path, with_output: bool = False) -> dict:

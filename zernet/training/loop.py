@@ -65,7 +65,7 @@ from zernet.training.evaluation import (
     select_refinement,
     summary_line,
 )
-from zernet.training.init_from import InitSource, initialise_from, load_init_source
+from zernet.training.init_from import VOTING_SHAPES, InitSource, initialise_from, load_init_source
 from zernet.training.init_from import describe as describe_init
 from zernet.training.losses import check_loss_targets, resolve_loss
 from zernet.training.residency import ShapeStore
@@ -247,7 +247,11 @@ def _run(
     )
     dataset, splits, preprocess_seconds = _load_dataset(config, progress, workers, ctx, logger)
     record, objective = _describe_run(config, dataset, splits, checkpoint, logger, ctx.device)
-    model, optimizer, state = _build_model(record, config.train, checkpoint, ctx.device, logger, source)
+    # Training shapes spread over the split (FAUST's consecutive scans are one person), read only if the
+    # output layer is carried to this run's template.
+    spread = np.linspace(0, len(splits.train) - 1, min(VOTING_SHAPES, len(splits.train))).round().astype(int)
+    voters = (dataset[splits.train[i]] for i in dict.fromkeys(spread.tolist()))
+    model, optimizer, state = _build_model(record, config.train, checkpoint, ctx.device, logger, source, voters)
     logger.info(
         f"model {record.model_spec['name']} ({sum(p.numel() for p in model.parameters()):,} parameters), "
         f"loss {objective.loss}, lr {config.train.lr} ({config.train.lr_schedule}), "
@@ -436,11 +440,17 @@ def _feature_scaling(train: TrainSection, dataset, splits: _Splits, checkpoint, 
 
 
 def _build_model(
-    record: RunRecord, train: TrainSection, checkpoint: dict | None, device, logger, source: InitSource | None = None
+    record: RunRecord,
+    train: TrainSection,
+    checkpoint: dict | None,
+    device,
+    logger,
+    source: InitSource | None = None,
+    voters=(),
 ):
     """The model, its Adam optimiser and the loop state: fresh from ``train.seed`` (then, with ``source``,
-    taking another run's weights, its output layer carried to this run's template if it has one), or as
-    checkpointed."""
+    taking another run's weights, its output layer carried to this run's template by ``source``'s vote on the
+    training records ``voters`` if it has one), or as checkpointed."""
     # Seed right before the model is built, so its initialisation depends only on train.seed.
     seed_everything(train.seed)
     model = build_model_from_spec(record.model_spec)
@@ -449,7 +459,7 @@ def _build_model(
         template = None
         if record.template_vertices is not None:
             template = (record.template_vertices.numpy(), record.template_faces.numpy())
-        init_info = initialise_from(model, source, template)
+        init_info = initialise_from(model, source, template, voters, device)
     model = model.to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=train.lr, weight_decay=train.weight_decay)
     state = initial_state()
