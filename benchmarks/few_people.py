@@ -65,6 +65,15 @@ MANY_PEOPLE = ROOT / "runs" / "corr" / "best.pt"
 #: runs/corr-template and data.features=xyz+hks+template model.input_skip=true).
 MANY_PEOPLE_TEMPLATE = ROOT / "runs" / "corr-template" / "best.pt"
 RENUMBERED_TEMPLATE = ROOT / "runs" / "corr-template-renumbered.pt"
+#: The same inputs on 180 generated people (172 training, 8 validation) for 6 epochs, and its renumbered copy.
+MORE_PEOPLE_COMMANDS = (
+    "zernet bodies data/corr-bodies-200 --count 200 --seed 0 --topology faust ; zernet train "
+    "configs/bodies_correspondence.yaml --run-dir runs/corr-template-180 --set "
+    "data.root=data/corr-bodies-200/correspondence train.epochs=6 data.features=xyz+hks+template "
+    "model.input_skip=true train.threads=1"
+)
+MORE_PEOPLE_TEMPLATE = ROOT / "runs" / "corr-template-180" / "best.pt"
+RENUMBERED_MORE_PEOPLE = ROOT / "runs" / "corr-template-180-renumbered.pt"
 RENUMBERED = ROOT / "runs" / "corr-renumbered.pt"
 CONFIG = ROOT / "configs" / "faust_single_scale.yaml"
 N_PEOPLE, N_POSES = 10, 10
@@ -147,6 +156,28 @@ RECIPES = {
             "train.init_from": str(RENUMBERED_TEMPLATE),
             "train.lr": 3e-3,
             "train.epochs": 3,
+        },
+        False,
+    ),
+    # The same from the model of 180 people (MORE_PEOPLE_TEMPLATE), renumbered as a user's FAUST meets it.
+    "more-people-template-matched": (
+        {
+            "data.features": "xyz+hks+template",
+            "model.input_skip": True,
+            "train.init_from": str(RENUMBERED_MORE_PEOPLE),
+            "train.lr": 3e-3,
+            "train.epochs": 3,
+        },
+        False,
+    ),
+    # The same for 5 epochs (validation still rose at the third).
+    "more-people-template-matched-5": (
+        {
+            "data.features": "xyz+hks+template",
+            "model.input_skip": True,
+            "train.init_from": str(RENUMBERED_MORE_PEOPLE),
+            "train.lr": 3e-3,
+            "train.epochs": 5,
         },
         False,
     ),
@@ -512,7 +543,12 @@ def main() -> None:
     parser.add_argument("--others", type=Path, default=ROOT / "data" / "others", help="the pretraining bodies")
     parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "few_people")
     parser.add_argument("--recipes", nargs="+", default=["shipped", "pretrained"], choices=sorted(RECIPES))
-    parser.add_argument("--epochs", type=int, default=None, help="override the recipe's epochs (default: its own)")
+    parser.add_argument(
+        "--epochs",
+        type=int,
+        default=None,
+        help="epochs of the recipes that set none (a recipe's own train.epochs wins)",
+    )
     parser.add_argument("--pretrain-count", type=int, default=100, help="bodies of other people to pretrain on")
     parser.add_argument("--pretrain-epochs", type=int, default=None)
     parser.add_argument(
@@ -533,9 +569,9 @@ def main() -> None:
         "--export-many-people",
         metavar="NAME",
         default=None,
-        help="ship the many-people correspondence run (MANY_PEOPLE, or MANY_PEOPLE_TEMPLATE when the first of "
-        "--recipes is many-people-template), output layer and template included, as zernet/pretrained/NAME.pt "
-        "with NAME.json; no recipe is trained",
+        help="ship the many-people correspondence run (MANY_PEOPLE; MANY_PEOPLE_TEMPLATE when the first of "
+        "--recipes is many-people-template, MORE_PEOPLE_TEMPLATE when it is a more-people recipe), output layer "
+        "and template included, as zernet/pretrained/NAME.pt with NAME.json; no recipe is trained",
     )
     parser.add_argument(
         "--score-every", type=int, default=1, help="score every K-th epoch on the test people (and the last)"
@@ -562,11 +598,15 @@ def main() -> None:
             "validation carved by the FAUST loader), never the benchmark's people"
         )
         run = MANY_PEOPLE_TEMPLATE if args.recipes[0] == "many-people-template" else MANY_PEOPLE
-        command = MANY_PEOPLE_COMMANDS + " ; then benchmarks/few_people.py " + " ".join(sys.argv[1:])
+        command = MANY_PEOPLE_COMMANDS
         if run == MANY_PEOPLE_TEMPLATE:
             command = command.replace("runs/corr ", "runs/corr-template ").replace(
                 "train.epochs=4", "train.epochs=4 data.features=xyz+hks+template model.input_skip=true train.threads=1"
             )
+        if args.recipes[0].startswith("more-people"):
+            run, command = MORE_PEOPLE_TEMPLATE, MORE_PEOPLE_COMMANDS
+            trained_on = trained_on.replace("80 generated", "180 generated").replace("72 training", "172 training")
+        command += " ; then benchmarks/few_people.py " + " ".join(sys.argv[1:])
         ship_backbone(run.parent, args.export_many_people, trained_on, command, with_output=True)
         return
     data_root = people_bodies(args.data, args.topology, args.seed, args.cache_dir)
@@ -591,6 +631,8 @@ def main() -> None:
         renumbered_checkpoint(MANY_PEOPLE, RENUMBERED)
     if "many-people-template-matched" in args.recipes:
         renumbered_checkpoint(MANY_PEOPLE_TEMPLATE, RENUMBERED_TEMPLATE)
+    if any(name.startswith("more-people") for name in args.recipes):
+        renumbered_checkpoint(MORE_PEOPLE_TEMPLATE, RENUMBERED_MORE_PEOPLE)
     for name in args.recipes:
         print(f"recipe {name} ...", flush=True)
         pretrained = pretrained_run(args, name) if RECIPES[name][1] else None
