@@ -278,6 +278,10 @@ def test_the_output_layer_follows_the_template_to_another_vertex_order(ellipsoid
     unanimous = np.bincount(rows, minlength=642)[before] == 1
     assert unanimous.mean() > 0.9
     assert (rows[after] == before)[unanimous].mean() > 0.95
+    # A run does the same with its own training shapes, and says so.
+    config = faust_run_config(tmp_path / "new", 642, patch, train={"epochs": 1, "init_from": str(tmp_path / "source")})
+    metrics = train(config, tmp_path / "run", progress=False)
+    assert "vote on 2 training shapes; 0 vertices without a vote" in metrics["init_from"]["head"]
     # The same connectivity: the rows are copied as they are.
     info = initialise_from(model, source, (shapes[0].vertices, shapes[0].faces), voters)
     assert info["head"] == "copied" and torch.equal(model.output.weight, source.weights["output.weight"])
