@@ -50,6 +50,7 @@ from zernet.data.bodies import BodyGenerator, write_bodies  # noqa: E402
 from zernet.data.bodies.pose import draw_phenotype  # noqa: E402
 from zernet.io_utils import atomic_save_torch, atomic_write_bytes, write_json  # noqa: E402
 from zernet.training import build_dataset, evaluate, load_checkpoint, load_config, parse_config, train  # noqa: E402
+from zernet.training.config import apply_overrides  # noqa: E402
 from zernet.training.init_from import export_backbone  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
@@ -410,6 +411,7 @@ def per_epoch_rows(history: list[dict], scores: list[dict]) -> list[dict]:
 def run_recipe(name: str, data_root: Path, runs: Path, pretrained: Path | None, args) -> dict:
     run_dir = runs / name
     config = recipe_config(data_root, name, args.epochs, args.threads, N_VERTICES[args.topology], args.cache_dir)
+    config = apply_overrides(config, args.overrides)
     started = time.perf_counter()
     if not (run_dir / "metrics.json").is_file():
         train(config, run_dir, progress=False, overwrite=True, init_from=pretrained)
@@ -575,6 +577,15 @@ def main() -> None:
     )
     parser.add_argument(
         "--score-every", type=int, default=1, help="score every K-th epoch on the test people (and the last)"
+    )
+    parser.add_argument(
+        "--set",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        dest="overrides",
+        help="change every recipe's configuration after its own changes, as 'zernet train --set' does "
+        "(e.g. train.lr=2e-3); give each variant its own --runs",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=None)
