@@ -55,6 +55,7 @@ __all__ = [
     "HEAD_PREFIX",
     "PRETRAINED_PREFIX",
     "VOTING_SHAPES",
+    "voting_shapes",
     "InitSource",
     "pretrained_names",
     "load_init_source",
@@ -231,6 +232,13 @@ def initialise_from(
 def _same_mesh(one, other) -> bool:
     """Whether two (vertices, faces) templates share their connectivity (then their vertices correspond)."""
     return one[1].shape == other[1].shape and bool(np.array_equal(one[1], other[1]))
+
+
+def voting_shapes(train_indices) -> list:
+    """The training shapes that vote in :func:`carried_head`: :data:`VOTING_SHAPES` of ``train_indices``
+    spread evenly over them (FAUST's consecutive scans are one person)."""
+    spread = np.linspace(0, len(train_indices) - 1, min(VOTING_SHAPES, len(train_indices))).round().astype(int)
+    return [train_indices[i] for i in dict.fromkeys(spread.tolist())]
 
 
 def carried_head(source: InitSource, voters: Iterable, num_classes: int, device=None) -> tuple[np.ndarray, np.ndarray]:

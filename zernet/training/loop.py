@@ -65,7 +65,7 @@ from zernet.training.evaluation import (
     select_refinement,
     summary_line,
 )
-from zernet.training.init_from import VOTING_SHAPES, InitSource, initialise_from, load_init_source
+from zernet.training.init_from import InitSource, initialise_from, load_init_source, voting_shapes
 from zernet.training.init_from import describe as describe_init
 from zernet.training.losses import check_loss_targets, resolve_loss
 from zernet.training.residency import ShapeStore
@@ -247,10 +247,8 @@ def _run(
     )
     dataset, splits, preprocess_seconds = _load_dataset(config, progress, workers, ctx, logger)
     record, objective = _describe_run(config, dataset, splits, checkpoint, logger, ctx.device)
-    # Training shapes spread over the split (FAUST's consecutive scans are one person), read only if the
-    # output layer is carried to this run's template.
-    spread = np.linspace(0, len(splits.train) - 1, min(VOTING_SHAPES, len(splits.train))).round().astype(int)
-    voters = (dataset[splits.train[i]] for i in dict.fromkeys(spread.tolist()))
+    # Read only if the output layer is carried to this run's template.
+    voters = (dataset[i] for i in voting_shapes(splits.train))
     model, optimizer, state = _build_model(record, config.train, checkpoint, ctx.device, logger, source, voters)
     logger.info(
         f"model {record.model_spec['name']} ({sum(p.numel() for p in model.parameters()):,} parameters), "
