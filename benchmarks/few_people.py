@@ -75,6 +75,16 @@ MORE_PEOPLE_COMMANDS = (
 )
 MORE_PEOPLE_TEMPLATE = ROOT / "runs" / "corr-template-180" / "best.pt"
 RENUMBERED_MORE_PEOPLE = ROOT / "runs" / "corr-template-180-renumbered.pt"
+#: The same on 220 generated people (212 training, 8 validation; the first 200 bodies are MORE_PEOPLE's, as a
+#: body depends only on the seed and its number), and its renumbered copy.
+MOST_PEOPLE_COMMANDS = (
+    "zernet bodies data/corr-bodies-240 --count 240 --seed 0 --topology faust ; zernet train "
+    "configs/bodies_correspondence.yaml --run-dir runs/corr-template-240 --set "
+    "data.root=data/corr-bodies-240/correspondence data.train_indices=0:220 data.test_indices=220:240 "
+    "train.epochs=6 data.features=xyz+hks+template model.input_skip=true train.threads=1"
+)
+MOST_PEOPLE_TEMPLATE = ROOT / "runs" / "corr-template-240" / "best.pt"
+RENUMBERED_MOST_PEOPLE = ROOT / "runs" / "corr-template-240-renumbered.pt"
 RENUMBERED = ROOT / "runs" / "corr-renumbered.pt"
 CONFIG = ROOT / "configs" / "faust_single_scale.yaml"
 N_PEOPLE, N_POSES = 10, 10
@@ -179,6 +189,17 @@ RECIPES = {
             "train.init_from": str(RENUMBERED_MORE_PEOPLE),
             "train.lr": 3e-3,
             "train.epochs": 5,
+        },
+        False,
+    ),
+    # The same from the model of 220 people (MOST_PEOPLE_TEMPLATE).
+    "most-people-template-matched": (
+        {
+            "data.features": "xyz+hks+template",
+            "model.input_skip": True,
+            "train.init_from": str(RENUMBERED_MOST_PEOPLE),
+            "train.lr": 3e-3,
+            "train.epochs": 3,
         },
         False,
     ),
@@ -572,7 +593,8 @@ def main() -> None:
         metavar="NAME",
         default=None,
         help="ship the many-people correspondence run (MANY_PEOPLE; MANY_PEOPLE_TEMPLATE when the first of "
-        "--recipes is many-people-template, MORE_PEOPLE_TEMPLATE when it is a more-people recipe), output layer "
+        "--recipes is many-people-template, MORE_PEOPLE_TEMPLATE when it is a more-people recipe, "
+        "MOST_PEOPLE_TEMPLATE when it is a most-people recipe), output layer "
         "and template included, as zernet/pretrained/NAME.pt with NAME.json; no recipe is trained",
     )
     parser.add_argument(
@@ -617,6 +639,9 @@ def main() -> None:
         if args.recipes[0].startswith("more-people"):
             run, command = MORE_PEOPLE_TEMPLATE, MORE_PEOPLE_COMMANDS
             trained_on = trained_on.replace("80 generated", "180 generated").replace("72 training", "172 training")
+        if args.recipes[0].startswith("most-people"):
+            run, command = MOST_PEOPLE_TEMPLATE, MOST_PEOPLE_COMMANDS
+            trained_on = trained_on.replace("80 generated", "220 generated").replace("72 training", "212 training")
         command += " ; then benchmarks/few_people.py " + " ".join(sys.argv[1:])
         ship_backbone(run.parent, args.export_many_people, trained_on, command, with_output=True)
         return
@@ -644,6 +669,8 @@ def main() -> None:
         renumbered_checkpoint(MANY_PEOPLE_TEMPLATE, RENUMBERED_TEMPLATE)
     if any(name.startswith("more-people") for name in args.recipes):
         renumbered_checkpoint(MORE_PEOPLE_TEMPLATE, RENUMBERED_MORE_PEOPLE)
+    if "most-people-template-matched" in args.recipes:
+        renumbered_checkpoint(MOST_PEOPLE_TEMPLATE, RENUMBERED_MOST_PEOPLE)
     for name in args.recipes:
         print(f"recipe {name} ...", flush=True)
         pretrained = pretrained_run(args, name) if RECIPES[name][1] else None

@@ -239,8 +239,9 @@ def _add_evaluate_command(sub, parents: list[argparse.ArgumentParser]) -> None:
         nargs="+",
         default=None,
         metavar="N",
-        help="average the predicted probabilities over N rings of mesh neighbours (segmentation: where the "
-        "network is unsure); several: the best on the validation split (default: the run's eval.refine_rings)",
+        help="refine over N rings of mesh neighbours (correspondence: by the neighbours' agreement; "
+        "segmentation: their average where the network is unsure); several: the best on the validation split "
+        "(default: the run's eval.refine_rings)",
     )
     p.add_argument(
         "--refine-spectral",
@@ -303,8 +304,9 @@ def _add_predict_command(sub, parents: list[argparse.ArgumentParser]) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="average the probabilities over N rings of mesh neighbours (segmentation: where the network is "
-        "unsure; default: what the run chose on its validation split; 0: off)",
+        help="refine over N rings of mesh neighbours (correspondence: by the neighbours' agreement; "
+        "segmentation: their average where the network is unsure; default: what the run chose on its "
+        "validation split; 0: off)",
     )
     p.add_argument(
         "--refine-spectral",

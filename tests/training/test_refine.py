@@ -1,6 +1,5 @@
-"""Refinement of a correspondence and of a segmentation: the ring average, what averaging over both
-neighbourhoods does to a map, what averaging the unsure vertices does to parts, and how evaluation scores,
-reports and chooses it."""
+"""Refinement of a correspondence and of a segmentation: the rings, what the neighbours' agreement does to
+a map, what averaging the unsure vertices does to parts, and how evaluation scores, reports and chooses it."""
 
 import json
 
@@ -18,7 +17,14 @@ from zernet.training import evaluate, predict, train
 from zernet.training.checkpoint import load_checkpoint
 from zernet.training.config import ConfigError, EvalSection
 from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
-from zernet.training.refine import SEGMENTATION_CONFIDENCE, refine_correspondence, refine_segmentation, ring_average
+from zernet.training.refine import (
+    AGREEMENT_FLOOR,
+    SEGMENTATION_CONFIDENCE,
+    refine_correspondence,
+    refine_segmentation,
+    ring_average,
+    ring_reach,
+)
 
 
 def test_ring_average_is_the_mean_over_the_vertices_within_so_many_edges(tetrahedron_surface, sphere_surface):
@@ -47,11 +53,57 @@ def test_ring_average_refuses_bad_faces_and_radii(tetrahedron_surface):
         ring_average(tetrahedron_surface.faces, 4, -1)
 
 
+def _rings_by_search(faces: np.ndarray, n: int, rings: int) -> list[set[int]]:
+    """The vertices at most ``rings`` edges from each vertex, by breadth-first search (not by matrices)."""
+    neighbours = [set() for _ in range(n)]
+    for a, b, c in faces:
+        neighbours[a] |= {b, c}
+        neighbours[b] |= {a, c}
+        neighbours[c] |= {a, b}
+    reached = []
+    for start in range(n):
+        seen, frontier = {start}, {start}
+        for _ in range(rings):
+            frontier = {w for v in frontier for w in neighbours[v]} - seen
+            seen |= frontier
+        reached.append(seen)
+    return reached
+
+
+def test_the_refined_score_is_the_neighbours_agreement_written_out():
+    """S(i, j) = log(P(i, j) + ε) + Σ_{k ∈ ring(i), k ≠ i} log(Σ_{l ∈ ring(j)} P(k, l) + ε), softmax over j,
+    computed vertex by vertex from rings found by breadth-first search."""
+    shape, template = icosphere(1, noise=0.05, seed=1), icosphere(1)
+    n, m = shape.n_vertices, template.n_vertices
+    probabilities = np.random.default_rng(2).dirichlet(np.full(m, 0.2), size=n)
+    floor = AGREEMENT_FLOOR / m
+    for rings in (1, 2):
+        shape_rings, template_rings = (
+            _rings_by_search(shape.faces, n, rings),
+            _rings_by_search(template.faces, m, rings),
+        )
+        np.testing.assert_array_equal(
+            ring_reach(shape.faces, n, rings).toarray(),
+            np.array([[j in shape_rings[i] for j in range(n)] for i in range(n)], dtype=np.float32),
+        )
+        expected = np.empty((n, m))
+        for i in range(n):
+            for j in range(m):
+                columns = sorted(template_rings[j])
+                expected[i, j] = np.log(probabilities[i, j] + floor) + sum(
+                    np.log(probabilities[k, columns].sum() + floor) for k in shape_rings[i] - {i}
+                )
+        expected = np.exp(expected - expected.max(axis=1, keepdims=True))
+        expected /= expected.sum(axis=1, keepdims=True)
+        refined = refine_correspondence(probabilities.astype(np.float32), shape.faces, template.faces, rings)
+        np.testing.assert_allclose(refined, expected, rtol=2e-4, atol=1e-7)
+
+
 def test_a_true_map_stays_and_a_wrong_vertex_takes_its_neighbourhood_answer(sphere_surface):
     faces, n = sphere_surface.faces, sphere_surface.n_vertices
     identity = np.eye(n, dtype=np.float32)
-    # The identity map is its own refinement: (A Aᵀ)(i, j) = |ring(i) ∩ ring(j)| / (|ring(i)| |ring(j)|) is
-    # largest at j = i (one ring: 1/(v+1) against 4/((v+1)(v'+1)) for a neighbour).
+    # The identity map is its own refinement: every neighbour of i gives the ring of i all its mass, and any
+    # other j at least one neighbour short of it.
     for rings in (1, 2, 3):
         np.testing.assert_array_equal(refine_correspondence(identity, faces, faces, rings).argmax(1), np.arange(n))
     # One vertex sent to the far side of the sphere comes back; every other vertex stays.
@@ -61,6 +113,30 @@ def test_a_true_map_stays_and_a_wrong_vertex_takes_its_neighbourhood_answer(sphe
     wrong[7, far] = 1.0
     np.testing.assert_array_equal(wrong.argmax(1)[7], far)
     np.testing.assert_array_equal(refine_correspondence(wrong, faces, faces, 1).argmax(1), np.arange(n))
+
+
+def test_every_neighbour_is_asked_where_an_average_lets_the_sure_ones_outvote(sphere_surface):
+    """Vertex 0 is unsure between its true vertex and a far one; one neighbour sends all its mass next to the
+    far one, the others put a modest share on the truth. The average follows the one sure neighbour; the
+    agreement follows the many."""
+    faces, vertices, n = sphere_surface.faces, sphere_surface.vertices, sphere_surface.n_vertices
+    rings = _rings_by_search(faces, n, 1)
+    far = int(np.argmin(vertices @ vertices[0]))
+    near_far = sorted(rings[far] - {far})[0]
+    probabilities = np.full((n, n), 0.2 / n, dtype=np.float32)
+    probabilities[np.arange(n), np.arange(n)] += 0.8
+    probabilities[0] = 0.2 / n
+    probabilities[0, [0, far]] += [0.4, 0.4]
+    loud, *quiet = sorted(rings[0] - {0})
+    probabilities[loud] = 0.0
+    probabilities[loud, near_far] = 1.0
+    for k in quiet:
+        probabilities[k] = 0.8 / n
+        probabilities[k, k] += 0.2
+    average = ring_average(faces, n, 1)
+    averaged = (average @ (average @ probabilities).T).T
+    assert averaged[0].argmax() == far  # the loud neighbour's whole mass outweighs the quiet ones' shares
+    assert refine_correspondence(probabilities, faces, faces, 1).argmax(axis=1)[0] == 0
 
 
 def test_refinement_keeps_rows_normalised_and_zero_rings_change_nothing(sphere_surface):

@@ -412,8 +412,9 @@ class EvalSection(_Section):
 
     renders: int = _rule(3, "int", minimum=0)  # test shapes rendered (prediction, truth, error)
     plots: bool = _rule(True, "bool")  # write plots at all
-    # Correspondence: the predicted probabilities averaged over this many rings of mesh neighbours
-    # (zernet.training.refine); segmentation: the same on the shape, at the vertices the network is unsure of.
+    # Correspondence: the predicted probabilities refined by the agreement of this many rings of mesh
+    # neighbours (zernet.training.refine); segmentation: averaged over the shape's rings, at the vertices the
+    # network is unsure of.
     # A number, or candidates of which the best on the validation split is used.
     refine_rings: list[int] = _rule((0,), "int_list")
     # Correspondence, after the rings: the global refinement (zernet.training.spectral_refine), the prediction

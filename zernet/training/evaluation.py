@@ -1,7 +1,7 @@
 """Scoring a trained model or an ensemble on a split: metrics, baselines, the refinement of a
 correspondence or a segmentation chosen on validation, and the one-line summary.
 
-A correspondence is refined on the run's device: the ring average (torch sparse products,
+A correspondence is refined on the run's device: the agreement of each vertex's rings (torch sparse products,
 :mod:`zernet.training.refine`), then optionally the global step (:mod:`zernet.training.spectral_refine`:
 the prediction kept within reach of a spectral map, which repairs flipped regions), both chosen on the
 validation split. The geodesic errors of a test shape are measured once for the unrefined, the
@@ -52,9 +52,9 @@ def _kind(checkpoint: dict) -> str:
 
 def _ring_scores(probabilities: torch.Tensor, record, rings: int, kind: str) -> torch.Tensor:
     """The probabilities refined over ``rings`` rings, where they are (the run's device). Correspondence by
-    vertex index: every shape has the template's connectivity, so the record's faces serve for both the shape
-    and the template. Segmentation: only the unsure vertices are averaged, over the shape's rings (a point
-    cloud's: its triangulation's)."""
+    vertex index (refined by the neighbours' agreement): every shape has the template's connectivity, so the
+    record's faces serve for both the shape and the template. Segmentation: only the unsure vertices are
+    averaged, over the shape's rings (a point cloud's: its triangulation's)."""
     if not rings:
         return probabilities
     faces = record.surface.faces

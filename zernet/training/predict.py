@@ -86,8 +86,8 @@ def predict(
             operators; a point cloud is triangulated through its own points for the front backend).
         probabilities: classification only — also return the (N, C) softmax probabilities.
         progress: print what was repaired (duplicate vertices merged, degenerate faces dropped).
-        refine_rings: correspondence: average the probabilities over this many rings of mesh neighbours
-            on the surface and on the template; segmentation: average them over this many rings of the
+        refine_rings: correspondence: refine the probabilities by the agreement of this many rings of mesh
+            neighbours on the surface and on the template; segmentation: average them over this many rings of the
             surface (a cloud: of its triangulation) where the network is unsure (:mod:`zernet.training.refine`);
             None: the number the run chose on its validation split (0 for runs that chose none).
         refine_spectral: correspondence only: after the rings, keep the prediction within this radius (a

@@ -1,6 +1,6 @@
 """Refining a predicted correspondence globally: the prediction kept within reach of a spectral map.
 
-The ring average (:mod:`zernet.training.refine`) repairs a vertex its neighbourhood outvotes; a whole region
+The rings (:mod:`zernet.training.refine`) repair a vertex its neighbourhood disagrees with; a whole region
 mapped to the wrong place (a knee on the other knee, a hand on the belly) is its own neighbourhood and stays.
 This step reads the map as a whole, through functional maps (Ovsjanikov et al. 2012) between the shape's and
 the template's Laplace-Beltrami eigenbases, upsampled as ZoomOut does (Melzi et al. 2019), with the pure
