@@ -1,0 +1,133 @@
+"""How much the correspondence refinement gives: the neighbours' agreement against the ring average it replaced.
+
+For one trained correspondence run (its selected model), on its validation split, its test split and, if given,
+the unseen people of ``benchmarks/few_people.py`` (``--unseen``): exact accuracy and the share within 1 % of the
+geodesic diameter, unrefined and refined over 1, 2 and 3 rings by
+
+* the ring average, ``A_shape · P · A_templateᵀ`` (what ``zernet.training.refine`` did until 0.2; written out
+  here as the baseline), and
+* the neighbours' agreement, :func:`zernet.training.refine.refine_correspondence` (what it does now).
+
+No global step (``eval.refine_spectral``) is applied: the figures compare the local step alone. Writes
+``benchmarks/results/refinement.{json,md}``.
+
+    .venv/bin/python benchmarks/refinement.py --run runs/fp7/more-people-template-matched \\
+        --unseen data/people-unseen/correspondence --threads 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
+from zernet.metrics import GeodesicErrors  # noqa: E402
+from zernet.training import build_dataset, load_checkpoint, parse_config  # noqa: E402
+from zernet.training.predict import model_from_checkpoint, predict_record  # noqa: E402
+from zernet.training.refine import refine_correspondence, ring_tensor  # noqa: E402
+
+RESULTS = ROOT / "benchmarks" / "results" / "refinement"
+RINGS = (1, 2, 3)
+
+
+def ring_averaged(probabilities: torch.Tensor, faces: np.ndarray, rings: int) -> torch.Tensor:
+    """The baseline: ``A · P · Aᵀ`` with ``A`` the ring average of the shared connectivity."""
+    average = ring_tensor(faces, probabilities.shape[0], rings, probabilities.device, average=True)
+    return (average @ (average @ probabilities).T.contiguous()).T
+
+
+def split_datasets(checkpoint: dict, unseen: Path | None) -> list[tuple[str, object, str]]:
+    """(label, data set, split) for the run's validation and test splits and the unseen people."""
+    config = checkpoint["config"]
+    own = build_dataset(parse_config(config), progress=False)
+    splits = [("validation", own, "val"), ("test", own, "test")]
+    if unseen is not None:
+        count = len(sorted((unseen / "training" / "registrations").glob("tr_reg_*.ply")))
+        data = {**config["data"], "root": str(unseen), "train_indices": [], "test_indices": f"0:{count}"}
+        unseen_set = build_dataset(parse_config({**config, "data": {**data, "val_count": 0}}), progress=False)
+        splits.insert(1, ("unseen people", unseen_set, "test"))
+    return splits
+
+
+def score_split(members, dataset, split: str) -> dict:
+    """Exact accuracy and share within 1 % of the diameter of every method on one split."""
+    hits: dict[str, int] = {}
+    within: dict[str, int] = {}
+    total = 0
+    for i in dataset.splits[split]:
+        record = dataset[i]
+        _, probabilities = predict_record(members, record, "cpu")
+        probabilities = torch.from_numpy(probabilities)
+        faces, target = record.surface.faces, np.asarray(record.target)
+        geodesics = GeodesicErrors(record.surface)
+        predictions = {"unrefined": probabilities.argmax(dim=1).numpy()}
+        for rings in RINGS:
+            predictions[f"average, {rings} ring(s)"] = ring_averaged(probabilities, faces, rings).argmax(dim=1).numpy()
+            refined = refine_correspondence(probabilities, faces, faces, rings)
+            predictions[f"agreement, {rings} ring(s)"] = refined.argmax(dim=1).numpy()
+        for name, pred in predictions.items():
+            hits[name] = hits.get(name, 0) + int((pred == target).sum())
+            within[name] = within.get(name, 0) + int((geodesics(pred, target) <= 0.01).sum())
+        total += len(target)
+        print(f"  {record.name}: unrefined {np.mean(predictions['unrefined'] == target):.4f}", flush=True)
+    return {name: {"exact": hits[name] / total, "within_1pct": within[name] / total} for name in hits}
+
+
+def markdown(result: dict) -> str:
+    names = list(next(iter(result["splits"].values())))
+    labels = list(result["splits"])
+    lines = [
+        "# Correspondence refinement: the neighbours' agreement against the ring average",
+        "",
+        f"Run `{result['run']}` (its selected model); command: `{result['command']}`; {result['seconds']:.0f} s.",
+        "Exact accuracy / share within 1 % of the geodesic diameter, no global step.",
+        "",
+        "| refinement | " + " | ".join(labels) + " |",
+        "|---|" + "---|" * len(labels),
+    ]
+    for name in names:
+        cells = [
+            f"{100 * result['splits'][label][name]['exact']:.2f} / {100 * result['splits'][label][name]['within_1pct']:.2f} %"
+            for label in labels
+        ]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--run", type=Path, required=True, help="a correspondence run folder (its best.pt)")
+    parser.add_argument("--unseen", type=Path, default=None, help="FAUST-layout folder of unseen people")
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--output", type=Path, default=RESULTS, help="path without suffix")
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    checkpoint = load_checkpoint(args.run / "best.pt")
+    if not checkpoint.get("correspondence"):
+        parser.error(f"{args.run} is not a correspondence run")
+    members = [(model_from_checkpoint(checkpoint, torch.device("cpu")), checkpoint)]
+    start = time.perf_counter()
+    result = {"run": str(args.run), "command": "benchmarks/refinement.py " + " ".join(sys.argv[1:]), "splits": {}}
+    for label, dataset, split in split_datasets(checkpoint, args.unseen):
+        print(f"{label} ...", flush=True)
+        result["splits"][label] = score_split(members, dataset, split)
+    result["seconds"] = time.perf_counter() - start
+    write_json(args.output.with_suffix(".json"), result)
+    text = markdown(result)
+    atomic_write_bytes(args.output.with_suffix(".md"), text.encode())
+    print(text)
+    print(json.dumps({k: v for k, v in result.items() if k != "splits"}))
+
+
+if __name__ == "__main__":
+    main()
