@@ -72,8 +72,9 @@ def _rings_by_search(faces: np.ndarray, n: int, rings: int) -> list[set[int]]:
 
 def test_the_refined_score_is_the_neighbours_agreement_written_out():
     """S(i, j) = log(P(i, j) + ε) + Σ_{k ∈ ring(i), k ≠ i} log(Σ_{l ∈ ring(j)} P(k, l) + ε), softmax over j,
-    computed vertex by vertex from rings found by breadth-first search."""
-    shape, template = icosphere(1, noise=0.05, seed=1), icosphere(1)
+    computed vertex by vertex from rings found by breadth-first search; the shape and the template differ in
+    size (a new surface against a run's template)."""
+    shape, template = icosphere(1, noise=0.05, seed=1), icosphere(2)
     n, m = shape.n_vertices, template.n_vertices
     probabilities = np.random.default_rng(2).dirichlet(np.full(m, 0.2), size=n)
     floor = AGREEMENT_FLOOR / m
