@@ -34,6 +34,7 @@ from zernet.metrics import GeodesicErrors  # noqa: E402
 from zernet.training import build_dataset, load_checkpoint, parse_config  # noqa: E402
 from zernet.training.predict import model_from_checkpoint, predict_record  # noqa: E402
 from zernet.training.refine import refine_correspondence, ring_tensor  # noqa: E402
+from zernet.training.runtime import resolve_device  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results" / "refinement"
 RINGS = (1, 2, 3)
@@ -58,22 +59,24 @@ def split_datasets(checkpoint: dict, unseen: Path | None) -> list[tuple[str, obj
     return splits
 
 
-def score_split(members, dataset, split: str) -> dict:
+def score_split(members, dataset, split: str, device: torch.device) -> dict:
     """Exact accuracy and share within 1 % of the diameter of every method on one split."""
     hits: dict[str, int] = {}
     within: dict[str, int] = {}
     total = 0
     for i in dataset.splits[split]:
         record = dataset[i]
-        _, probabilities = predict_record(members, record, "cpu")
-        probabilities = torch.from_numpy(probabilities)
+        _, probabilities = predict_record(members, record, device)
+        probabilities = torch.from_numpy(probabilities).to(device)  # refined where the run computes
         faces, target = record.surface.faces, np.asarray(record.target)
         geodesics = GeodesicErrors(record.surface)
-        predictions = {"unrefined": probabilities.argmax(dim=1).numpy()}
+        predictions = {"unrefined": probabilities.argmax(dim=1).cpu().numpy()}
         for rings in RINGS:
-            predictions[f"average, {rings} ring(s)"] = ring_averaged(probabilities, faces, rings).argmax(dim=1).numpy()
+            predictions[f"average, {rings} ring(s)"] = (
+                ring_averaged(probabilities, faces, rings).argmax(dim=1).cpu().numpy()
+            )
             refined = refine_correspondence(probabilities, faces, faces, rings)
-            predictions[f"agreement, {rings} ring(s)"] = refined.argmax(dim=1).numpy()
+            predictions[f"agreement, {rings} ring(s)"] = refined.argmax(dim=1).cpu().numpy()
         for name, pred in predictions.items():
             hits[name] = hits.get(name, 0) + int((pred == target).sum())
             within[name] = within.get(name, 0) + int((geodesics(pred, target) <= 0.01).sum())
@@ -108,6 +111,7 @@ def main() -> None:
     parser.add_argument("--run", type=Path, required=True, help="a correspondence run folder (its best.pt)")
     parser.add_argument("--unseen", type=Path, default=None, help="FAUST-layout folder of unseen people")
     parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--device", default=None, help="override the run's device (cpu, cuda, ...)")
     parser.add_argument("--output", type=Path, default=RESULTS, help="path without suffix")
     args = parser.parse_args()
     if args.threads:
@@ -115,12 +119,13 @@ def main() -> None:
     checkpoint = load_checkpoint(args.run / "best.pt")
     if not checkpoint.get("correspondence"):
         parser.error(f"{args.run} is not a correspondence run")
-    members = [(model_from_checkpoint(checkpoint, torch.device("cpu")), checkpoint)]
+    device = resolve_device(args.device or checkpoint["config"]["train"]["device"])
+    members = [(model_from_checkpoint(checkpoint, device), checkpoint)]
     start = time.perf_counter()
     result = {"run": str(args.run), "command": "benchmarks/refinement.py " + " ".join(sys.argv[1:]), "splits": {}}
     for label, dataset, split in split_datasets(checkpoint, args.unseen):
         print(f"{label} ...", flush=True)
-        result["splits"][label] = score_split(members, dataset, split)
+        result["splits"][label] = score_split(members, dataset, split, device)
     result["seconds"] = time.perf_counter() - start
     write_json(args.output.with_suffix(".json"), result)
     text = markdown(result)
