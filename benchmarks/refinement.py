@@ -8,7 +8,8 @@ geodesic diameter, unrefined and refined over 1, 2 and 3 rings by
   here as the baseline), and
 * the neighbours' agreement, :func:`zernet.training.refine.refine_correspondence` (what it does now).
 
-No global step (``eval.refine_spectral``) is applied: the figures compare the local step alone. Writes
+and the median seconds each refinement takes per shape (on the run's device, ``--threads`` CPU threads). No
+global step (``eval.refine_spectral``) is applied: the figures compare the local step alone. Writes
 ``benchmarks/results/refinement.{json,md}``.
 
     .venv/bin/python benchmarks/refinement.py --run runs/fp7/more-people-template-matched \\
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -46,6 +48,11 @@ def ring_averaged(probabilities: torch.Tensor, faces: np.ndarray, rings: int) ->
     return (average @ (average @ probabilities).T.contiguous()).T
 
 
+def agreement(probabilities: torch.Tensor, faces: np.ndarray, rings: int) -> torch.Tensor:
+    """What zernet does: the neighbours' agreement, the shape and the template sharing ``faces``."""
+    return refine_correspondence(probabilities, faces, faces, rings)
+
+
 def split_datasets(checkpoint: dict, unseen: Path | None) -> list[tuple[str, object, str]]:
     """(label, data set, split) for the run's validation and test splits and the unseen people."""
     config = checkpoint["config"]
@@ -63,6 +70,7 @@ def score_split(members, dataset, split: str, device: torch.device) -> dict:
     """Exact accuracy and share within 1 % of the diameter of every method on one split."""
     hits: dict[str, int] = {}
     within: dict[str, int] = {}
+    seconds: dict[str, list[float]] = {}
     total = 0
     for i in dataset.splits[split]:
         record = dataset[i]
@@ -72,17 +80,26 @@ def score_split(members, dataset, split: str, device: torch.device) -> dict:
         geodesics = GeodesicErrors(record.surface)
         predictions = {"unrefined": probabilities.argmax(dim=1).cpu().numpy()}
         for rings in RINGS:
-            predictions[f"average, {rings} ring(s)"] = (
-                ring_averaged(probabilities, faces, rings).argmax(dim=1).cpu().numpy()
-            )
-            refined = refine_correspondence(probabilities, faces, faces, rings)
-            predictions[f"agreement, {rings} ring(s)"] = refined.argmax(dim=1).cpu().numpy()
+            for name, refine in (
+                (f"average, {rings} ring(s)", ring_averaged),
+                (f"agreement, {rings} ring(s)", agreement),
+            ):
+                start = time.perf_counter()
+                predictions[name] = refine(probabilities, faces, rings).argmax(dim=1).cpu().numpy()
+                seconds.setdefault(name, []).append(time.perf_counter() - start)
         for name, pred in predictions.items():
             hits[name] = hits.get(name, 0) + int((pred == target).sum())
             within[name] = within.get(name, 0) + int((geodesics(pred, target) <= 0.01).sum())
         total += len(target)
         print(f"  {record.name}: unrefined {np.mean(predictions['unrefined'] == target):.4f}", flush=True)
-    return {name: {"exact": hits[name] / total, "within_1pct": within[name] / total} for name in hits}
+    return {
+        name: {
+            "exact": hits[name] / total,
+            "within_1pct": within[name] / total,
+            "median_seconds_per_shape": statistics.median(seconds[name]) if name in seconds else 0.0,
+        }
+        for name in hits
+    }
 
 
 def markdown(result: dict) -> str:
@@ -94,15 +111,16 @@ def markdown(result: dict) -> str:
         f"Run `{result['run']}` (its selected model); command: `{result['command']}`; {result['seconds']:.0f} s.",
         "Exact accuracy / share within 1 % of the geodesic diameter, no global step.",
         "",
-        "| refinement | " + " | ".join(labels) + " |",
-        "|---|" + "---|" * len(labels),
+        "| refinement | " + " | ".join(labels) + " | median seconds per shape |",
+        "|---|" + "---|" * (len(labels) + 1),
     ]
     for name in names:
         cells = [
             f"{100 * result['splits'][label][name]['exact']:.2f} / {100 * result['splits'][label][name]['within_1pct']:.2f} %"
             for label in labels
         ]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        timing = statistics.median(result["splits"][label][name]["median_seconds_per_shape"] for label in labels)
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {timing:.2f} |")
     return "\n".join(lines) + "\n"
 
 
