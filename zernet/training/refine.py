@@ -19,11 +19,11 @@ right one) agrees with itself and stays as it is: that is the work of the global
 bridge a fold (fingers, armpits). The best radius is chosen on validation shapes (``eval.refine_rings``).
 
 Cost: two sparse-dense products with as many non-zeros per row as a ring holds (7, 19, 37 vertices for 1,
-2, 3 rings of a regular mesh) and three element-wise passes over the (N, M) scores (1.7 s for a
-6,890-vertex scan at one CPU thread over one ring, 2.3 s over two: about 1.5 times the average's), computed with torch on the device the
-probabilities are on (the run's device during evaluation: no scipy on the host while the GPU waits). The
-rings of a mesh are built once per (faces, rings, device) and kept (:func:`ring_tensor`): every shape of a
-correspondence by vertex index shares the template's faces.
+2, 3 rings of a regular mesh) and three element-wise passes over the (N, M) scores (1.7 s for a 6,890-vertex
+scan at one CPU thread over one ring, 2.3 s over two: about 1.5 times the average's), computed with torch on
+the device the probabilities are on (the run's device during evaluation: no scipy on the host while the GPU
+waits). The rings of a mesh are built once per (faces, rings, device) and kept (:func:`ring_tensor`): every
+shape of a correspondence by vertex index shares the template's faces.
 
 A segmentation is refined on the shape alone (:func:`refine_segmentation`), by the plain average of the
 rings and only where the network is unsure: a vertex whose predicted part has probability below
