@@ -13,6 +13,9 @@ Point clouds (backend ``cloud``): the same surface's vertices without faces, tri
 themselves (:func:`zernet.geometry.mesh_from_cloud`) and measured by the front on that triangulation, at
 the same samples (each moved to the nearest point of the cloud's triangulation), against the same exact
 geodesics on the mesh the points came from; its build time is that of the whole point-cloud operator.
+Backend ``cloud-normals``: the same cloud with the mesh's normals given (as a scanner that writes ``nx ny
+nz`` gives them), which the triangulation then uses instead of estimating and orienting its own: what the
+estimated normals cost.
 
 Per backend: kept pairs whose exact distance exceeds 1.1 r0 (a fold crossed), true pairs (exact < 0.95 r0)
 dropped, radius error median / p95 in % of r0, angle error p95 (rad, r > 0.1 r0, after removing each
@@ -214,10 +217,17 @@ def build_seconds(surface, config) -> tuple[float, float]:
     return times[0], times[1]
 
 
-def cloud_polar(surface, samples, r0):
-    """The ``cloud`` backend (module docstring): polar coordinates of ``samples`` by the front on the
-    triangulation of ``surface``'s vertices, and those samples as seen on that triangulation."""
-    mesh = mesh_from_cloud(Surface(surface.vertices, None, name=surface.name))
+def cloud_of(surface, backend) -> Surface:
+    """``surface``'s vertices as a point cloud: without normals (``cloud``) or with the mesh's
+    (``cloud-normals``)."""
+    normals = surface.vertex_normals() if backend == "cloud-normals" else None
+    return Surface(surface.vertices, None, normals, name=surface.name)
+
+
+def cloud_polar(cloud, samples, r0):
+    """The ``cloud`` backends (module docstring): polar coordinates of ``samples`` by the front on the
+    triangulation of the ``cloud``'s points, and those samples as seen on that triangulation."""
+    mesh = mesh_from_cloud(cloud)
     # Nearest point among the triangles of the 8 nearest face centroids (no spatial index package needed).
     triangles = mesh.vertices[mesh.faces]
     _, candidate = cKDTree(triangles.mean(axis=1)).query(samples.points, k=8)
@@ -263,16 +273,18 @@ def measure(surface, r0, n_samples, n_centres, backends, seed, regions=None) -> 
         "build_second_seconds_per_1000_vertices": 1000.0 * second / surface.n_vertices,
     }
     for backend in backends:
-        if backend == "cloud":
-            polar, backend_samples = cloud_polar(surface, samples, r0)
-            cloud_first, cloud_second = build_seconds(Surface(surface.vertices, None), config)
+        if backend.startswith("cloud"):
+            polar, backend_samples = cloud_polar(cloud_of(surface, backend), samples, r0)
+            cloud_first, cloud_second = build_seconds(cloud_of(surface, backend), config)
             timing = {
                 "build_first_seconds_per_1000_vertices": 1000.0 * cloud_first / surface.n_vertices,
                 "build_second_seconds_per_1000_vertices": 1000.0 * cloud_second / surface.n_vertices,
             }
         else:
             polar, backend_samples, timing = compute_polar(surface, samples, r0, backend=backend), samples, {}
-        backend_config = PatchConfig(**{**config.to_dict(), "backend": "front" if backend == "cloud" else backend})
+        backend_config = PatchConfig(
+            **{**config.to_dict(), "backend": "front" if backend.startswith("cloud") else backend}
+        )
         rows["backends"][backend] = {
             "seconds_all_vertices": polar.seconds,
             **timing,
@@ -295,13 +307,13 @@ def print_rows(row) -> None:
         f"{row['build_second_seconds_per_1000_vertices']:.2f} second"
     )
     print(
-        f"{'backend':8} {'>1.1r0 %':>9} {'dropped %':>10} {'r med %':>8} {'r p95 %':>8} {'θ p95':>7} {'time s':>7}"
+        f"{'backend':13} {'>1.1r0 %':>9} {'dropped %':>10} {'r med %':>8} {'r p95 %':>8} {'θ p95':>7} {'time s':>7}"
         f" {'piston p95 %':>13} {'others p95 %':>13} {'lin med %':>10} {'lin p95 %':>10} {'lin n8 %':>9}"
     )
     for name, b in row["backends"].items():
         angle = "-" if b["angle_p95_rad"] is None else f"{b['angle_p95_rad']:.3f}"
         print(
-            f"{name:8} {b['kept_beyond_1.1r0_percent']:9.2f} {b['true_dropped_percent']:10.2f} "
+            f"{name:13} {b['kept_beyond_1.1r0_percent']:9.2f} {b['true_dropped_percent']:10.2f} "
             f"{b['radius_median_percent_r0']:8.3f} {b['radius_p95_percent_r0']:8.2f} {angle:>7} "
             f"{b['seconds_all_vertices']:7.2f} {b['piston_error_p95_percent']:13.4f} "
             f"{b['other_coefficients_p95_percent_of_piston']:13.4f} {b['linear_residual_median_percent']:10.2f} "
@@ -346,7 +358,7 @@ def main() -> None:
     parser.add_argument("--r0", type=float, default=5.5)
     parser.add_argument("--samples", type=int, default=12000)
     parser.add_argument("--centres", type=int, default=100)
-    parser.add_argument("--backends", nargs="+", default=["fast", "front", "cloud"])
+    parser.add_argument("--backends", nargs="+", default=["fast", "front", "cloud", "cloud-normals"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-body", action="store_true", help="only the meshes passed with --mesh")
     parser.add_argument("--output", type=Path, default=RESULTS)
