@@ -41,10 +41,12 @@ import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
 import yaml  # noqa: E402
+from scipy.spatial import cKDTree  # noqa: E402
 
 from zernet.data.segmentation import HUMAN_PART_NAMES  # noqa: E402
-from zernet.geometry import read_surface  # noqa: E402
+from zernet.geometry import Surface, read_surface  # noqa: E402
 from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
 from zernet.training import load_config  # noqa: E402
 from zernet.training.checkpoint import load_checkpoint  # noqa: E402
@@ -237,10 +239,10 @@ def mixed_training_folder(bodies: Path, form_bodies: dict[str, int]) -> Path:
     return mixed
 
 
-def form_files(bodies: Path, form: str) -> list[tuple[Path, Path]]:
-    """(surface file, label file) of every test body in ``form``."""
+def form_files(bodies: Path, form: str, stem: str = "*") -> list[tuple[Path, Path]]:
+    """(surface file, label file) of every test body in ``form`` (``stem``: only that body)."""
     root = bodies / "segmentation" if form == "original" else bodies / "forms" / form
-    meshes = sorted((root / "meshes" / "test").glob("*.ply"))
+    meshes = sorted((root / "meshes" / "test").glob(f"{stem}.ply"))
     return [(mesh, root / "labels" / "test" / f"{mesh.stem}.txt") for mesh in meshes]
 
 
@@ -252,12 +254,43 @@ def training_scale(bodies: Path, area: float) -> float:
     return float(np.sqrt(area / np.median(areas)))
 
 
-def score_form(run_dir: Path, files, scale: float | None, picture: Path | None) -> dict:
-    """Pooled vertex accuracy of the run on ``files``, refusals and seconds per shape."""
+def near_part_boundary(points: np.ndarray, original: Surface, labels: np.ndarray) -> np.ndarray:
+    """(M,) bool: the points whose place on the original body lies in a triangle with corners of two parts.
+
+    There the ground truth (the part of the triangle's nearest corner) runs along the original
+    triangulation's edges, jagged at the scale of a triangle, which no other sampling of the surface shows. A
+    point at a vertex of the original (the original form, partial scans) counts if any triangle at that vertex
+    has two parts; any other point by the triangle nearest to it.
+    """
+    corner_parts = labels[original.faces]
+    two_part = corner_parts.min(axis=1) != corner_parts.max(axis=1)
+    at_two_part_vertex = np.zeros(original.n_vertices, dtype=bool)
+    at_two_part_vertex[original.faces[two_part].ravel()] = True
+    distance, vertex = cKDTree(original.vertices).query(points)
+    triangles = original.vertices[original.faces]
+    candidates = min(12, len(triangles))
+    _, candidate = cKDTree(triangles.mean(axis=1)).query(points, k=candidates)
+    candidate = candidate.reshape(len(points), candidates)
+    nearest = trimesh.triangles.closest_point(
+        triangles[candidate.ravel()], np.repeat(points, candidates, axis=0)
+    ).reshape(len(points), candidates, 3)
+    face = candidate[np.arange(len(points)), np.argmin(np.linalg.norm(nearest - points[:, None], axis=2), axis=1)]
+    on_vertex = distance <= 1e-6 * np.linalg.norm(np.ptp(original.vertices, axis=0))
+    return np.where(on_vertex, at_two_part_vertex[vertex], two_part[face])
+
+
+def score_form(run_dir: Path, bodies: Path, files, scale: float | None, picture: Path | None) -> dict:
+    """Pooled vertex accuracy of the run on ``files``, also apart for the points by a part boundary of the
+    original body (:func:`near_part_boundary`) and the others, refusals and seconds per shape."""
     correct = total = 0
+    boundary_correct = boundary_total = elsewhere_correct = 0
     refused, seconds, per_shape = [], [], []
     for number, (mesh, labels) in enumerate(files):
         truth = np.loadtxt(labels, dtype=np.int64).reshape(-1)
+        original, original_labels = form_files(bodies, "original", mesh.stem)[0]
+        near = near_part_boundary(
+            read_surface(mesh).vertices, read_surface(original), np.loadtxt(original_labels, dtype=np.int64)
+        )
         started = time.perf_counter()
         try:
             prediction = predict(run_dir, mesh, scale=scale, cache_dir=run_dir / "scan-cache")
@@ -265,8 +298,12 @@ def score_form(run_dir: Path, files, scale: float | None, picture: Path | None) 
             refused.append(f"{mesh.name}: {type(error).__name__}: {error}")
             continue
         seconds.append(time.perf_counter() - started)
-        correct += int((prediction == truth).sum())
+        right = prediction == truth
+        correct += int(right.sum())
         total += len(truth)
+        boundary_correct += int(right[near].sum())
+        boundary_total += int(near.sum())
+        elsewhere_correct += int(right[~near].sum())
         per_shape.append(float((prediction == truth).mean()))
         if number == 0 and picture is not None:
             surface = read_surface(mesh)
@@ -282,12 +319,20 @@ def score_form(run_dir: Path, files, scale: float | None, picture: Path | None) 
             )
     return {
         "accuracy": correct / total if total else None,
+        "near_boundary_share": boundary_total / total if total else None,
+        "accuracy_near_boundary": boundary_correct / boundary_total if boundary_total else None,
+        "accuracy_elsewhere": elsewhere_correct / (total - boundary_total) if total > boundary_total else None,
         "shapes": len(per_shape),
         "vertices": total,
         "per_shape_min": min(per_shape) if per_shape else None,
         "refused": refused,
         "seconds_per_shape_median": float(np.median(seconds)) if seconds else None,
     }
+
+
+def percent(fraction: float | None, digits: int = 1) -> str:
+    """``fraction`` in percent, or "-" for a row measured before the figure existed."""
+    return "-" if fraction is None else f"{100 * fraction:.{digits}f} %"
 
 
 def markdown(results: dict, args, scale: float) -> str:
@@ -305,11 +350,15 @@ def markdown(results: dict, args, scale: float) -> str:
         "the vertices (points) of the form, against the ground truth carried from the original body; "
         "*drop*: points below the original form; *refused*: shapes that raised; *rings*: the refinement the "
         "run chose on its validation split (the vertices the network is unsure of take the average of that "
-        "many rings, `eval.refine_rings`; 0: none), applied as `zernet predict` applies it.",
+        "many rings, `eval.refine_rings`; 0: none), applied as `zernet predict` applies it; *by a boundary*: "
+        "the share of the points whose place on the original body lies in a triangle with corners of two parts, "
+        "where the ground truth (the part of the nearest corner) follows the original triangulation's edges, and "
+        "the accuracy there / on all other points.",
         f"Partial scans scaled by the training bodies' median factor {scale:.2f} (`predict(scale=...)`).",
         "",
-        "| model | form | accuracy | drop | worst shape | refused | rings | s / shape |",
-        "|---|---|---|---|---|---|---|---|",
+        "| model | form | accuracy | drop | worst shape | by a boundary | there / elsewhere | refused | rings "
+        "| s / shape |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for model, forms in results.items():
         original = forms.get("original", {}).get("accuracy")
@@ -324,6 +373,8 @@ def markdown(results: dict, args, scale: float) -> str:
                 "-" if accuracy is None else f"{100 * accuracy:.1f} %",
                 drop,
                 "-" if worst is None else f"{100 * worst:.1f} %",
+                percent(row.get("near_boundary_share")),
+                f"{percent(row.get('accuracy_near_boundary'))} / {percent(row.get('accuracy_elsewhere'), 2)}",
                 f"{len(row['refused'])} / {row['shapes'] + len(row['refused'])}",
                 str(row.get("refine_rings", 0)),
                 "-" if seconds is None else f"{seconds:.1f}",
@@ -344,7 +395,7 @@ def main(argv=None) -> int:
         for form in args.forms:
             files = form_files(args.bodies, form)[: args.limit]
             picture = RESULTS / f"{args.out}{PICTURES[model]}_{form}.png" if model in PICTURES else None
-            row = score_form(run_dir, files, scale if form == "partial" else None, picture)
+            row = score_form(run_dir, args.bodies, files, scale if form == "partial" else None, picture)
             row["refine_rings"] = int(load_checkpoint(run_dir / "best.pt").get("refine_rings", 0))
             results[model][form] = row
             accuracy = "-" if row["accuracy"] is None else f"{100 * row['accuracy']:.2f} %"
