@@ -41,10 +41,10 @@ import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 import numpy as np  # noqa: E402
-import trimesh  # noqa: E402
 import yaml  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
+from zernet.data.bodies import closest_points  # noqa: E402
 from zernet.data.segmentation import HUMAN_PART_NAMES  # noqa: E402
 from zernet.geometry import Surface, read_surface  # noqa: E402
 from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
@@ -267,14 +267,7 @@ def near_part_boundary(points: np.ndarray, original: Surface, labels: np.ndarray
     at_two_part_vertex = np.zeros(original.n_vertices, dtype=bool)
     at_two_part_vertex[original.faces[two_part].ravel()] = True
     distance, vertex = cKDTree(original.vertices).query(points)
-    triangles = original.vertices[original.faces]
-    candidates = min(12, len(triangles))
-    _, candidate = cKDTree(triangles.mean(axis=1)).query(points, k=candidates)
-    candidate = candidate.reshape(len(points), candidates)
-    nearest = trimesh.triangles.closest_point(
-        triangles[candidate.ravel()], np.repeat(points, candidates, axis=0)
-    ).reshape(len(points), candidates, 3)
-    face = candidate[np.arange(len(points)), np.argmin(np.linalg.norm(nearest - points[:, None], axis=2), axis=1)]
+    face, _, _, _ = closest_points(original.vertices, original.faces, points)
     on_vertex = distance <= 1e-6 * np.linalg.norm(np.ptp(original.vertices, axis=0))
     return np.where(on_vertex, at_two_part_vertex[vertex], two_part[face])
 
