@@ -1,7 +1,7 @@
 """Benchmark of the patch operator: build time and accuracy of each polar backend against exact geodesics,
 and the operator's apply time.
 
-Prints a table and writes ``benchmarks/results/bench_operator.json``.
+Prints a table and writes ``benchmarks/speed/results/bench_operator.json``.
 
 Surfaces:
 * a posed human body generated with ``anny`` (``zernet.data.bodies``, the FAUST-sized topology, 6,890
@@ -21,9 +21,9 @@ of folds) is kept as the stand-in operator of ``bench_layers.py --real``.
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_operator.py                       # fast and front
-    .venv/bin/python benchmarks/bench_operator.py --backends fast front accurate --centres 50
-    .venv/bin/python benchmarks/bench_operator.py --quick               # fewer centres and repeats
+    .venv/bin/python -m benchmarks.speed.bench_operator              # fast and front
+    .venv/bin/python -m benchmarks.speed.bench_operator --backends fast front accurate --centres 50
+    .venv/bin/python -m benchmarks.speed.bench_operator --quick               # fewer centres and repeats
 """
 
 from __future__ import annotations
@@ -39,11 +39,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.speed.bench_geodesics import body_surface, exact_reference, score
 from zernet.geometry import Surface, compute_polar, load_surface, normalize_area, sample_surface, tangent_frames
 from zernet.operators import PatchConfig, build_patch_operator
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_geodesics import body_surface, exact_reference, score  # noqa: E402  (the shared scoring)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_operator.json"
 ANEURYSMS = Path("data/aneurysm")  # your copy of the aneurysm data set

@@ -1,0 +1,1 @@
+"""Experiments: scripts that train models, score recipes and reproduce the shipped weights."""
