@@ -281,6 +281,20 @@ def test_faust_layout_splits_and_targets(fake_faust):
     assert ranged.names == dataset.names and ranged.splits == dataset.splits
 
 
+def test_faust_validation_by_person_is_the_given_registrations(fake_faust):
+    root, _ = fake_faust
+    options = LoaderOptions(patch_configs=CONFIGS, cache_dir=root / "cache", n_val=1, workers=0, progress=False)
+    kwargs = dict(area=AREA, train_indices="0:4", test_indices=[5], n_vertices=None, options=options)
+    dataset = load_faust(root, **kwargs, val_indices=[4])
+    # n_val is ignored: the validation split is exactly the named scan, training keeps all four.
+    assert [dataset.names[i] for i in dataset.splits["val"]] == ["tr_reg_004"]
+    assert [dataset.names[i] for i in dataset.splits["train"]] == [f"tr_reg_{i:03d}" for i in range(4)]
+    with pytest.raises(DatasetError, match=r"\[3\] are in both the train and the validation split"):
+        load_faust(root, **kwargs, val_indices=[3])
+    with pytest.raises(DatasetError, match=r"\[5\] are in both the validation and the test split"):
+        load_faust(root, **kwargs, val_indices=[4, 5])
+
+
 def test_registration_ranges_follow_the_slice_convention_and_bad_ones_are_named():
     assert registration_numbers("0:180", "train_indices") == list(range(180))
     assert registration_numbers(" 180:200", "test_indices") == list(range(180, 200))

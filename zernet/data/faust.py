@@ -126,6 +126,7 @@ def load_faust(
     root: str | os.PathLike,
     train_indices: Sequence[int] = range(0, 80),
     test_indices: Sequence[int] = range(80, 100),
+    val_indices: Sequence[int] | None = None,
     n_vertices: int | None = FAUST_VERTICES,
     area: float | None = FAUST_AREA,
     options: LoaderOptions = LoaderOptions(),
@@ -136,6 +137,10 @@ def load_faust(
         root: see the module docstring.
         train_indices, test_indices: registration numbers XXX of each split (defaults: the standard split),
             as a list or as ``"START:STOP"`` (``"0:180"``: 0 to 179), see :func:`registration_numbers`.
+        val_indices: registration numbers of the validation split (None: ``n_val`` shapes carved at random from
+            the training ones). Scan ``XXX`` shows person ``XXX // 10``: ``"60:70"`` validates on person 6, so the
+            model is chosen on a person it never saw, not on other poses of its training people. Overlaps
+            neither the training nor the test registrations.
         n_vertices: the expected vertex count of every registration (None: take the first file's).
         area: target surface area (default 15000; None keeps the files' scale).
         options: the shared :class:`~zernet.data.options.LoaderOptions`. FAUST's defaults:
@@ -149,10 +154,16 @@ def load_faust(
     folder = find_registrations(root)
     train_indices = registration_numbers(train_indices, "train_indices")
     test_indices = registration_numbers(test_indices, "test_indices")
-    overlap = sorted(set(train_indices) & set(test_indices))
-    if overlap:
-        raise DatasetError(f"FAUST: registrations {overlap[:5]} are in both the train and the test split")
-    wanted = sorted(set(train_indices) | set(test_indices))
+    val_indices = [] if val_indices is None else registration_numbers(val_indices, "val_indices")
+    for first, second, names in (
+        (train_indices, test_indices, "train and the test"),
+        (train_indices, val_indices, "train and the validation"),
+        (val_indices, test_indices, "validation and the test"),
+    ):
+        overlap = sorted(set(first) & set(second))
+        if overlap:
+            raise DatasetError(f"FAUST: registrations {overlap[:5]} are in both the {names} split")
+    wanted = sorted(set(train_indices) | set(test_indices) | set(val_indices))
     if not wanted:
         raise DatasetError("FAUST: no registrations selected (train_indices and test_indices are empty)")
     paths = {i: folder / _PATTERN.format(i) for i in wanted}
@@ -173,6 +184,9 @@ def load_faust(
     count = reference.n_vertices
     digest = _faces_digest(reference.faces)
 
+    split_names = {"train": [paths[i].stem for i in train_indices], "test": [paths[i].stem for i in test_indices]}
+    if val_indices:
+        split_names["val"] = [paths[i].stem for i in val_indices]
     sources = [
         ShapeSource(
             name=paths[i].stem,
@@ -186,7 +200,7 @@ def load_faust(
         target_area=area,
         task="classification",
         num_classes=count,
-        split_names={"train": [paths[i].stem for i in train_indices], "test": [paths[i].stem for i in test_indices]},
+        split_names=split_names,
         correspondence=True,
         info={"kind": "faust", "root": str(folder)},
         **options.build_arguments(),

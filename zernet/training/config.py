@@ -37,6 +37,7 @@ import yaml
 from zernet.data import DATASET_KINDS, ON_ERROR_CHOICES, DatasetError, data_option_names
 from zernet.data.faust import registration_numbers
 from zernet.geometry import FixedScale
+from zernet.inference.errors import ConfigError
 from zernet.nn.models import available_models
 from zernet.operators import PatchConfig
 
@@ -68,10 +69,6 @@ LR_SCHEDULES = ("constant", "cosine")
 PRECISIONS = ("float32", "bfloat16")
 RESIDENCY_LEVELS = ("auto", "device", "host", "stream")  # see zernet.training.residency
 AUGMENT_ROTATIONS = ("none", "vertical", "any")  # see zernet.training.augment
-
-
-class ConfigError(ValueError):
-    """A configuration that cannot be used; the message names the offending key."""
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -240,6 +237,7 @@ class DataSection(_Section):
         "test": Rule("names", optional=True),
         "train_indices": Rule("indices"),
         "test_indices": Rule("indices"),
+        "val_indices": Rule("indices", optional=True),
         "target_exponent": Rule("number"),
         "workers": Rule("int", minimum=0, optional=True),
     }
@@ -373,7 +371,7 @@ class TrainSection(_Section):
     loss: str = _rule("auto", "str", choices=LOSSES)  # auto: cross_entropy / mse by task
     # Correspondence by template vertex only: the cross-entropy's target spread over the template vertices
     # within this fraction of the template's geodesic diameter (a Gaussian of the distance, σ = radius / 2;
-    # zernet.training.template), so a near miss costs less than a far one. 0: the hard label.
+    # zernet.inference.template_graph), so a near miss costs less than a far one. 0: the hard label.
     label_radius: float = _rule(0.0, "number", minimum=0, below=1)
     standardize_targets: bool = _rule(True, "bool")  # regression: train on (y - mean) / std
     target_transform: str = _rule("none", "str", choices=TARGET_TRANSFORMS)  # log: the loss sees relative errors
@@ -413,11 +411,11 @@ class EvalSection(_Section):
     renders: int = _rule(3, "int", minimum=0)  # test shapes rendered (prediction, truth, error)
     plots: bool = _rule(True, "bool")  # write plots at all
     # Correspondence: the predicted probabilities refined by the agreement of this many rings of mesh
-    # neighbours (zernet.training.refine); segmentation: averaged over the shape's rings, at the vertices the
+    # neighbours (zernet.inference.refine); segmentation: averaged over the shape's rings, at the vertices the
     # network is unsure of.
     # A number, or candidates of which the best on the validation split is used.
     refine_rings: list[int] = _rule((0,), "int_list")
-    # Correspondence, after the rings: the global refinement (zernet.training.spectral_refine), the prediction
+    # Correspondence, after the rings: the global refinement (zernet.inference.spectral_refine), the prediction
     # kept within this radius (a fraction of the template's geodesic diameter) of a spectral map read from it;
     # 0 turns it off. A number, or candidates of which the best on the validation split (after the rings) is used.
     refine_spectral: list[float] = _rule((0.0,), "number_list")
