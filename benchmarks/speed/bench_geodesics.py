@@ -6,8 +6,8 @@ directions from the exact paths), on random centre vertices. Surfaces: a posed g
 samples as in the paper's FAUST settings, plus any mesh passed with ``--mesh PATH`` (scaled to
 ``--area``; an aneurysm ``.mat`` case works at area 100, r0 0.6, 8000 samples).
 
-    .venv/bin/python benchmarks/bench_geodesics.py --centres 100
-    .venv/bin/python benchmarks/bench_geodesics.py --mesh case.mat --area 100 --r0 0.6 --samples 8000
+    .venv/bin/python -m benchmarks.speed.bench_geodesics --centres 100
+    .venv/bin/python -m benchmarks.speed.bench_geodesics --mesh case.mat --area 100 --r0 0.6 --samples 8000
 
 Point clouds (backend ``cloud``): the same surface's vertices without faces, triangulated through
 themselves (:func:`zernet.geometry.mesh_from_cloud`) and measured by the front on that triangulation, at
@@ -34,13 +34,11 @@ surface) from any boundary:
 * operator build time (sampling, polar coordinates, fit, assembly) in seconds per 1000 vertices: the
   first build in this process (compiled kernels loaded from numba's disk cache) and a second one.
 
-Prints a table, writes ``benchmarks/results/bench_geodesics.json``.
+Prints a table, writes ``benchmarks/speed/results/bench_geodesics.json`` (``--out``).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 from pathlib import Path
 
@@ -49,8 +47,7 @@ import scipy.sparse
 import trimesh
 from scipy.spatial import cKDTree
 
-from zernet.data.bodies import generate_bodies
-from zernet.data.segmentation import HUMAN_PART_NAMES
+from benchmarks.harness import SPEED_RESULTS, add_out, arguments, body_surface, result_file, write_json
 from zernet.geometry import (
     PolarCoordinates,
     Surface,
@@ -63,17 +60,7 @@ from zernet.geometry import (
     tangent_frames,
 )
 from zernet.geometry.polar.exact import ExactGeodesics
-from zernet.io_utils import atomic_write_bytes
 from zernet.operators import PatchConfig, assemble_operator, build_patch_operator
-
-RESULTS = Path(__file__).resolve().parent / "results" / "bench_geodesics.json"
-
-
-def body_surface(seed: int) -> tuple[Surface, np.ndarray]:
-    """One posed generated body at the FAUST-sized topology, and the name of each vertex's body part."""
-    body = generate_bodies(count=2, seed=seed, topology="faust", poses="varied", n_test=1, progress=False)[0]
-    surface = Surface(body.vertices, body.faces, name=f"generated body (seed {seed})")
-    return surface, np.asarray(HUMAN_PART_NAMES)[body.parts]
 
 
 def exact_reference(surface, samples, frames, centres, r0):
@@ -352,7 +339,7 @@ def print_rows(row) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument("--mesh", type=Path, action="append", default=[], help="also measure this mesh")
     parser.add_argument("--area", type=float, default=15000.0)
     parser.add_argument("--r0", type=float, default=5.5)
@@ -361,16 +348,17 @@ def main() -> None:
     parser.add_argument("--backends", nargs="+", default=["fast", "front", "cloud", "cloud-normals"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-body", action="store_true", help="only the meshes passed with --mesh")
-    parser.add_argument("--output", type=Path, default=RESULTS)
+    add_out(parser, SPEED_RESULTS / "bench_geodesics")
     args = parser.parse_args()
-    surfaces = ([] if args.no_body else [body_surface(args.seed)]) + [(load_surface(path), None) for path in args.mesh]
+    surfaces = ([] if args.no_body else [body_surface(args.seed, area=None)]) + [
+        (load_surface(path), None) for path in args.mesh
+    ]
     results = []
     for surface, regions in surfaces:
         surface, _ = normalize_area(surface, args.area)
         results.append(measure(surface, args.r0, args.samples, args.centres, args.backends, args.seed, regions))
         print_rows(results[-1])
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(args.output, json.dumps(results, indent=2).encode())
+    write_json(result_file(args.out, ".json"), {"surfaces": results})
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Benchmark of the patch operator: build time and accuracy of each polar backend against exact geodesics,
 and the operator's apply time.
 
-Prints a table and writes ``benchmarks/speed/results/bench_operator.json``.
+Prints a table and writes ``benchmarks/speed/results/bench_operator.json`` (``--out``).
 
 Surfaces:
 * a posed human body generated with ``anny`` (``zernet.data.bodies``, the FAUST-sized topology, 6,890
@@ -10,40 +10,35 @@ Surfaces:
   exists (area 100, r0 = 0.6 as in the paper's regression experiment, 12,000 samples).
 
 Accuracy is measured against exact polyhedral geodesics (MMP, :mod:`zernet.geometry.polar.exact`, the samples
-inserted as vertices) on ``--centres`` random vertices, with the columns of ``bench_geodesics.py``: kept
+inserted as vertices) on ``--centres`` random vertices, with the columns of ``bench_geodesics``: kept
 pairs from beyond 1.1 r0, true pairs dropped, radius error median / p95 (% of r0), angle error p95 (rad,
 r > 0.1 r0, after each centre's constant offset). The build time is the whole
 :func:`~zernet.operators.build_patch_operator` (sampling, polar coordinates, fit, assembly), best of
 ``repeats``. The apply time is measured on the default operator of the body.
 
 The procedural :func:`mannequin` (capsules, no limb-torso junctions; it cannot show the far-side failure
-of folds) is kept as the stand-in operator of ``bench_layers.py --real``.
+of folds) is kept as the stand-in operator of ``bench_layers --real``.
 
 Usage::
 
-    .venv/bin/python -m benchmarks.speed.bench_operator              # fast and front
+    .venv/bin/python -m benchmarks.speed.bench_operator                 # fast and front
     .venv/bin/python -m benchmarks.speed.bench_operator --backends fast front accurate --centres 50
-    .venv/bin/python -m benchmarks.speed.bench_operator --quick               # fewer centres and repeats
+    .venv/bin/python -m benchmarks.speed.bench_operator --quick         # fewer centres and repeats
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from benchmarks.speed.bench_geodesics import body_surface, exact_reference, score
+from benchmarks.harness import BODY_AREA, SPEED_RESULTS, add_out, arguments, body_surface, result_file, write_json
+from benchmarks.speed.bench_geodesics import exact_reference, score
 from zernet.geometry import Surface, compute_polar, load_surface, normalize_area, sample_surface, tangent_frames
 from zernet.operators import PatchConfig, build_patch_operator
 
-RESULTS = Path(__file__).resolve().parent / "results" / "bench_operator.json"
 ANEURYSMS = Path("data/aneurysm")  # your copy of the aneurysm data set
 
 
@@ -203,19 +198,19 @@ def print_table(rows, backends) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument("--quick", action="store_true", help="fewer centres and repeats, one aneurysm")
     parser.add_argument("--backends", nargs="+", default=["fast", "front"], help="fast, front, accurate")
     parser.add_argument("--centres", type=int, default=100, help="centre vertices scored against exact geodesics")
     parser.add_argument("--jobs", type=int, default=2, help="processes for the accurate backend")
     parser.add_argument("--aneurysms", type=Path, default=ANEURYSMS, help="folder of the aneurysm .mat files")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--output", type=Path, default=RESULTS)
+    add_out(parser, SPEED_RESULTS / "bench_operator")
     args = parser.parse_args(argv)
 
     repeats = 1 if args.quick else 3
     centres = min(args.centres, 30) if args.quick else args.centres
-    body, _ = normalize_area(body_surface(args.seed), 15000.0)
+    body, _ = body_surface(args.seed, BODY_AREA)
     body_config = PatchConfig(r0=5.5, n_samples=12000)
     rows = [bench_surface(body, body_config, args.backends, centres, args.jobs, repeats, args.seed)]
     if args.aneurysms.is_dir():
@@ -236,21 +231,8 @@ def main(argv: list[str] | None = None) -> dict:
         f"forward {apply['forward_ms']:.1f} ms, forward+backward {apply['forward_backward_ms']:.1f} ms "
         f"(torch.sparse.mm COO: {apply['torch_sparse_mm_coo_forward_backward_ms']:.1f} ms)"
     )
-    result = {
-        "command": " ".join([Path(sys.executable).name, *sys.argv]),
-        "quick": args.quick,
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "torch": torch.__version__,
-            "load_average": os.getloadavg(),
-        },
-        "surfaces": rows,
-        "apply": apply,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(result, indent=2))
-    print(f"wrote {args.output}")
+    result = {"quick": args.quick, "surfaces": rows, "apply": apply}
+    write_json(result_file(args.out, ".json"), result)
     return result
 
 
