@@ -16,7 +16,7 @@ dropout, ...), and reports per model:
 - the model selected on validation (never on the test bodies): exact correspondence accuracy and the geodesic
   error curve from 0 to 10 % of the geodesic diameter (:func:`zernet.metrics.correspondence_scores`, the
   Princeton protocol), or segmentation accuracy with the IoU of each part;
-- correspondence refined by averaging over mesh rings (:mod:`zernet.training.refine`), the radius chosen on
+- correspondence refined by averaging over mesh rings (:mod:`zernet.inference.refine`), the radius chosen on
   the validation bodies among ``--refine-rings``: its scores beside the unrefined ones, for every model;
 - wall time per epoch (training and validation, this machine, ``--threads`` threads) and the training time
   until the first epoch whose model reaches the target on the test bodies (``--target``).
@@ -53,17 +53,11 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from zernet.data.bodies import TOPOLOGIES, write_bodies  # noqa: E402
+from zernet.inference import load_checkpoint
+from zernet.inference.predict import model_from_checkpoint, predict_record  # noqa: E402
 from zernet.io_utils import atomic_write_bytes, plain, write_json  # noqa: E402
-from zernet.training import (  # noqa: E402
-    apply_overrides,
-    build_dataset,
-    load_checkpoint,
-    load_config,
-    parse_config,
-    train,
-)
+from zernet.training import apply_overrides, build_dataset, load_config, parse_config, train
 from zernet.training.evaluation import evaluate_members, select_refine_rings  # noqa: E402
-from zernet.training.predict import model_from_checkpoint, predict_record  # noqa: E402
 
 MODELS = ("zernet", "zernet-multiscale", "zernet-directional", "paper-zernet", "feastnet")
 TASKS = ("correspondence", "segmentation")

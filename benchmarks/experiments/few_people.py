@@ -48,8 +48,9 @@ import yaml  # noqa: E402
 
 from zernet.data.bodies import BodyGenerator, write_bodies  # noqa: E402
 from zernet.data.bodies.pose import draw_phenotype  # noqa: E402
+from zernet.inference import load_checkpoint  # noqa: E402
 from zernet.io_utils import atomic_save_torch, atomic_write_bytes, write_json  # noqa: E402
-from zernet.training import build_dataset, evaluate, load_checkpoint, load_config, parse_config, train  # noqa: E402
+from zernet.training import build_dataset, evaluate, load_config, parse_config, train  # noqa: E402
 from zernet.training.config import apply_overrides  # noqa: E402
 from zernet.training.init_from import export_backbone  # noqa: E402
 

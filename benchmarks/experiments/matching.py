@@ -132,7 +132,7 @@ def classifier_reference(run: str, bodies: dict, faces: np.ndarray, indices) -> 
     pairs, where shapes share the template's topology: each source body as generated is labelled with a
     template vertex per vertex, which is the target vertex of that index (as ``zernet predict`` applies the
     run, its refinement included); the error is measured on the target as generated."""
-    from zernet.training.predict import predict
+    from zernet.inference.predict import predict
 
     errors, pair_means = [], []
     for source_index, target_index in zip(indices[:-1], indices[1:]):

@@ -4,9 +4,9 @@ For one trained correspondence run (its selected model), on its validation split
 the unseen people of ``benchmarks/few_people.py`` (``--unseen``): exact accuracy and the share within 1 % of the
 geodesic diameter, unrefined and refined over 1, 2 and 3 rings by
 
-* the ring average, ``A_shape · P · A_templateᵀ`` (what ``zernet.training.refine`` did until 0.2; written out
+* the ring average, ``A_shape · P · A_templateᵀ`` (what ``zernet.inference.refine`` did until 0.2; written out
   here as the baseline), and
-* the neighbours' agreement, :func:`zernet.training.refine.refine_correspondence` (what it does now).
+* the neighbours' agreement, :func:`zernet.inference.refine.refine_correspondence` (what it does now).
 
 and the median seconds each refinement takes per shape (on the run's device, ``--threads`` CPU threads). No
 global step (``eval.refine_spectral``) is applied: the figures compare the local step alone. Writes
@@ -31,12 +31,13 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from zernet.inference import load_checkpoint  # noqa: E402
+from zernet.inference.predict import model_from_checkpoint, predict_record  # noqa: E402
+from zernet.inference.refine import refine_correspondence, ring_tensor  # noqa: E402
+from zernet.inference.runtime import resolve_device  # noqa: E402
 from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
 from zernet.metrics import GeodesicErrors  # noqa: E402
-from zernet.training import build_dataset, load_checkpoint, parse_config  # noqa: E402
-from zernet.training.predict import model_from_checkpoint, predict_record  # noqa: E402
-from zernet.training.refine import refine_correspondence, ring_tensor  # noqa: E402
-from zernet.training.runtime import resolve_device  # noqa: E402
+from zernet.training import build_dataset, parse_config  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results" / "refinement"
 RINGS = (1, 2, 3)

@@ -65,9 +65,10 @@ from report_tables import (
 from zernet.data.bodies import BodyGenerator
 from zernet.data.preprocess import mesh_edge_index
 from zernet.geometry import normalize_area
+from zernet.inference import keep_freed_memory, load_checkpoint
 from zernet.nn.models import build_model
 from zernet.operators import Geometry, PatchConfig, PatchOperator, build_patch_operator
-from zernet.training import keep_freed_memory, load_checkpoint, train
+from zernet.training import train
 
 # --------------------------------------------------------------------------------------------------------
 # Inputs

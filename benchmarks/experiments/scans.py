@@ -8,7 +8,7 @@ uneven density, and cut to a partial scan; ground truth through the position on 
 1. trains each model in ``--models`` (a run folder per model under ``--runs``; an existing run with a
    ``best.pt`` is reused) with ``configs/bodies_segmentation.yaml``, changing only the data folders, the
    model name and the epochs (and, for ``zernet-mixed``, the training set and the scaling: ``MODELS``);
-2. predicts every form of every test body with ``zernet.training.predict`` (what ``zernet predict`` does:
+2. predicts every form of every test body with ``zernet.inference.predict`` (what ``zernet predict`` does:
    repairs, the backend chosen by the kind of surface, the refinement the run chose on validation, one
    value per input vertex), and scores the
    vertex accuracy against the form's ground truth; a form that raises counts as *refused*;
@@ -47,11 +47,11 @@ from scipy.spatial import cKDTree  # noqa: E402
 from zernet.data.bodies import closest_points  # noqa: E402
 from zernet.data.segmentation import HUMAN_PART_NAMES  # noqa: E402
 from zernet.geometry import Surface, read_surface  # noqa: E402
+from zernet.inference import load_checkpoint  # noqa: E402
+from zernet.inference.predict import predict  # noqa: E402
 from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
 from zernet.training import load_config  # noqa: E402
-from zernet.training.checkpoint import load_checkpoint  # noqa: E402
 from zernet.training.config import apply_overrides  # noqa: E402
-from zernet.training.predict import predict  # noqa: E402
 from zernet.viz import render_comparison  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"

@@ -155,8 +155,8 @@ def model_workload(op, s: int, impl: str):
     linear layers in bfloat16 under ``torch.autocast``, as ``train.precision: bfloat16`` trains)."""
     import torch
 
+    from zernet.inference import precision_autocast
     from zernet.nn import Geometry, RotatedKernelConv, build_model
-    from zernet.training import precision_autocast
 
     n = op.n_vertices
     model = build_model("zernet", 3, n, widths=(64, 128, 256, 512), angular_resolution=s)
@@ -187,7 +187,7 @@ def _setup(real: bool):
 
     import torch
 
-    from zernet.training import keep_freed_memory
+    from zernet.inference import keep_freed_memory
 
     warnings.filterwarnings("ignore")
     keep_freed_memory()  # as the zernet command does

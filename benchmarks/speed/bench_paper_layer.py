@@ -32,12 +32,12 @@ from pathlib import Path
 
 import torch
 
+from zernet.inference import load_checkpoint
+from zernet.inference.predict import model_from_checkpoint, predict_record
 from zernet.io_utils import atomic_write_bytes
-from zernet.training import load_checkpoint
 from zernet.training.build import build_dataset
 from zernet.training.config import read_config
 from zernet.training.evaluation import evaluate_members
-from zernet.training.predict import model_from_checkpoint, predict_record
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from step_timing import alternate, print_medians, seconds_per_step  # noqa: E402  (shared timing loop)

@@ -33,10 +33,10 @@ import torch
 
 from zernet.data.features import compute_features
 from zernet.data.synthetic import make_creature
+from zernet.inference import keep_freed_memory, precision_autocast
 from zernet.io_utils import atomic_write_bytes
 from zernet.nn import Geometry, build_model
 from zernet.operators import PatchConfig, build_patch_operator
-from zernet.training import keep_freed_memory, precision_autocast
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_precision.json"
 PATCH = PatchConfig(r0=2.5, n_samples=4000, patch_size=50, n_max=5)

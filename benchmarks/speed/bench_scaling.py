@@ -38,8 +38,9 @@ sys.path.insert(0, str(REPO))
 
 from zernet.data.preprocess import ShapeSource, preprocess_shapes  # noqa: E402
 from zernet.data.synthetic import SYNTHETIC_AREA, load_creature  # noqa: E402
+from zernet.inference import load_checkpoint  # noqa: E402
 from zernet.operators import PatchConfig  # noqa: E402
-from zernet.training import build_dataset, load_checkpoint, resolve_config  # noqa: E402
+from zernet.training import build_dataset, resolve_config  # noqa: E402
 
 
 def creature_sources(n_shapes: int, n_vertices: int) -> list[ShapeSource]:

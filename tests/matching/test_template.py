@@ -138,7 +138,7 @@ def test_a_one_sided_scan_is_matched_into_the_whole_body(held_out_bodies, one_to
 
 
 def _tiny_checkpoint(n_classes: int) -> dict:
-    from zernet.training.build import build_model_from_spec
+    from zernet.inference import build_model_from_spec
 
     spec = {"name": "zernet", "in_channels": 19, "out_channels": n_classes, "options": {"widths": [8, 8], "n_max": 5}}
     patch = {

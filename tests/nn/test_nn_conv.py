@@ -243,7 +243,7 @@ class PlainOperator:
 
 
 def test_operator_basis_order_is_the_order_the_forward_asks_for():
-    # What data pipelines prepare ahead (zernet.training.batch.model_basis_orders) must be exactly what the
+    # What data pipelines prepare ahead (zernet.inference.batch.model_basis_orders) must be exactly what the
     # forward pass requests, or the preparation is wasted and the reordering is paid in the forward again.
     op, x = setup()
     asked = []

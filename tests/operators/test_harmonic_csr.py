@@ -12,11 +12,11 @@ from meshes import icosphere, patch_like_operator, random_frames
 
 from zernet.data.preprocess import ShapeSource, build_dataset
 from zernet.fourier import fourier_dim
+from zernet.inference.batch import Batch
 from zernet.nn.models import build_model
 from zernet.nn.reference import MatrixOperator
 from zernet.operators import CacheWarning, PatchConfig, build_directional_operator, build_patch_operator
 from zernet.operators.directional import transport_cache_path
-from zernet.training.batch import Batch
 from zernet.zernike import num_bases
 
 K = num_bases(3)

@@ -11,7 +11,8 @@ from tiny_configs import tiny_config
 from zernet.data.dataset import ShapeRecord
 from zernet.data.features import compute_features, feature_channels
 from zernet.data.synthetic import make_creature
-from zernet.training import ConfigError, load_checkpoint, train
+from zernet.inference import load_checkpoint
+from zernet.training import ConfigError, train
 from zernet.training.augment import (
     augment_records,
     augmenting,

@@ -20,9 +20,9 @@ import yaml
 from tiny_configs import ddp_config
 
 from zernet.distributed import DistributedContext, shard_indices
-from zernet.training import build_dataset, epoch_order, load_checkpoint, parse_config, step_groups
-from zernet.training.batch import Batch
-from zernet.training.build import build_model_from_spec, model_spec
+from zernet.inference import build_model_from_spec, load_checkpoint, model_spec
+from zernet.inference.batch import Batch
+from zernet.training import build_dataset, epoch_order, parse_config, step_groups
 from zernet.training.losses import compute_loss
 from zernet.training.schedule import seed_everything
 

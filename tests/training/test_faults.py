@@ -31,9 +31,10 @@ from zernet.cli import main
 from zernet.data import PreprocessError, ShapeSource, SkippedShapesWarning, build_dataset
 from zernet.data.preprocess import WORKER_DIED, file_key, preprocess_shapes
 from zernet.geometry import load_surface
+from zernet.inference import load_checkpoint
 from zernet.io_utils import atomic_save_torch, atomic_write_bytes
 from zernet.operators import PatchConfig
-from zernet.training import load_checkpoint, train
+from zernet.training import train
 
 pytestmark = pytest.mark.timeout(240)
 

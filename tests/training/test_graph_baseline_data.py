@@ -9,7 +9,8 @@ from meshes import icosphere
 from tiny_configs import tiny_config
 
 from zernet.data import DatasetError, LoaderOptions, load_dataset
-from zernet.training import ConfigError, load_checkpoint, parse_config, predict, train
+from zernet.inference import load_checkpoint, predict
+from zernet.training import ConfigError, parse_config, train
 from zernet.training.build import needs_operators
 
 PATCH = [{"r0": 5.0, "n_samples": 800, "patch_size": 20, "n_max": 3}]

@@ -19,9 +19,9 @@ from zernet.cli import main
 from zernet.data import LoaderOptions, load_faust
 from zernet.data.features import feature_channels
 from zernet.geometry import Surface
+from zernet.inference import build_model_from_spec, load_checkpoint, model_spec, predict
 from zernet.operators import PatchConfig
-from zernet.training import ConfigError, load_checkpoint, load_config, parse_config, predict, train
-from zernet.training.build import build_model_from_spec, model_spec
+from zernet.training import ConfigError, load_config, parse_config, train
 from zernet.training.init_from import export_backbone, initialise_from, load_init_source, pretrained_names
 
 

@@ -12,12 +12,8 @@ from tiny_configs import faust_run_config
 
 from zernet.cli import main
 from zernet.data import LoaderOptions, load_faust
-from zernet.operators import PatchConfig
-from zernet.training import evaluate, predict, train
-from zernet.training.checkpoint import load_checkpoint
-from zernet.training.config import ConfigError, EvalSection
-from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
-from zernet.training.refine import (
+from zernet.inference import load_checkpoint, predict
+from zernet.inference.refine import (
     AGREEMENT_FLOOR,
     SEGMENTATION_CONFIDENCE,
     refine_correspondence,
@@ -25,6 +21,10 @@ from zernet.training.refine import (
     ring_average,
     ring_reach,
 )
+from zernet.operators import PatchConfig
+from zernet.training import evaluate, train
+from zernet.training.config import ConfigError, EvalSection
+from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
 
 
 def test_ring_average_is_the_mean_over_the_vertices_within_so_many_edges(tetrahedron_surface, sphere_surface):

@@ -27,7 +27,7 @@ from meshes import icosphere
 
 from zernet.cli import main
 from zernet.geometry import Surface
-from zernet.training.predict import predict
+from zernet.inference.predict import predict
 
 N_GOOD = 6
 
@@ -323,8 +323,8 @@ def test_a_run_trained_on_meshes_predicts_on_the_cloud_of_a_mesh(skipped_run, tm
 def test_a_segmentation_run_chooses_its_refinement_on_validation_and_predict_applies_it_to_a_cloud(
     skipped_run, tmp_path
 ):
-    from zernet.training.checkpoint import load_checkpoint
-    from zernet.training.refine import SEGMENTATION_CONFIDENCE
+    from zernet.inference import load_checkpoint
+    from zernet.inference.refine import SEGMENTATION_CONFIDENCE
 
     run_dir = tmp_path / "run"
     config = skipped_run["config"]

@@ -8,11 +8,11 @@ import torch.nn.functional as F
 from meshes import grid_mesh
 from tiny_configs import faust_run_config, tiny_config
 
+from zernet.inference import load_checkpoint
+from zernet.inference.template_graph import edge_graph, edge_neighbourhoods, geodesic_soft_labels
 from zernet.training import train
-from zernet.training.checkpoint import load_checkpoint
 from zernet.training.config import ConfigError, TrainSection
 from zernet.training.losses import compute_loss
-from zernet.training.template import edge_graph, edge_neighbourhoods, geodesic_soft_labels
 
 
 def test_edge_distances_on_a_grid_are_the_manhattan_path_along_the_edges():

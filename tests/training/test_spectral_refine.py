@@ -11,14 +11,14 @@ from tiny_configs import faust_run_config
 
 from zernet.data import LoaderOptions, load_faust
 from zernet.geometry import Surface
+from zernet.inference import load_checkpoint, predict
+from zernet.inference.spectral_refine import SpectralRefiner, check_radii
 from zernet.metrics import GeodesicErrors
 from zernet.operators import PatchConfig
 from zernet.operators.spectral import fmap_from_pointmap, pointmap_from_fmap
-from zernet.training import predict, train
-from zernet.training.checkpoint import load_checkpoint
+from zernet.training import train
 from zernet.training.config import ConfigError, EvalSection
 from zernet.training.evaluation import evaluate_members, select_refinement, summary_line
-from zernet.training.spectral_refine import SpectralRefiner, check_radii
 
 
 def mirror_indices(surface: Surface) -> np.ndarray:

@@ -19,6 +19,10 @@ from tiny_configs import tiny_config
 import zernet.training.loop as loop
 from zernet.data.synthetic import make_creature
 from zernet.geometry import Surface
+from zernet.inference import build_model_from_spec, load_checkpoint, predict
+from zernet.inference.batch import Batch, model_basis_orders
+from zernet.inference.predict import predict_record
+from zernet.inference.targets import feature_stats, standardise, target_stats, unstandardise
 from zernet.metrics import regression_scores
 from zernet.training import (
     ConfigError,
@@ -27,19 +31,13 @@ from zernet.training import (
     epoch_learning_rate,
     epoch_order,
     evaluate,
-    load_checkpoint,
     parse_config,
-    predict,
     resolve_config,
     step_groups,
     train,
 )
-from zernet.training.batch import Batch, model_basis_orders
-from zernet.training.build import build_model_from_spec
 from zernet.training.config import TrainSection
 from zernet.training.losses import compute_loss
-from zernet.training.predict import predict_record
-from zernet.training.targets import feature_stats, standardise, target_stats, unstandardise
 
 
 @pytest.fixture(scope="session")

@@ -170,7 +170,7 @@ def save_template_model(run_checkpoint: dict, template_positions: np.ndarray, pa
 
 def load_template_model(path: str | os.PathLike | None = None, device: str | torch.device = "cpu") -> TemplateModel:
     """A template model from its file (None: the shipped one)."""
-    from zernet.training.build import build_model_from_spec
+    from zernet.inference.spec import build_model_from_spec
 
     path = PRETRAINED_TEMPLATE_MODEL if path is None else Path(path)
     if not path.is_file():
@@ -227,8 +227,8 @@ def template_shape(
     ``smoothing``: the heat diffusion time of the positions, in the scaled surface's units (None:
     :data:`SMOOTHING_TIME` times the model's area; 0: none).
     """
-    from zernet.training.batch import Batch, model_basis_orders, model_directional_order
-    from zernet.training.targets import standardise_features
+    from zernet.inference.batch import Batch, model_basis_orders, model_directional_order
+    from zernet.inference.targets import standardise_features
 
     area = model.area if area is None else area
     factor = area.factor if isinstance(area, FixedScale) else float(np.sqrt(area / surface.area))

@@ -115,8 +115,8 @@ def main(argv=None) -> int:
     parser.add_argument("--init-from", default="pretrained:bodies-xyz-hks")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
+    from zernet.inference.model_file import load_checkpoint
     from zernet.matching.template import save_template_model
-    from zernet.training.checkpoint import load_checkpoint
 
     # The commit the model is trained from, taken before the hours of training a later commit may land in.
     commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()

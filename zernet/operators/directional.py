@@ -33,7 +33,7 @@ pairs) computing the pairs and angles takes about 0.3-1.3 s, and the matrices of
 (23 M non-zeros, with their transpose about 370 MB in float32) about 0.4-0.7 s, written by the compiled
 kernels of :mod:`zernet.operators.harmonic_csr` straight into the arrays torch wraps
 (``benchmarks/bench_directional.py``, idle to loaded machine). A data set held in memory keeps them on its
-records (:func:`zernet.training.batch.with_directional`), so they are built once per surface, in the first
+records (:func:`zernet.inference.batch.with_directional`), so they are built once per surface, in the first
 epoch; a batch of several surfaces stacks its surfaces' kept matrices (:func:`block_diagonal_csr`) instead.
 A data set too large for memory (``zernet.data.preprocess.IN_MEMORY_VERTEX_LIMIT``) reads every record
 back from its cache on each access, and holding the operators instead would take the memory that limit

@@ -2,7 +2,7 @@
 carries: functional maps from point maps and back, ZoomOut; and heat smoothing of per-vertex values.
 
 Shared by matching two surfaces (:mod:`zernet.matching`) and the global refinement of a predicted
-correspondence (:mod:`zernet.training.spectral_refine`), which sits below matching: the pure numerical pieces
+correspondence (:mod:`zernet.inference.spectral_refine`), which sits below matching: the pure numerical pieces
 live here, the learned functional-map layer and the confidence in :mod:`zernet.matching.fmap`.
 
 Convention (as in pyFM and DiffusionNet): a functional map ``C_xy`` (k_y, k_x) carries a function on a

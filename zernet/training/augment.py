@@ -39,7 +39,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from zernet.data.features import FEATURE_PARTS, feature_channels, feature_parts
-from zernet.training.batch import with_directional
+from zernet.inference.batch import with_directional
 from zernet.training.config import ConfigError, TrainSection
 
 __all__ = [

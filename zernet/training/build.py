@@ -1,15 +1,14 @@
-"""What a run is made of: the data set, the model specification and the model.
+"""What a run is made of: the data set, and the checks of its model before any data is loaded.
 
 :func:`build_dataset` takes a whole run configuration (what a user holds) and hands its ``data``,
 ``patch`` and ``cache_dir`` parts to :func:`load_data`; the model is built from a *spec* (name, channel
-counts, options) that the checkpoint stores, so :func:`build_model_from_spec` rebuilds it anywhere.
+counts, options) that the checkpoint stores (:mod:`zernet.inference.spec`), so it is rebuilt anywhere.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import inspect
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -17,19 +16,17 @@ import torch
 from zernet.data import DatasetError, load_dataset
 from zernet.data.features import feature_channels, needs_patch_operators
 from zernet.geometry import FixedScale
+from zernet.inference.spec import model_spec
 from zernet.io_utils import plain
-from zernet.nn.models import MODEL_REGISTRY, available_models, build_model, reads_patch_operators
+from zernet.nn.models import build_model, reads_patch_operators
 from zernet.operators import PatchConfig
-from zernet.training.config import ConfigError, DataSection, ModelSection, PatchSection, RunConfig, parse_config
-from zernet.zernike import num_bases
+from zernet.training.config import ConfigError, DataSection, PatchSection, RunConfig, parse_config
 
 __all__ = [
     "build_dataset",
     "load_data",
     "needs_operators",
     "check_model_config",
-    "model_spec",
-    "build_model_from_spec",
     "is_correspondence",
     "preprocess_spec",
 ]
@@ -156,7 +153,7 @@ def is_correspondence(dataset, data_kind: str) -> bool:
 
 
 def preprocess_spec(dataset) -> dict:
-    """What :func:`zernet.training.predict.predict` needs to preprocess a new surface like the training shapes:
+    """What :func:`zernet.inference.predict.predict` needs to preprocess a new surface like the training shapes:
     the area every shape was scaled to, or the fixed factor applied instead (``unit_scale``)."""
     fixed = isinstance(dataset.target_area, FixedScale)
     return {
@@ -166,36 +163,3 @@ def preprocess_spec(dataset) -> dict:
         "feature_kind": str(dataset.feature_kind),
         "class_names": plain(dataset.info.get("class_names")),
     }
-
-
-def model_spec(model: ModelSection, in_channels: int, out_channels: int, patch_configs: Sequence) -> dict:
-    """Name, channel counts and options of the model; the Zernike degree follows the patch operators.
-
-    A model's ``n_max`` (or ``k``, the number of bases) must match the operators', so unless the config
-    sets it explicitly it is taken from the patch settings — changing ``patch.scales.*.n_max`` alone then
-    just works instead of failing with a shape mismatch.
-    """
-    options = dict(model.options)
-    degrees = {int(c.n_max) for c in patch_configs}
-    if len(degrees) == 1 and "n_max" not in options and "k" not in options:
-        available_models()  # registers the plug-in models
-        try:
-            accepted = inspect.signature(MODEL_REGISTRY[model.name]).parameters
-        except (KeyError, TypeError, ValueError):
-            accepted = {}
-        n_max = degrees.pop()
-        if "n_max" in accepted:
-            options["n_max"] = n_max
-        elif "k" in accepted:
-            options["k"] = num_bases(n_max)
-    return {"name": model.name, "in_channels": int(in_channels), "out_channels": int(out_channels), "options": options}
-
-
-def build_model_from_spec(spec: Mapping[str, Any]) -> torch.nn.Module:
-    """The model a :func:`model_spec` (e.g. a checkpoint's ``model_spec``) describes, freshly initialised."""
-    try:
-        return build_model(spec["name"], spec["in_channels"], spec["out_channels"], **spec["options"])
-    except TypeError as error:
-        raise ConfigError(f"model {spec['name']!r}: {error}") from None
-    except KeyError as error:
-        raise ConfigError(f"model.name: {error.args[0] if error.args else error}") from None

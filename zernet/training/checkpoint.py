@@ -1,4 +1,4 @@
-"""Checkpoints: what they hold, how they are written (atomically) and read (safely).
+"""Checkpoints: what they hold and how they are written (atomically); read by :mod:`zernet.inference.model_file`.
 
 A checkpoint is a plain dictionary of tensors and plain containers (dicts, lists, strings, numbers), so it
 loads with ``torch.load(weights_only=True)``: a crafted checkpoint cannot run code. It is made in one
@@ -10,29 +10,24 @@ the optimiser, the loop state and the RNG states.
 from __future__ import annotations
 
 import copy
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from zernet.inference.model_file import CHECKPOINT_FORMAT, load_checkpoint
 from zernet.io_utils import atomic_save_torch, plain, snapshot_file
 from zernet.training.schedule import rng_state
 
 __all__ = [
-    "CHECKPOINT_FORMAT",
     "RunRecord",
     "make_checkpoint",
     "save_epoch_checkpoints",
     "save_epoch_weights",
     "epoch_weights_path",
-    "load_checkpoint",
     "load_resume_checkpoint",
-    "checkpoint_path",
     "cpu_state_dict",
 ]
-
-CHECKPOINT_FORMAT = "zernet-checkpoint-1"
 
 
 @dataclass(frozen=True)
@@ -44,7 +39,7 @@ class RunRecord:
     task: str  # classification | regression
     num_classes: int | None
     correspondence: bool
-    target_stats: dict | None  # see zernet.training.targets.target_stats
+    target_stats: dict | None  # see zernet.inference.targets.target_stats
     target_exponent: float  # area exponent of the regression target (predict returns a surface's own units)
     feature_stats: dict | None
     preprocess: dict  # see zernet.training.build.preprocess_spec
@@ -117,44 +112,6 @@ def save_epoch_weights(checkpoint: dict, run_dir: Path, epoch: int) -> None:
     with Adam; resuming uses last.pt)."""
     kept = {key: value for key, value in checkpoint.items() if key not in ("optimizer", "rng")}
     atomic_save_torch(kept, epoch_weights_path(run_dir, epoch))
-
-
-def load_checkpoint(path: str | Path) -> dict:
-    """Load a zernet checkpoint safely (``weights_only=True``) onto the CPU, with a clear error if unusable."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
-    # torch.load does not check the zip CRCs, so flipped bytes in the stored tensors would load silently as
-    # wrong weights: check them first (torch writes them; it costs one read of the file).
-    if zipfile.is_zipfile(path):
-        try:
-            with zipfile.ZipFile(path) as archive:
-                damaged = archive.testzip()
-        except Exception as error:
-            damaged = f"? ({type(error).__name__}: {error})"
-        if damaged is not None:
-            raise ValueError(
-                f"{path}: not a readable zernet checkpoint (stored record {damaged} fails its CRC "
-                "check: the file is corrupt)"
-            )
-    try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # truncated, corrupt, or holding objects weights_only refuses
-        raise ValueError(f"{path}: not a readable zernet checkpoint ({type(error).__name__}: {error})") from None
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path}: not a zernet checkpoint (expected format {CHECKPOINT_FORMAT})")
-    return checkpoint
-
-
-def checkpoint_path(run_dir_or_checkpoint: str | Path) -> Path:
-    """A run folder means its ``best.pt``; a file is taken as it is."""
-    path = Path(run_dir_or_checkpoint)
-    if path.is_dir():
-        best = path / "best.pt"
-        if not best.is_file():
-            raise FileNotFoundError(f"{path} holds no best.pt: is it a zernet run folder whose training has run?")
-        return best
-    return path
 
 
 def load_resume_checkpoint(run_dir: Path) -> tuple[dict, str | None]:

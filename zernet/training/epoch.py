@@ -14,14 +14,14 @@ from tqdm.auto import tqdm
 
 from zernet import metrics as zmetrics
 from zernet.distributed import DistributedContext
+from zernet.inference.batch import Batch, model_basis_orders, model_directional_order
+from zernet.inference.runtime import precision_autocast
+from zernet.inference.targets import unstandardise
 from zernet.threads import prefetched
 from zernet.training.augment import augment_records
-from zernet.training.batch import Batch, model_basis_orders, model_directional_order
 from zernet.training.config import TrainSection
 from zernet.training.losses import compute_loss
-from zernet.training.runtime import precision_autocast
 from zernet.training.schedule import epoch_learning_rate, epoch_order, step_groups
-from zernet.training.targets import unstandardise
 
 __all__ = ["Objective", "train_one_epoch", "validate"]
 

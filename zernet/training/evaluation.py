@@ -2,12 +2,12 @@
 correspondence or a segmentation chosen on validation, and the one-line summary.
 
 A correspondence is refined on the run's device: the agreement of each vertex's rings (torch sparse products,
-:mod:`zernet.training.refine`), then optionally the global step (:mod:`zernet.training.spectral_refine`:
+:mod:`zernet.inference.refine`), then optionally the global step (:mod:`zernet.inference.spectral_refine`:
 the prediction kept within reach of a spectral map, which repairs flipped regions), both chosen on the
 validation split. The geodesic errors of a test shape are measured once for the unrefined, the
 ring-refined and the refined map together (:class:`zernet.metrics.GeodesicErrors`: the diameter once, each
 distinct vertex pair once). A segmentation is refined by the ring average of its unsure vertices
-(:func:`zernet.training.refine.refine_segmentation`), the ring count chosen on the validation split too."""
+(:func:`zernet.inference.refine.refine_segmentation`), the ring count chosen on the validation split too."""
 
 from __future__ import annotations
 
@@ -23,14 +23,14 @@ from tqdm.auto import tqdm
 from zernet import metrics as zmetrics
 from zernet.data import SkippedShapesWarning
 from zernet.geometry.cloud_mesh import mesh_from_cloud
+from zernet.inference.model_file import checkpoint_path, load_checkpoint
+from zernet.inference.predict import model_from_checkpoint, predict_record
+from zernet.inference.refine import refine_correspondence, refine_segmentation
+from zernet.inference.runtime import resolve_device
+from zernet.inference.spectral_refine import check_radii, spectral_refiner, template_of
+from zernet.inference.targets import unstandardise
 from zernet.training.build import build_dataset
-from zernet.training.checkpoint import checkpoint_path, load_checkpoint
 from zernet.training.config import ConfigError
-from zernet.training.predict import model_from_checkpoint, predict_record
-from zernet.training.refine import refine_correspondence, refine_segmentation
-from zernet.training.runtime import resolve_device
-from zernet.training.spectral_refine import check_radii, spectral_refiner, template_of
-from zernet.training.targets import unstandardise
 
 __all__ = [
     "evaluate",
@@ -73,7 +73,7 @@ def _refined(probabilities: torch.Tensor, record, rings: int, kind: str) -> np.n
 
 
 def global_refinement_unavailable(checkpoint: dict) -> str | None:
-    """Why a checkpoint cannot be refined globally (:mod:`zernet.training.spectral_refine`), or None if it
+    """Why a checkpoint cannot be refined globally (:mod:`zernet.inference.spectral_refine`), or None if it
     can: it must be a correspondence model that stores its template's geometry."""
     if _kind(checkpoint) != "correspondence":
         return None  # nothing to refine globally: the radii are ignored
@@ -86,7 +86,7 @@ def global_refinement_unavailable(checkpoint: dict) -> str | None:
 
 
 def _refiner(checkpoint: dict):
-    """The checkpoint's :class:`~zernet.training.spectral_refine.SpectralRefiner`; ConfigError without a
+    """The checkpoint's :class:`~zernet.inference.spectral_refine.SpectralRefiner`; ConfigError without a
     template geometry."""
     reason = global_refinement_unavailable(checkpoint)
     if reason is not None:
@@ -120,10 +120,10 @@ def evaluate_members(
     refine_spectral: float = 0.0,
 ) -> tuple[dict, list[dict]]:
     """Metrics of the model (or ensemble) ``members`` (a list of ``(model, checkpoint)``, see
-    :func:`~zernet.training.predict.predict_record`) on the shapes at ``indices`` and the predictions of
+    :func:`~zernet.inference.predict.predict_record`) on the shapes at ``indices`` and the predictions of
     the first ``keep``. A correspondence is scored after refinement over ``refine_rings`` rings
-    (:mod:`zernet.training.refine`) and then, if ``refine_spectral`` > 0, by the global step within that
-    radius (:mod:`zernet.training.spectral_refine`); a segmentation after the rings alone; regression ignores
+    (:mod:`zernet.inference.refine`) and then, if ``refine_spectral`` > 0, by the global step within that
+    radius (:mod:`zernet.inference.spectral_refine`); a segmentation after the rings alone; regression ignores
     both. The unrefined scores are kept beside (``unrefined_summary``), and with both steps the ring-refined
     ones (``ring_refined_summary``)."""
     checkpoint = members[0][1]
@@ -216,7 +216,7 @@ def select_refinement(
 ) -> tuple[int, float, dict | None]:
     """The refinement to use and how it was chosen, on the ``val`` split (correspondence and segmentation;
     regression gets none): first the ring count whose exact accuracy is highest (the fewest rings on a tie),
-    then, for a correspondence, after those rings, the global step's radius (:mod:`zernet.training.spectral_refine`; 0: off) whose exact accuracy is
+    then, for a correspondence, after those rings, the global step's radius (:mod:`zernet.inference.spectral_refine`; 0: off) whose exact accuracy is
     highest (off on a tie, else the widest radius). A single candidate is taken without a look at the data.
     Without a template geometry (older checkpoints) the global step is left off with a warning
     (:func:`global_refinement_unavailable`).
@@ -370,7 +370,7 @@ def evaluate(
     Args:
         run_dir_or_checkpoint: a run folder or a ``.pt`` checkpoint, or a list of them: an ensemble whose
             prediction averages the members' probabilities or (regression) their outputs in the transformed
-            target units (see :func:`~zernet.training.predict.predict_record`). Members must share the
+            target units (see :func:`~zernet.inference.predict.predict_record`). Members must share the
             task, the classes, the preprocessing and the data section (apart from ``data.root``), e.g. the
             same recipe trained with different ``train.seed``.
         dataset: the :class:`~zernet.data.ShapeDataset` to use; by default it is rebuilt (from the cache)
@@ -379,9 +379,9 @@ def evaluate(
         device: overrides the configured ``train.device``.
         on_error: overrides the stored ``data.on_error`` when the data set is rebuilt: ``"skip"`` evaluates
             without the shapes that fail to load (listed under ``"skipped"``).
-        refine_rings: correspondence refinement (:mod:`zernet.training.refine`): a ring radius, or
+        refine_rings: correspondence refinement (:mod:`zernet.inference.refine`): a ring radius, or
             candidates chosen among on the validation split; None: the run's ``eval.refine_rings``.
-        refine_spectral: the global step after the rings (:mod:`zernet.training.spectral_refine`): a radius
+        refine_spectral: the global step after the rings (:mod:`zernet.inference.spectral_refine`): a radius
             (fraction of the template's diameter; 0: off) or candidates, chosen together with the rings on the
             validation split; None: the run's ``eval.refine_spectral`` (off for runs made before it existed).
 

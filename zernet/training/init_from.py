@@ -45,10 +45,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from zernet.inference.batch import Batch, model_basis_orders, model_directional_order
+from zernet.inference.model_file import checkpoint_path, load_checkpoint
+from zernet.inference.spec import build_model_from_spec
 from zernet.io_utils import atomic_save_torch
-from zernet.training.batch import Batch, model_basis_orders, model_directional_order
-from zernet.training.build import build_model_from_spec
-from zernet.training.checkpoint import checkpoint_path, load_checkpoint
 from zernet.training.config import ConfigError
 
 __all__ = [

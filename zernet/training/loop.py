@@ -37,21 +37,18 @@ from zernet.data import PreprocessError, SkippedShapesWarning
 from zernet.data.preprocess import failure_listing
 from zernet.distributed import DistributedContext, is_main
 from zernet.distributed import setup as setup_distributed
+from zernet.inference.batch import model_basis_orders, model_directional_order
+from zernet.inference.model_file import load_checkpoint
+from zernet.inference.runtime import flush_denormals, resolve_device
+from zernet.inference.spec import build_model_from_spec, model_spec
+from zernet.inference.targets import feature_stats, target_stats
+from zernet.inference.template_graph import geodesic_soft_labels
 from zernet.io_utils import atomic_save_torch, plain
 from zernet.metrics import geodesic_diameter
 from zernet.training.augment import check_augmentation
-from zernet.training.batch import model_basis_orders, model_directional_order
-from zernet.training.build import (
-    build_dataset,
-    build_model_from_spec,
-    check_model_config,
-    is_correspondence,
-    model_spec,
-    preprocess_spec,
-)
+from zernet.training.build import build_dataset, check_model_config, is_correspondence, preprocess_spec
 from zernet.training.checkpoint import (
     RunRecord,
-    load_checkpoint,
     load_resume_checkpoint,
     make_checkpoint,
     save_epoch_checkpoints,
@@ -78,11 +75,8 @@ from zernet.training.run_dir import (
     write_json,
     write_plots,
 )
-from zernet.training.runtime import flush_denormals, resolve_device
 from zernet.training.schedule import seed_everything, set_rng_state
 from zernet.training.stopping import BUDGET, Monitor, initial_state, record_epoch, reopen_if_limits_raised
-from zernet.training.targets import feature_stats, target_stats
-from zernet.training.template import geodesic_soft_labels
 
 __all__ = ["train", "merge_resume_config", "RESUME_CHANGEABLE"]
 

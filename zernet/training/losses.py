@@ -1,4 +1,4 @@
-"""Training losses, in the trained units of :mod:`zernet.training.targets`."""
+"""Training losses, in the trained units of :mod:`zernet.inference.targets`."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from zernet.inference.targets import unstandardise
 from zernet.training.config import ConfigError
-from zernet.training.targets import unstandardise
 
 __all__ = ["resolve_loss", "compute_loss", "check_loss_targets"]
 
@@ -34,10 +34,10 @@ def compute_loss(
     soft_labels: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Training loss; ``output`` and ``target`` are in the trained units (see
-    :func:`zernet.training.targets.standardise`).
+    :func:`zernet.inference.targets.standardise`).
 
     ``soft_labels`` (cross-entropy only): ``(indices, weights)``, each (C, K), from
-    :func:`zernet.training.template.geodesic_soft_labels`; a vertex of class ``t`` is scored against the
+    :func:`zernet.inference.template_graph.geodesic_soft_labels`; a vertex of class ``t`` is scored against the
     distribution that puts ``weights[t, k]`` on class ``indices[t, k]`` instead of all on ``t``.
 
     ``relative_l1`` is the mean of ``|ŷ - y| / |y|`` in the target's own units, i.e. the MAPE the regression

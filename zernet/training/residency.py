@@ -41,7 +41,7 @@ from collections.abc import Sequence
 import torch
 from tqdm.auto import tqdm
 
-from zernet.training.batch import with_directional
+from zernet.inference.batch import with_directional
 from zernet.training.config import RESIDENCY_LEVELS
 
 __all__ = [
@@ -107,8 +107,8 @@ class ShapeStore:
         indices: the shapes to hold (training and validation); others are always read from ``dataset``.
         level: one of :data:`RESIDENCY_LEVELS`.
         device: the run's device.
-        directional_order, basis_orders: what the model reads (:func:`zernet.training.batch.model_directional_order`,
-            :func:`~zernet.training.batch.model_basis_orders`): the operators are prepared for it.
+        directional_order, basis_orders: what the model reads (:func:`zernet.inference.batch.model_directional_order`,
+            :func:`~zernet.inference.batch.model_basis_orders`): the operators are prepared for it.
         free: bytes free per place, for tests (see :func:`choose_residency`).
 
     Attributes:

@@ -7,8 +7,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from zernet.inference.targets import standardise, standardise_features
 from zernet.operators import Geometry
-from zernet.training.targets import standardise, standardise_features
 
 __all__ = ["Batch", "with_directional", "model_directional_order", "model_basis_orders"]
 

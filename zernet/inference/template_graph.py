@@ -1,6 +1,6 @@
 """The template of a correspondence run, as a graph: which template vertices lie near which.
 
-Two steps read it: the global refinement (:mod:`zernet.training.spectral_refine`: the candidates near a
+Two steps read it: the global refinement (:mod:`zernet.inference.spectral_refine`: the candidates near a
 spectral map's answer) and the geodesic soft labels of the loss (``train.label_radius``: a vertex's target is
 spread over the template vertices near its true one, so that answering a neighbour of the true vertex costs
 less than answering the other knee). Distances run along the mesh edges (Dijkstra): at most a few percent

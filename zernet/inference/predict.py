@@ -11,14 +11,14 @@ import torch
 
 from zernet.data import prepare_record
 from zernet.geometry import Surface, mesh_from_cloud, read_surface, repair_surface
+from zernet.inference.batch import Batch, model_basis_orders, model_directional_order
+from zernet.inference.model_file import checkpoint_path, load_checkpoint
+from zernet.inference.refine import refine_correspondence, refine_segmentation
+from zernet.inference.runtime import resolve_device
+from zernet.inference.spec import build_model_from_spec
+from zernet.inference.spectral_refine import check_radii, spectral_refiner, template_of
+from zernet.inference.targets import destandardise, untransform
 from zernet.operators import PatchConfig
-from zernet.training.batch import Batch, model_basis_orders, model_directional_order
-from zernet.training.build import build_model_from_spec
-from zernet.training.checkpoint import checkpoint_path, load_checkpoint
-from zernet.training.refine import refine_correspondence, refine_segmentation
-from zernet.training.runtime import resolve_device
-from zernet.training.spectral_refine import check_radii, spectral_refiner, template_of
-from zernet.training.targets import destandardise, untransform
 
 __all__ = ["predict_record", "model_from_checkpoint", "predict"]
 
@@ -88,11 +88,11 @@ def predict(
         progress: print what was repaired (duplicate vertices merged, degenerate faces dropped).
         refine_rings: correspondence: refine the probabilities by the agreement of this many rings of mesh
             neighbours on the surface and on the template; segmentation: average them over this many rings of the
-            surface (a cloud: of its triangulation) where the network is unsure (:mod:`zernet.training.refine`);
+            surface (a cloud: of its triangulation) where the network is unsure (:mod:`zernet.inference.refine`);
             None: the number the run chose on its validation split (0 for runs that chose none).
         refine_spectral: correspondence only: after the rings, keep the prediction within this radius (a
             fraction of the template's geodesic diameter) of a spectral map read from it
-            (:mod:`zernet.training.spectral_refine`; it repairs flipped regions); 0: off; None: what the run
+            (:mod:`zernet.inference.spectral_refine`; it repairs flipped regions); 0: off; None: what the run
             chose on its validation split. The probabilities returned stay the ring-refined ones.
         backend: polar-coordinate backend for this surface (``"front"``, ``"fast"``, ``"accurate"``); None:
             the run's own (every backend reads meshes and clouds alike).
@@ -177,7 +177,7 @@ def _refined_probabilities(checkpoint: dict, record, probabilities: np.ndarray, 
 
 
 def _globally_refined(checkpoint: dict, record, probabilities: np.ndarray, radius: float, device) -> np.ndarray:
-    """The global refinement (:mod:`zernet.training.spectral_refine`) of a new surface's (ring-refined)
+    """The global refinement (:mod:`zernet.inference.spectral_refine`) of a new surface's (ring-refined)
     probabilities, against the template geometry the run stored, on ``device``."""
     if not checkpoint.get("correspondence"):
         raise ValueError(

@@ -14,7 +14,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 import torch
 
-from zernet.training.config import ConfigError
+from zernet.inference.errors import ConfigError
 
 __all__ = [
     "target_stats",

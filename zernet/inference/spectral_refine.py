@@ -1,6 +1,6 @@
 """Refining a predicted correspondence globally: the prediction kept within reach of a spectral map.
 
-The rings (:mod:`zernet.training.refine`) repair a vertex its neighbourhood disagrees with; a whole region
+The rings (:mod:`zernet.inference.refine`) repair a vertex its neighbourhood disagrees with; a whole region
 mapped to the wrong place (a knee on the other knee, a hand on the belly) is its own neighbourhood and stays.
 This step reads the map as a whole, through functional maps (Ovsjanikov et al. 2012) between the shape's and
 the template's Laplace-Beltrami eigenbases, upsampled as ZoomOut does (Melzi et al. 2019), with the pure
@@ -47,9 +47,9 @@ import numpy as np
 import torch
 
 from zernet.geometry import Surface
+from zernet.inference.template_graph import edge_graph, edge_neighbourhoods, padded_neighbourhoods
 from zernet.metrics import geodesic_diameter
 from zernet.operators.spectral import SpectralBasis, fmap_from_pointmap, laplacian_eigenbasis, pointmap_from_fmap
-from zernet.training.template import edge_graph, edge_neighbourhoods, padded_neighbourhoods
 
 __all__ = [
     "K_START",

@@ -15,7 +15,7 @@ sure ones outvote the rest: on 20 scans of 2 unseen generated people it turns 96
 one ring and 99.7 % over two, where the average gave 98.9 and 98.5 % (``benchmarks/refinement.py``). ``ε`` keeps one disagreeing neighbour (across a seam the
 network got wrong) from vetoing a vertex. A whole region mapped to the wrong place (a left leg on the
 right one) agrees with itself and stays as it is: that is the work of the global step that follows
-(:mod:`zernet.training.spectral_refine`). The rings count mesh edges, so they follow the surface and never
+(:mod:`zernet.inference.spectral_refine`). The rings count mesh edges, so they follow the surface and never
 bridge a fold (fingers, armpits). The best radius is chosen on validation shapes (``eval.refine_rings``).
 
 Cost: two sparse-dense products with as many non-zeros per row as a ring holds (7, 19, 37 vertices for 1,

@@ -8,7 +8,7 @@ import os
 
 import torch
 
-from zernet.training.config import ConfigError
+from zernet.inference.errors import ConfigError
 
 __all__ = ["resolve_device", "precision_autocast", "keep_freed_memory", "flush_denormals"]
 
