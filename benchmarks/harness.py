@@ -72,12 +72,13 @@ def add_data(parser: argparse.ArgumentParser, default: Path | None, what: str) -
 # --------------------------------------------------------------------------------------------------------
 
 
-def commit() -> str:
-    """The repository's commit id, with ``-dirty`` when tracked files differ from it ("unknown" without git)."""
+def commit(checkout: Path = REPO) -> str:
+    """The commit id of ``checkout`` (this repository), with ``-dirty`` when tracked files differ from it
+    ("unknown" without git)."""
     try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True)
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=checkout, capture_output=True, text=True, check=True)
         changes = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True, text=True
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=checkout, capture_output=True, text=True
         )
     except (OSError, subprocess.CalledProcessError):
         return "unknown"

@@ -7,16 +7,14 @@ the settings the shipped configurations use: the demo's (area 1000, r0 4, 1600 s
 the coarse topologies, the paper's FAUST settings (area 15000, r0 5.5, 12000 samples, r0/4 left out,
 centre subtracted) with the ``fast`` and ``front`` geodesic backends on the 6,890-vertex one.
 
-    .venv/bin/python benchmarks/bench_body_generation.py            # every topology, 5 bodies each
-    .venv/bin/python benchmarks/bench_body_generation.py --bodies 2 --topologies coarse-615
+    .venv/bin/python -m benchmarks.speed.bench_body_generation         # every topology, 5 bodies each
+    .venv/bin/python -m benchmarks.speed.bench_body_generation --bodies 2 --topologies coarse-615
 
-Prints a table and writes ``benchmarks/results/bench_body_generation.json``.
+Prints a table and writes ``benchmarks/speed/results/bench_body_generation.json`` (``--out``).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import tempfile
 import time
@@ -24,12 +22,11 @@ from pathlib import Path
 
 import torch
 
+from benchmarks.harness import SPEED_RESULTS, add_out, add_threads, arguments, markdown_table, result_file, write_json
 from zernet.data.bodies import BodyGenerator
 from zernet.geometry import normalize_area
-from zernet.io_utils import atomic_write_bytes
 from zernet.operators import PatchConfig, build_patch_operator
 
-RESULTS = Path(__file__).resolve().parent / "results" / "bench_body_generation.json"
 DEMO_PATCH = {"area": 1000.0, "config": dict(r0=4.0, n_samples=1600, patch_size=50, n_max=5)}
 FAUST_PATCH = {
     "area": 15000.0,
@@ -82,10 +79,11 @@ def measure(topology: str, n_bodies: int, workdir: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument("--bodies", type=int, default=5, help="bodies per topology (default 5)")
     parser.add_argument("--topologies", default=",".join(TOPOLOGIES), help="comma-separated topologies")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    add_threads(parser, default=1)
+    add_out(parser, SPEED_RESULTS / "bench_body_generation")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     results = {}
@@ -99,15 +97,25 @@ def main(argv=None) -> int:
                 + ", ".join(f"{k} {v:.2f} s" for k, v in r["preprocess_seconds"].items()),
                 flush=True,
             )
-    print("\n| topology | vertices | anny model build, this process (s) | per body (s) | preprocessing per body (s) |")
-    print("|---|---:|---:|---:|---|")
-    for topology, r in results.items():
-        pre = "; ".join(f"{k}: {v:.2f}" for k, v in r["preprocess_seconds"].items())
-        print(
-            f"| {topology} | {r['n_vertices']:,} | {r['model_build_seconds']:.1f} | {r['body_seconds']:.3f} | {pre} |"
-        )
-    atomic_write_bytes(RESULTS, json.dumps({"threads": args.threads, "results": results}, indent=1).encode())
-    print(f"wrote {RESULTS}")
+    header = [
+        "topology",
+        "vertices",
+        "anny model build, this process (s)",
+        "per body (s)",
+        "preprocessing per body (s)",
+    ]
+    rows = [
+        [
+            topology,
+            f"{r['n_vertices']:,}",
+            f"{r['model_build_seconds']:.1f}",
+            f"{r['body_seconds']:.3f}",
+            "; ".join(f"{k}: {v:.2f}" for k, v in r["preprocess_seconds"].items()),
+        ]
+        for topology, r in results.items()
+    ]
+    print("\n" + "\n".join(markdown_table(header, rows, align="lrrrl")))
+    write_json(result_file(args.out, ".json"), {"threads": args.threads, "results": results})
     return 0
 
 

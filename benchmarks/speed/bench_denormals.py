@@ -10,41 +10,33 @@ shapes with the flag off and on, alternating over ``--rounds`` rounds, on one th
 one thread keeps the comparison in one process). The weights are restored before every pass, so every pass
 computes the same steps. Prints seconds per step (median over rounds) and their ratio.
 
-    .venv/bin/python benchmarks/bench_denormals.py --run runs/bench_faust_ln14/correspondence-zernet --shapes 4
+    .venv/bin/python -m benchmarks.speed.bench_denormals --run runs/bench_faust_ln14/correspondence-zernet --shapes 4
 
-Writes ``benchmarks/results/bench_denormals.json``.
+Writes ``benchmarks/speed/results/bench_denormals.json`` (``--out``).
 """
 
 from __future__ import annotations
 
-import argparse
 import copy
-import json
-import sys
 from pathlib import Path
 
 import torch
 
-from zernet.io_utils import atomic_write_bytes
-from zernet.training import load_checkpoint
+from benchmarks.harness import SPEED_RESULTS, add_out, arguments, result_file, write_json
+from benchmarks.speed.step_timing import alternate, print_medians, seconds_per_step
+from zernet.inference import load_checkpoint
+from zernet.inference.predict import model_from_checkpoint
 from zernet.training.build import build_dataset
 from zernet.training.config import read_config
-from zernet.training.predict import model_from_checkpoint
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from step_timing import alternate, print_medians, seconds_per_step  # noqa: E402  (shared timing loop)
-
-ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "benchmarks" / "results" / "bench_denormals.json"
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument("--run", type=Path, required=True, help="a trained correspondence run folder")
     parser.add_argument("--checkpoint", default="last.pt")
     parser.add_argument("--shapes", type=int, default=4, help="training shapes per timed pass")
     parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--output", type=Path, default=RESULTS)
+    add_out(parser, SPEED_RESULTS / "bench_denormals")
     args = parser.parse_args()
     torch.set_num_threads(1)
     for name in ("config.yaml", args.checkpoint):
@@ -85,8 +77,7 @@ def main() -> None:
         "median_seconds_per_step": medians,
         "speedup": ratio,
     }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(args.output, json.dumps(result, indent=2).encode())
+    write_json(result_file(args.out, ".json"), result)
 
 
 if __name__ == "__main__":

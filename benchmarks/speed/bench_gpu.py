@@ -21,17 +21,15 @@ keeps a CPU run short):
    ``--ab-rounds`` rounds, each with a cache of its own format; the epoch seconds come from the runs'
    checkpoints.
 
-    .venv/bin/python benchmarks/bench_gpu.py --data /tmp/bodies --train 8 --val 2 \\
+    .venv/bin/python -m benchmarks.speed.bench_gpu --data /tmp/bodies --train 8 --val 2 \\
         [--levels stream host device] [--before /tmp/zernet-before] [--device cpu|cuda]
-    .venv/bin/python benchmarks/bench_gpu.py --topology coarse-615 --train 8 --val 2   # generated in the run
+    .venv/bin/python -m benchmarks.speed.bench_gpu --topology coarse-615 --train 8 --val 2   # generated in the run
 
-Writes ``benchmarks/results/bench_gpu.json`` and ``.md`` (``--output`` to change), with the device's name.
+Writes ``benchmarks/speed/results/bench_gpu.json`` and ``.md`` (``--out`` to change), with the device's name.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import platform
 import statistics
 import subprocess
@@ -44,17 +42,30 @@ import torch
 import yaml
 
 import zernet.data.preprocess as preprocess
+from benchmarks.harness import (
+    CACHE,
+    REPO,
+    SPEED_RESULTS,
+    add_data,
+    add_device,
+    add_out,
+    add_threads,
+    arguments,
+    commit,
+    markdown_table,
+    result_file,
+    write_json,
+    write_markdown,
+)
 from zernet.distributed import DistributedContext
-from zernet.io_utils import atomic_write_bytes
-from zernet.training.batch import Batch, model_basis_orders, model_directional_order
-from zernet.training.build import build_dataset, build_model_from_spec, model_spec
+from zernet.inference import build_model_from_spec, model_spec
+from zernet.inference.batch import Batch, model_basis_orders, model_directional_order
+from zernet.training.build import build_dataset
 from zernet.training.config import load_config, parse_config
 from zernet.training.epoch import Objective, train_one_epoch, validate
 from zernet.training.losses import compute_loss
 from zernet.training.residency import ShapeStore
 
-ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "benchmarks" / "results" / "bench_gpu"
 CORRESPONDENCE = Objective("classification", "cross_entropy", None, None)
 PHASES = ("load", "copy", "forward", "backward", "optimiser")
 
@@ -76,7 +87,7 @@ def run_config(
 ) -> dict:
     """The shipped correspondence recipe on ``n_train + n_val`` training and ``n_test`` test bodies: read from
     the files of ``data`` (FAUST layout, 6,890 vertices), or generated in the run (``topology``)."""
-    config = load_config(ROOT / "configs" / "bodies_correspondence.yaml")
+    config = load_config(REPO / "configs" / "bodies_correspondence.yaml")
     if data is not None:
         config["data"].update(
             {
@@ -192,7 +203,7 @@ def epoch_seconds_of_run(
     final evaluation included)."""
     with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as handle:
         yaml.safe_dump(config, handle)
-    arguments = [
+    train_arguments = [
         "train",
         handle.name,
         "--run-dir",
@@ -205,7 +216,7 @@ def epoch_seconds_of_run(
     ]
     code = (
         "import sys, zernet.data.preprocess as p; p.IN_MEMORY_VERTEX_LIMIT = 0; from zernet.cli import main; "
-        f"sys.exit(main({arguments!r}))"
+        f"sys.exit(main({train_arguments!r}))"
     )
     command = [sys.executable, "-c", code]
     started = time.perf_counter()
@@ -231,11 +242,6 @@ def before_after(before: Path, after: Path, config: dict, work: Path, epochs: in
             walls[side].append(wall)
     medians = {side: statistics.median(values) for side, values in seconds.items()}
 
-    def commit(path):
-        return subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=path, text=True, capture_output=True
-        ).stdout.strip()
-
     return {
         "epoch_s": seconds,
         "median_epoch_s": medians,
@@ -247,23 +253,29 @@ def before_after(before: Path, after: Path, config: dict, work: Path, epochs: in
     }
 
 
-def markdown(result: dict) -> str:
+def markdown(result: dict) -> list[str]:
+    header = ["level", "held GB", "set-up s", *(f"{p} ms" for p in PHASES), "step ms", "busy", "epoch s"]
+    rows = [
+        [
+            entry["level"],
+            f"{entry['held_gb']:.2f}",
+            f"{entry['setup_s']:.1f}",
+            *(f"{entry['phase_ms'][p]:.0f}" for p in PHASES),
+            f"{entry['step_ms']:.0f}",
+            f"{entry['busy']:.0%}",
+            f"{entry['epoch_median_s']:.1f}",
+        ]
+        for entry in result["levels"]
+    ]
     lines = [
         f"# bench_gpu: {result['device_name']}",
         "",
         f"{result['shapes']['train']} training + {result['shapes']['val']} validation shapes of "
         f"{result['vertices']} vertices ({result['data']}), torch {result['torch']}, {result['threads']} CPU "
-        f"threads, command `{result['command']}`.",
+        "threads.",
         "",
-        "| level | held GB | set-up s | " + " | ".join(f"{p} ms" for p in PHASES) + " | step ms | busy | epoch s |",
-        "|---|---|---|" + "---|" * len(PHASES) + "---|---|---|",
+        *markdown_table(header, rows),
     ]
-    for entry in result["levels"]:
-        lines.append(
-            f"| {entry['level']} | {entry['held_gb']:.2f} | {entry['setup_s']:.1f} | "
-            + " | ".join(f"{entry['phase_ms'][p]:.0f}" for p in PHASES)
-            + f" | {entry['step_ms']:.0f} | {entry['busy']:.0%} | {entry['epoch_median_s']:.1f} |"
-        )
     ab = result.get("before_after")
     if ab:
         lines += [
@@ -276,28 +288,26 @@ def markdown(result: dict) -> str:
             f"holding the shapes, final evaluation): before {ab['median_run_wall_s']['before']:.1f} s, "
             f"after {ab['median_run_wall_s']['after']:.1f} s.",
         ]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "--data",
-        type=Path,
-        default=None,
-        help="folder written by `zernet bodies` (FAUST-size); without it, bodies of --topology are "
-        "generated in the run",
+    parser = arguments(__doc__)
+    add_data(
+        parser,
+        None,
+        "folder written by `zernet bodies` (FAUST-size); without it, bodies of --topology are generated in the run",
     )
     parser.add_argument("--topology", default="coarse-615", help="of the generated bodies without --data")
     parser.add_argument("--train", type=int, default=8)
     parser.add_argument("--val", type=int, default=2)
     parser.add_argument("--levels", nargs="*", default=["stream", "host", "device"])
     parser.add_argument("--rounds", type=int, default=1, help="timed passes per level")
-    parser.add_argument("--device", default="auto")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--cache-dir", type=Path, default=ROOT / ".zernet-cache")
+    add_device(parser)
+    add_threads(parser, default=2)
+    parser.add_argument("--cache-dir", type=Path, default=CACHE)
     parser.add_argument("--before", type=Path, default=None, help="a checkout of the code before issue 34")
-    parser.add_argument("--after", type=Path, default=ROOT, help="the checkout to compare it with (default: this one)")
+    parser.add_argument("--after", type=Path, default=REPO, help="the checkout to compare it with (default: this one)")
     parser.add_argument("--ab-epochs", type=int, default=1)
     parser.add_argument("--ab-rounds", type=int, default=2)
     parser.add_argument(
@@ -306,16 +316,10 @@ def main() -> None:
         default=None,
         help="folder for the two sides' caches and runs (kept: a second call reuses the caches)",
     )
-    parser.add_argument("--output", type=Path, default=RESULTS, help="path without suffix (.json and .md)")
+    add_out(parser, SPEED_RESULTS / "bench_gpu")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    device = torch.device(
-        "cuda"
-        if args.device == "auto" and torch.cuda.is_available()
-        else "cpu"
-        if args.device == "auto"
-        else args.device
-    )
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     raw = run_config(args.data, args.topology, args.train, args.val, 1, args.cache_dir, str(device), args.threads)
     config = parse_config(raw)
     preprocess.IN_MEMORY_VERTEX_LIMIT = 0  # streamed, as the recipe's 80 FAUST-size shapes are
@@ -329,7 +333,6 @@ def main() -> None:
         "data": str(args.data or f"generated {args.topology} bodies"),
         "vertices": dataset[0].n_vertices,
         "shapes": {"train": len(dataset.splits["train"]), "val": len(dataset.splits["val"])},
-        "command": " ".join(["benchmarks/bench_gpu.py"] + sys.argv[1:]),
         "levels": [],
     }
     for level in args.levels:
@@ -358,9 +361,8 @@ def main() -> None:
             f"CPU epoch before {ab['median_epoch_s']['before']:.1f} s, after {ab['median_epoch_s']['after']:.1f} s: "
             f"after/before {ab['after_over_before']:.2f}"
         )
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(args.output.with_suffix(".json"), json.dumps(result, indent=1).encode())
-    atomic_write_bytes(args.output.with_suffix(".md"), markdown(result).encode())
+    write_json(result_file(args.out, ".json"), result)
+    write_markdown(result_file(args.out, ".md"), markdown(result))
 
 
 if __name__ == "__main__":

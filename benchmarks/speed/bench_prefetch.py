@@ -6,7 +6,7 @@ nothing in memory: every step reads its shape back from the cache (shape file, 1
 its checksum, features) and builds the torch matrices. ``zernet.training.epoch.train_one_epoch`` does that
 for the next step on a background thread (:func:`zernet.threads.prefetched`) while the current one computes,
 including the matrices in the frequency-grouped row order the harmonic convolutions ask for
-(:func:`zernet.training.batch.model_basis_orders`). This script times :func:`train_one_epoch` over the first
+(:func:`zernet.inference.batch.model_basis_orders`). This script times :func:`train_one_epoch` over the first
 ``--shapes`` training shapes of the generated bodies (``zernet bodies DIR --count 100 --n-test 20``, the
 recipe of ``configs/bodies_correspondence.yaml``) three ways: as shipped; with the natural-order matrices
 prepared ahead and the reordered ones built inside the first convolution's forward (training before
@@ -14,30 +14,31 @@ prepared ahead and the reordered ones built inside the first convolution's forwa
 prints seconds per step (median over rounds) and the ratios. The results are the same every way (same
 batches, same order); only the wall time differs.
 
-    .venv/bin/python benchmarks/bench_prefetch.py --data data/bodies-faust-100 --shapes 12 --rounds 2
+    .venv/bin/python -m benchmarks.speed.bench_prefetch --data data/bodies-faust-100 --shapes 12 --rounds 2
 
-Writes ``benchmarks/results/bench_prefetch.json``.
+Writes ``benchmarks/speed/results/bench_prefetch.json`` (``--out``).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
-from pathlib import Path
-
 import torch
 
 import zernet.training.epoch as epoch_module
-from zernet.io_utils import atomic_write_bytes
-from zernet.training.build import build_dataset, build_model_from_spec, model_spec
+from benchmarks.harness import (
+    CACHE,
+    REPO,
+    SPEED_RESULTS,
+    add_data,
+    add_out,
+    add_threads,
+    arguments,
+    result_file,
+    write_json,
+)
+from benchmarks.speed.step_timing import alternate, print_medians, seconds_per_step
+from zernet.inference import build_model_from_spec, model_spec
+from zernet.training.build import build_dataset
 from zernet.training.config import load_config, parse_config
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from step_timing import alternate, print_medians, seconds_per_step  # noqa: E402  (shared timing loop)
-
-ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "benchmarks" / "results" / "bench_prefetch.json"
 
 
 def sequential(function, items):
@@ -46,21 +47,16 @@ def sequential(function, items):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "--data",
-        type=Path,
-        default=ROOT / "data" / "bodies-faust-100",
-        help="folder written by `zernet bodies` (FAUST-sized, 100 bodies)",
-    )
+    parser = arguments(__doc__)
+    add_data(parser, REPO / "data" / "bodies-faust-100", "folder written by `zernet bodies` (FAUST-sized, 100 bodies)")
     parser.add_argument("--shapes", type=int, default=12, help="training shapes per timed pass")
     parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--output", type=Path, default=RESULTS)
+    add_threads(parser, default=2)
+    add_out(parser, SPEED_RESULTS / "bench_prefetch")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
-    config = load_config(ROOT / "configs" / "bodies_correspondence.yaml")
+    config = load_config(REPO / "configs" / "bodies_correspondence.yaml")
     config["data"].update(
         {
             "root": str(args.data / "correspondence"),
@@ -69,7 +65,7 @@ def main() -> None:
         }
     )
     config["train"].update({"threads": args.threads, "device": "cpu"})
-    config["cache_dir"] = str(ROOT / ".zernet-cache")
+    config["cache_dir"] = str(CACHE)
     config = parse_config(config)
     dataset = build_dataset(config, progress=False, workers=1)
     if dataset.in_memory:
@@ -116,8 +112,7 @@ def main() -> None:
         "speedup": ratio,
         "speedup_prepared_orders": prepared,
     }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(args.output, json.dumps(result, indent=2).encode())
+    write_json(result_file(args.out, ".json"), result)
 
 
 if __name__ == "__main__":
