@@ -16,13 +16,13 @@ and the ratios between them hold; the tables give medians over rounds. Peak memo
 configuration runs its workload twice and reports the growth of its peak resident set (``ru_maxrss``) over
 the resident set after setup (inputs, operator, parameters), so the number is what the computation itself
 adds. With ``--real`` the operator is the real ``PatchOperator`` of the 6,880-vertex mannequin of
-``bench_operator.py``, otherwise a random sparse stand-in with 57 non-zeros per row (the measured density of
+``bench_operator``, otherwise a random sparse stand-in with 57 non-zeros per row (the measured density of
 the real one).
 
 Usage::
 
-    python benchmarks/bench_layers.py            # full run, writes benchmarks/results/bench_layers.json
-    python benchmarks/bench_layers.py --quick    # fewer repetitions
+    .venv/bin/python -m benchmarks.speed.bench_layers           # writes benchmarks/speed/results/bench_layers.json
+    .venv/bin/python -m benchmarks.speed.bench_layers --quick   # fewer repetitions
 """
 
 from __future__ import annotations
@@ -30,19 +30,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
 import time
-from pathlib import Path
+
+from benchmarks.harness import REPO, SPEED_RESULTS, add_out, add_threads, arguments, result_file, write_json
 
 N_VERTICES = 6890
 K = 21
 LAYERS = [(3, 64), (64, 128), (128, 256)]
 ANGLES = (1, 4, 8, 16)
 THREADS = [None]
-RESULTS = Path(__file__).resolve().parent / "results" / "bench_layers.json"
 
 
 def _rss_mb() -> float:
@@ -63,10 +62,8 @@ def _operator(real: bool):
     import torch  # noqa: F401
 
     if real:
+        from benchmarks.speed.bench_operator import mannequin  # the 6,880-vertex body stand-in at area 15000
         from zernet.operators import PatchConfig, build_patch_operator
-
-        sys.path.insert(0, str(Path(__file__).resolve().parent))
-        from bench_operator import mannequin  # the 6,880-vertex body stand-in at area 15000
 
         return build_patch_operator(mannequin(), PatchConfig(r0=5.5, n_samples=12000, patch_size=50, n_max=5))
     from zernet.nn.reference import MatrixOperator
@@ -261,15 +258,15 @@ def peak_memory(kind: str, s: int, impl: str, real: bool) -> float:
 
 
 def _child(args: list[str], real: bool) -> object:
-    cmd = [sys.executable, __file__, "--child", *args] + (["--real"] if real else [])
+    cmd = [sys.executable, "-m", "benchmarks.speed.bench_layers", "--child", *args] + (["--real"] if real else [])
     if THREADS[0]:
         cmd += ["--threads", str(THREADS[0])]
-    out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=REPO)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument(
         "--quick", action="store_true", help="3 repetitions instead of 7, s in (1, 16) for the reference model"
     )
@@ -278,8 +275,8 @@ def main(argv=None) -> int:
         action="store_true",
         help="use the real PatchOperator of the mannequin body instead of the random operator",
     )
-    parser.add_argument("--threads", type=int, default=None, help="torch threads per configuration (default: torch's)")
-    parser.add_argument("--output", type=Path, default=RESULTS)
+    add_threads(parser)
+    add_out(parser, SPEED_RESULTS / "bench_layers")
     parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     THREADS[0] = args.threads
@@ -369,25 +366,16 @@ def main(argv=None) -> int:
                 print(f"s={s:2d} {impl:13s}: {r['step_s']:.2f} s/step, peak +{r['peak_extra_mb']:.0f} MB")
     print(
         "(harmonic-bf16: linear layers in bfloat16 under torch.autocast, convolutions in float32 = "
-        "train.precision: bfloat16; accuracy: benchmarks/bench_precision.py)"
+        "train.precision: bfloat16; accuracy: benchmarks.speed.bench_precision)"
     )
     payload = {
         "n_vertices": rows[0]["n_vertices"],
         "k": K,
         "repeats": repeats,
         "operator": "PatchOperator (mannequin, 6880 vertices)" if args.real else "random sparse, 57 nnz/row",
-        "torch_threads": int(__import__("torch").get_num_threads()),
-        "load_average_1min": os.getloadavg()[0],
-        "machine": platform.processor() or platform.machine(),
         "rows": rows,
     }
-    payload["command"] = " ".join(
-        [Path(sys.executable).name, "benchmarks/bench_layers.py"] + list(argv or sys.argv[1:])
-    )
-    from zernet.io_utils import atomic_write_bytes
-
-    atomic_write_bytes(args.output, json.dumps(payload, indent=1).encode())
-    print(f"\nwritten {args.output}")
+    write_json(result_file(args.out, ".json"), payload)
     return 0
 
 

@@ -16,40 +16,34 @@ formulation at zernet's speed, and this script shows both halves of that claim o
    step, their ratio, and the run's mean epoch time scaled by it (what the run would have taken with the
    paper's layer).
 
-    .venv/bin/python benchmarks/bench_paper_layer.py --run runs/faust340_paper_patches --shapes 4 --rounds 2
+    .venv/bin/python -m benchmarks.speed.bench_paper_layer --run runs/faust340_paper_patches --shapes 4 --rounds 2
 
-Writes ``benchmarks/results/bench_paper_layer.json`` (``--output``).
+Writes ``benchmarks/speed/results/bench_paper_layer.json`` (``--out``).
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
-import json
 import statistics
-import sys
 from pathlib import Path
 
 import torch
 
+from benchmarks.harness import SPEED_RESULTS, add_out, add_threads, arguments, result_file, write_json
+from benchmarks.speed.step_timing import alternate, print_medians, seconds_per_step
 from zernet.inference import load_checkpoint
 from zernet.inference.predict import model_from_checkpoint, predict_record
-from zernet.io_utils import atomic_write_bytes
 from zernet.training.build import build_dataset
 from zernet.training.config import read_config
 from zernet.training.evaluation import evaluate_members
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from step_timing import alternate, print_medians, seconds_per_step  # noqa: E402  (shared timing loop)
-
-ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "benchmarks" / "results" / "bench_paper_layer.json"
 #: The two networks, the paper's first (the timing table's ratio is the paper's step over zernet's).
 LAYERS = {"paper (per-call fit)": "paper-zernet", "zernet (operator)": "zernet"}
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument(
         "--run",
         type=Path,
@@ -58,9 +52,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     parser.add_argument("--shapes", type=int, default=4, help="training shapes per timed pass")
     parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--threads", type=int, default=2)
+    add_threads(parser, default=2)
     parser.add_argument("--no-scores", action="store_true", help="only time the steps")
-    parser.add_argument("--output", type=Path, default=RESULTS)
+    add_out(parser, SPEED_RESULTS / "bench_paper_layer")
     return parser.parse_args(argv)
 
 
@@ -159,8 +153,7 @@ def main(argv=None) -> None:
         result["run_epoch_seconds"] = epoch_seconds
         result["paper_layer_epoch_seconds_estimate"] = mean * ratio
         print(f"the run's epochs: {mean:.0f} s on average; with the paper's layer about {mean * ratio:.0f} s")
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(args.output, json.dumps(result, indent=2).encode())
+    write_json(result_file(args.out, ".json"), result)
 
 
 if __name__ == "__main__":

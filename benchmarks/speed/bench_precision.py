@@ -12,33 +12,28 @@ the patch radius), and the median training step time of each.
 
 Usage::
 
-    python benchmarks/bench_precision.py                 # 24 creatures of 1,000 vertices, 15 epochs
-    python benchmarks/bench_precision.py --epochs 5      # quicker
+    .venv/bin/python -m benchmarks.speed.bench_precision              # 24 creatures of 1,000 vertices, 15 epochs
+    .venv/bin/python -m benchmarks.speed.bench_precision --epochs 5   # quicker
 """
 
 from __future__ import annotations
 
-import argparse
 import copy
 import dataclasses
-import json
-import os
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchmarks.harness import SPEED_RESULTS, add_out, arguments, result_file, write_json
 from zernet.data.features import compute_features
 from zernet.data.synthetic import make_creature
 from zernet.inference import keep_freed_memory, precision_autocast
-from zernet.io_utils import atomic_write_bytes
 from zernet.nn import Geometry, build_model
 from zernet.operators import PatchConfig, build_patch_operator
 
-RESULTS = Path(__file__).resolve().parent / "results" / "bench_precision.json"
 PATCH = PatchConfig(r0=2.5, n_samples=4000, patch_size=50, n_max=5)
 
 
@@ -97,13 +92,13 @@ def train_and_test(model, train, test, epochs: int, lr: float, precision: str, s
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument("--shapes", type=int, default=24, help="creatures; the last 4 are the test shapes")
     parser.add_argument("--vertices", type=int, default=1000, help="vertices (= classes) per creature")
     parser.add_argument("--epochs", type=int, default=15)
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--seeds", type=int, default=2, help="initial weights and shape orders tried")
-    parser.add_argument("--output", type=Path, default=RESULTS)
+    add_out(parser, SPEED_RESULTS / "bench_precision")
     args = parser.parse_args(argv)
     keep_freed_memory()
     shapes = creatures(args.shapes, args.vertices)
@@ -136,11 +131,8 @@ def main(argv=None) -> int:
         "seeds": args.seeds,
         "patch": dataclasses.asdict(PATCH),
         "rows": rows,
-        "load_average_1min": os.getloadavg()[0],
-        "command": " ".join(["python", "benchmarks/bench_precision.py"] + list(argv or sys.argv[1:])),
     }
-    atomic_write_bytes(args.output, json.dumps(payload, indent=1, default=str).encode())
-    print(f"written {args.output}")
+    write_json(result_file(args.out, ".json"), payload)
     return 0
 
 

@@ -9,20 +9,17 @@
    epoch, so steps/s is per rank and shapes/s = steps/s × W is the throughput. The time is the run's own
    ``train_seconds`` (epochs only; no validation split, start-up and evaluation excluded).
 
-Prints a table and writes ``benchmarks/results/bench_scaling.json``::
+Prints a table and writes ``benchmarks/speed/results/bench_scaling.json`` (``--out``)::
 
-    .venv/bin/python benchmarks/bench_scaling.py                  # defaults: 8 shapes of 1000 vertices
-    .venv/bin/python benchmarks/bench_scaling.py --shapes 16 --vertices 1500 --workers 1 2 4 --ranks 1 2 4
+    .venv/bin/python -m benchmarks.speed.bench_scaling                # defaults: 8 shapes of 1000 vertices
+    .venv/bin/python -m benchmarks.speed.bench_scaling --shapes 16 --vertices 1500 --workers 1 2 4 --ranks 1 2 4
 
 On a machine shared with other jobs the numbers move with the load; the load average is recorded.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -30,17 +27,14 @@ import time
 from functools import partial
 from pathlib import Path
 
-import torch
 import yaml
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
-
-from zernet.data.preprocess import ShapeSource, preprocess_shapes  # noqa: E402
-from zernet.data.synthetic import SYNTHETIC_AREA, load_creature  # noqa: E402
-from zernet.inference import load_checkpoint  # noqa: E402
-from zernet.operators import PatchConfig  # noqa: E402
-from zernet.training import build_dataset, resolve_config  # noqa: E402
+from benchmarks.harness import REPO, SPEED_RESULTS, add_out, arguments, markdown_table, result_file, write_json
+from zernet.data.preprocess import ShapeSource, preprocess_shapes
+from zernet.data.synthetic import SYNTHETIC_AREA, load_creature
+from zernet.inference import load_checkpoint
+from zernet.operators import PatchConfig
+from zernet.training import build_dataset, resolve_config
 
 
 def creature_sources(n_shapes: int, n_vertices: int) -> list[ShapeSource]:
@@ -133,13 +127,13 @@ def bench_ddp(config: dict, n_train: int, ranks: int, folder: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument("--shapes", type=int, default=8)
     parser.add_argument("--vertices", type=int, default=1000)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--epochs", type=int, default=4)
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "bench_scaling.json")
+    add_out(parser, SPEED_RESULTS / "bench_scaling")
     args = parser.parse_args(argv)
 
     # The demo's patch density (about 79 samples per patch disk) at a size that keeps the benchmark short.
@@ -190,39 +184,39 @@ def main(argv=None) -> int:
     print()
     print(f"preprocessing: {args.shapes} creatures of {args.vertices} vertices, n_samples {patch['n_samples']}")
     print(f"(worker start-up, paid once per process and not included: {startup:.1f} s)")
-    print("| workers | seconds | shapes/min | speed-up |")
-    print("|--------:|--------:|-----------:|---------:|")
-    for row in preprocess:
-        print(
-            f"| {row['workers']} | {row['seconds']:.1f} | {row['shapes_per_minute']:.1f} | "
-            f"{row['shapes_per_minute'] / base_pre['shapes_per_minute']:.2f}x |"
-        )
+    rows = [
+        [
+            row["workers"],
+            f"{row['seconds']:.1f}",
+            f"{row['shapes_per_minute']:.1f}",
+            f"{row['shapes_per_minute'] / base_pre['shapes_per_minute']:.2f}x",
+        ]
+        for row in preprocess
+    ]
+    print("\n".join(markdown_table(["workers", "seconds", "shapes/min", "speed-up"], rows, align="rrrr")))
     print()
     print(f"DDP training (gloo, CPU, 1 thread per rank): {args.shapes - n_test} training shapes, {args.epochs} epochs")
-    print("| ranks | steps/rank | seconds | steps/s (per rank) | shapes/s | speed-up |")
-    print("|------:|-----------:|--------:|-------------------:|---------:|---------:|")
-    for row in training:
-        print(
-            f"| {row['ranks']} | {row['steps_per_rank']} | {row['seconds']:.2f} | {row['steps_per_second']:.2f} | "
-            f"{row['shapes_per_second']:.2f} | {row['shapes_per_second'] / base_train['shapes_per_second']:.2f}x |"
-        )
+    rows = [
+        [
+            row["ranks"],
+            row["steps_per_rank"],
+            f"{row['seconds']:.2f}",
+            f"{row['steps_per_second']:.2f}",
+            f"{row['shapes_per_second']:.2f}",
+            f"{row['shapes_per_second'] / base_train['shapes_per_second']:.2f}x",
+        ]
+        for row in training
+    ]
+    header = ["ranks", "steps/rank", "seconds", "steps/s (per rank)", "shapes/s", "speed-up"]
+    print("\n".join(markdown_table(header, rows, align="rrrrrr")))
 
     report = {
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-            "load_average": list(os.getloadavg()),
-        },
         "settings": {"shapes": args.shapes, "vertices": args.vertices, "patch": patch, "epochs": args.epochs},
         "worker_startup_seconds": startup,
         "preprocess": preprocess,
         "ddp_training": training,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"\nwrote {args.out}")
+    write_json(result_file(args.out, ".json"), report)
     return 0
 
 

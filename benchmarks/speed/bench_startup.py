@@ -1,6 +1,6 @@
 """Start-up time of the ``zernet`` command against ``import torch`` (issue 34): medians of repeated runs.
 
-    .venv/bin/python benchmarks/bench_startup.py [--repeats 5]   # writes benchmarks/results/bench_startup.json
+    .venv/bin/python -m benchmarks.speed.bench_startup [--repeats 5]   # writes benchmarks/speed/results/bench_startup.json
 
 Each command runs in a fresh interpreter, alternating with the reference so that a busy machine slows both
 alike; wall time and the child's CPU time (user + system, less sensitive to other jobs on a shared machine)
@@ -9,21 +9,19 @@ are both reported. The target is ``zernet --help`` <= 1.5x ``python -c "import t
 
 from __future__ import annotations
 
-import argparse
-import json
 import resource
 import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
+
+from benchmarks.harness import SPEED_RESULTS, add_out, arguments, result_file, write_json
 
 COMMANDS = {
     "import torch": [sys.executable, "-c", "import torch"],
     "zernet --help": [sys.executable, "-m", "zernet.cli", "--help"],
     "zernet predict --help": [sys.executable, "-m", "zernet.cli", "predict", "--help"],
 }
-RESULTS = Path(__file__).resolve().parent / "results" / "bench_startup.json"
 
 
 def run_once(command: list[str]) -> tuple[float, float]:
@@ -37,9 +35,9 @@ def run_once(command: list[str]) -> tuple[float, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = arguments(__doc__)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", default=str(RESULTS), help="write the medians as JSON here (default: %(default)s)")
+    add_out(parser, SPEED_RESULTS / "bench_startup")
     args = parser.parse_args()
     walls = {name: [] for name in COMMANDS}
     cpus = {name: [] for name in COMMANDS}
@@ -57,10 +55,8 @@ def main() -> None:
             f"{name:24s} wall {wall[name]:5.2f} s ({wall[name] / wall['import torch']:4.2f}x)   "
             f"cpu {cpu[name]:5.2f} s ({cpu[name] / cpu['import torch']:4.2f}x)   medians of {args.repeats}"
         )
-    if args.out:
-        Path(args.out).write_text(
-            json.dumps({"median_wall_s": wall, "median_cpu_s": cpu, "wall_s": walls, "cpu_s": cpus}, indent=1) + "\n"
-        )
+    result = {"median_wall_s": wall, "median_cpu_s": cpu, "wall_s": walls, "cpu_s": cpus}
+    write_json(result_file(args.out, ".json"), result)
 
 
 if __name__ == "__main__":
