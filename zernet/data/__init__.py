@@ -25,6 +25,9 @@ arguments particular to the kind's loader (:data:`DATASET_KINDS`):
 - ``"regression"``: :func:`~zernet.data.regression.load_regression` — root (required), field,
   target_exponent, test, test_fraction, area.
 
+Every kind takes ``forms`` (:mod:`~zernet.data.training_forms`): its training shapes are also trained on
+remeshed, decimated, as point clouds or scanned from one side, their per-vertex targets carried over.
+
 Without ``options``, every shared option is also accepted as a keyword, together with ``val_fraction``
 (default 0.1) and ``val_count`` (a count, overrides ``val_fraction``) for ``n_val``, and ``area=None`` then
 means the kind's default area (FAUST/segmentation/bodies 15000, aneurysm 100, synthetic 1000; the generic
@@ -120,14 +123,14 @@ def load_dataset(kind: str, options: LoaderOptions | None = None, **arguments) -
 def data_option_names(kind: str) -> tuple[str, ...]:
     """The keys a run configuration's ``data`` section may pass to the loader of ``kind``, besides the ones
     the run sets itself (``seed``, ``val_fraction``, ``val_count``, ``on_error``): the loader's own arguments
-    (except ``area``, which is ``patch.area``), ``features``, ``repair`` and ``workers``. Empty for an
-    unknown kind."""
+    (except ``area``, which is ``patch.area``), ``features``, ``repair``, ``workers`` and ``forms``. Empty
+    for an unknown kind."""
     if kind not in LOADERS:
         return ()
     own = set(inspect.signature(LOADERS[kind]).parameters) - {"options", "area"}
     if kind in _SYNTHETIC_TASKS:
         own.discard("task")
-    return tuple(sorted(own | {"features", "repair", "workers"}))
+    return tuple(sorted(own | {"features", "repair", "workers", "forms"}))
 
 
 def _options_from_keywords(arguments: dict) -> tuple[LoaderOptions, dict]:

@@ -18,12 +18,14 @@ aneurysm 100, ...), and for a loader None means "keep the files' scale".
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, fields, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 from zernet.data.dataset import DatasetError
 from zernet.data.features import feature_parts, needs_patch_operators
 from zernet.data.preprocess import as_patch_configs
+from zernet.data.training_forms import check_form_rates
 
 __all__ = ["LoaderOptions", "SHARED_OPTIONS", "ON_ERROR_CHOICES"]
 
@@ -53,6 +55,9 @@ class LoaderOptions:
         patch_operators: build the patch operators (False: every record's geometry holds only the mesh
             edges, for a model that reads nothing else, such as FeaStNet: no geodesic patches are computed
             or read; the features must not need them).
+        forms: the training shapes' forms trained on beside them, {form name: copies per training shape}
+            (``{"cloud": 0.25}``: a point cloud of a quarter of them), drawn with ``seed``; empty: none.
+            See :mod:`zernet.data.training_forms`.
     """
 
     patch_configs: tuple | None = None
@@ -65,8 +70,11 @@ class LoaderOptions:
     repair: bool = False
     progress: bool = True
     patch_operators: bool = True
+    forms: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
+        # Checked here, before any file is read: unknown names, negative rates, a missing package.
+        object.__setattr__(self, "forms", check_form_rates(self.forms))
         configs = self.patch_configs
         # One PatchConfig, a dict or a list of either; empty means "the data set's default", like None.
         object.__setattr__(self, "patch_configs", tuple(as_patch_configs(configs)) if configs else None)
@@ -99,6 +107,7 @@ class LoaderOptions:
             "on_error": self.on_error,
             "repair": self.repair,
             "progress": self.progress,
+            "forms": self.forms,
         }
 
 

@@ -21,6 +21,10 @@ reported by file name and rebuilt). A shape that fails (unreadable file, label m
 with its name and reason and the others go on; at the end, :func:`build_dataset` raises one
 :class:`PreprocessError` listing every failure (``on_error="raise"``, the default, and always when every
 shape failed), or leaves the failed shapes out with a :class:`SkippedShapesWarning` (``on_error="skip"``).
+
+Forms (``forms``, :mod:`zernet.data.training_forms`): once the validation shapes are carved from the
+training split, the remaining training shapes' forms are made and preprocessed the same way (a second
+pass, cached like any shape) and join the training split only.
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ from zernet.data.dataset import DatasetError, ShapeDataset, ShapeRecord, as_targ
 from zernet.data.features import compute_features, feature_channels, feature_parts
 from zernet.data.pool import WORKER_DIED, run_jobs
 from zernet.data.source import ShapeSource, file_key
+from zernet.data.training_forms import form_counts, form_sources
 from zernet.geometry import Surface, normalize_area, resolve_backend, validate_surface
 from zernet.geometry.cloud_mesh import mesh_from_cloud
 from zernet.operators import Geometry, PatchConfig, build_patch_operator
@@ -188,6 +193,7 @@ def preprocess_shapes(
     repair: bool = False,
     progress: bool = True,
     max_in_flight: int | None = None,
+    description: str = "preprocess",
 ) -> dict[str, str]:
     """Preprocess every source into ``cache_dir`` (see the module docstring). Returns {name: failure reason}.
 
@@ -197,6 +203,7 @@ def preprocess_shapes(
         ``if __name__ == "__main__":`` guard. If the pool breaks, the remaining shapes are processed one at a
         time in fresh workers with a warning.
     max_in_flight: shapes submitted but not finished at any time (default 2 per worker), which bounds memory.
+    description: the progress bar's label.
     """
     configs = as_patch_configs(patch_configs)
     cache_dir = Path(cache_dir)
@@ -220,7 +227,7 @@ def preprocess_shapes(
     bar = tqdm(
         total=len(sources),
         initial=len(sources) - len(jobs),
-        desc="preprocess",
+        desc=description,
         unit="shape",
         disable=not progress or not jobs,
         leave=False,
@@ -321,6 +328,7 @@ def build_dataset(
     in_memory: bool | None = None,
     info: dict[str, Any] | None = None,
     correspondence: bool = False,
+    forms: dict[str, float] | None = None,
 ) -> ShapeDataset:
     """Preprocess ``sources`` and assemble the :class:`ShapeDataset`.
 
@@ -342,28 +350,40 @@ def build_dataset(
         in_memory: hold every record in memory; None decides by size (:data:`IN_MEMORY_VERTEX_LIMIT`).
         info: extra description stored on the data set.
         correspondence: mark the data set as template correspondence (class = vertex index).
+        forms: {form name: copies per training shape} of the training shapes (not the validation ones)
+            added to the training split, drawn with ``seed`` (:mod:`zernet.data.training_forms`); what was
+            made is counted in ``info["forms"]``.
     """
     feature_parts(feature_kind)  # an unknown kind fails here, before any preprocessing
     if not sources:
         raise DatasetError("no shapes to preprocess")
+    if on_error not in ("raise", "skip"):
+        raise DatasetError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
     configs = as_patch_configs(patch_configs)
     cache_dir = Path(cache_dir)
     failures = preprocess_shapes(
         sources, configs, cache_dir, target_area, workers=workers, repair=repair, progress=progress
     )
-    if on_error not in ("raise", "skip"):
-        raise DatasetError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
-    if failures:
-        message = failure_listing(failures, len(sources))
-        if on_error == "raise" or len(failures) == len(sources):
-            hint = "" if len(failures) == len(sources) else "\n(on_error='skip' leaves them out)"
-            raise PreprocessError(message + hint, failures, len(sources))
-        warnings.warn(message + "\n(left out: on_error='skip')", SkippedShapesWarning, stacklevel=2)
+    _report_failures(failures, len(sources), on_error)
 
     kept = [s for s in sources if s.name not in failures]
     loaders = [_record_loader(source, configs, cache_dir, target_area, task, feature_kind, repair) for source in kept]
     names = [s.name for s in kept]
     splits = _index_splits(split_names, names, {s.name for s in sources}, n_val, seed)
+    if forms:
+        made = form_sources([kept[i] for i in splits["train"]], forms, seed)
+        form_failures = preprocess_shapes(
+            made, configs, cache_dir, target_area, workers, repair, progress, description="forms"
+        )
+        _report_failures(form_failures, len(made), on_error)
+        failures.update(form_failures)
+        made = [source for source in made if source.name not in form_failures]
+        splits["train"] += range(len(names), len(names) + len(made))
+        loaders += [
+            _record_loader(source, configs, cache_dir, target_area, task, feature_kind, repair) for source in made
+        ]
+        names += [source.name for source in made]
+        info = {**(info or {}), "forms": form_counts(names)}
 
     if in_memory is None:
         in_memory = _estimate_vertices(loaders) * len(configs) <= IN_MEMORY_VERTEX_LIMIT
@@ -384,6 +404,18 @@ def build_dataset(
         info,
         correspondence,
     )
+
+
+def _report_failures(failures: dict[str, str], total: int, on_error: str) -> None:
+    """Raise one :class:`PreprocessError` listing ``failures`` (``on_error="raise"``, or all ``total`` shapes
+    failed), or warn that they are left out (``"skip"``)."""
+    if not failures:
+        return
+    message = failure_listing(failures, total)
+    if on_error == "raise" or len(failures) == total:
+        hint = "" if len(failures) == total else "\n(on_error='skip' leaves them out)"
+        raise PreprocessError(message + hint, failures, total)
+    warnings.warn(message + "\n(left out: on_error='skip')", SkippedShapesWarning, stacklevel=3)
 
 
 def _record_loader(

@@ -36,6 +36,7 @@ import yaml
 
 from zernet.data import DATASET_KINDS, ON_ERROR_CHOICES, DatasetError, data_option_names
 from zernet.data.faust import registration_numbers
+from zernet.data.training_forms import check_form_rates
 from zernet.geometry import FixedScale
 from zernet.inference.errors import ConfigError
 from zernet.nn.models import available_models
@@ -277,6 +278,12 @@ class DataSection(_Section):
                 f"unknown key data.{unknown[0]} for data kind {self.kind!r} (known: "
                 f"{', '.join(sorted(set(data_option_names(self.kind)) | set(self._core_names())))})"
             )
+        # data.forms: {form: copies per training shape} (zernet.data.training_forms): names, rates and the
+        # packages the forms need, checked before any data is loaded.
+        try:
+            check_form_rates(self.options.get("forms"))
+        except DatasetError as error:
+            raise ConfigError(f"data.{error}") from None
 
 
 @dataclass(frozen=True)
