@@ -16,6 +16,7 @@ from zernet.data.synthetic import load_creature, make_creature, make_synthetic_d
 from zernet.data.training_forms import form_counts, form_sources, load_form
 from zernet.geometry import Surface
 from zernet.operators import PatchConfig
+from zernet.training import train
 from zernet.training.config import ConfigError, parse_config
 
 AREA = 100.0
@@ -227,3 +228,31 @@ def test_a_form_whose_package_is_missing_is_named_with_its_extra(monkeypatch):
     with pytest.raises(DatasetError, match=r"the 'remeshed' form needs pymeshlab: pip install 'zernet\[bodies\]'"):
         LoaderOptions(forms={"remeshed": 0.5})
     assert LoaderOptions(forms={"remeshed": 0, "cloud": 1}).forms == {"cloud": 1.0}
+
+
+# ------------------------------------------------------------------------------------------ a run reports them
+def test_a_run_says_which_forms_it_trained_on(tmp_path):
+    config = {
+        "data": {
+            "kind": "synthetic",
+            "task": "segmentation",
+            "n_shapes": 6,
+            "n_vertices": 200,
+            "test_fraction": 0.34,
+            "val_count": 1,
+            "seed": 0,
+            "workers": 0,
+            "forms": {"cloud": 1, "partial": 0.34},
+        },
+        "patch": {"scales": [{"r0": 5.0, "n_samples": 800, "patch_size": 20, "n_max": 3}]},
+        "model": {"name": "zernet", "widths": [8, 8], "angular_resolution": 2},
+        "train": {"epochs": 1, "threads": 1},
+        "eval": {"renders": 0, "plots": False},
+        "cache_dir": str(tmp_path / "cache"),
+    }
+    metrics = train(config, tmp_path / "run", progress=False, workers=0)
+    # 6 creatures: 2 test, 1 validation, 3 training ones, each with its cloud and one of them one-sided.
+    assert metrics["forms"] == {"cloud": 3, "partial": 1}
+    log = (tmp_path / "run" / "train.log").read_text()
+    assert "7 train / 1 val / 2 test shapes" in log
+    assert "forms of the training shapes (data.forms), in the train count: 3 cloud, 1 partial" in log

@@ -290,6 +290,7 @@ def _run(
     )
     metrics["preprocess_seconds"] = preprocess_seconds
     metrics["skipped"] = [{"name": name, "reason": reason} for name, reason in dataset.failures.items()]
+    metrics["forms"] = dataset.info.get("forms", {})  # data.forms: training shapes made per form
     return _report(metrics, predictions, state["history"], dataset, config, run_dir, logger)
 
 
@@ -314,6 +315,12 @@ def _load_dataset(config: RunConfig, progress: bool, workers, ctx: DistributedCo
         f"data: {config.data.kind}, {dataset.task}, {len(splits.train)} train / {len(splits.val)} val / "
         f"{len(splits.test)} test shapes (loaded in {seconds:.1f} s)"
     )
+    made = dataset.info.get("forms")
+    if made:
+        logger.info(
+            "forms of the training shapes (data.forms), in the train count: "
+            + ", ".join(f"{count} {form}" for form, count in made.items())
+        )
     if ctx.is_main:  # reported once, not by every rank of a distributed run
         _report_data(dataset, splits, config.data.kind, logger)
     return dataset, splits, seconds
