@@ -23,7 +23,7 @@ cache: operators, features, eigenbases) plus the match, one thread.
 
 ``--fine-tuned FILE`` adds a column for a template model fine-tuned from the shipped one on a small labelled
 set (``python -m zernet.matching.train_template BODIES RUN --out FILE --init-from
-zernet/matching/pretrained/bodies_template.pt``).
+zernet/pretrained/bodies-match-template.pt``).
 
 ``--classifier RUN`` adds, for reference, a 6,890-way correspondence run (``configs/bodies_correspondence.yaml``)
 on the same pairs as generated, where source and target share the template's topology.

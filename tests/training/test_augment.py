@@ -9,7 +9,7 @@ import torch
 from tiny_configs import tiny_config
 
 from zernet.data.dataset import ShapeRecord
-from zernet.data.features import compute_features, feature_channels
+from zernet.data.features import compute_features, feature_channels, feature_slices
 from zernet.data.synthetic import make_creature
 from zernet.inference import load_checkpoint
 from zernet.training import ConfigError, train
@@ -17,7 +17,6 @@ from zernet.training.augment import (
     augment_records,
     augmenting,
     check_augmentation,
-    feature_slices,
     random_rotation,
     smooth_warp,
 )

@@ -14,15 +14,15 @@ import yaml
 from meshes import ellipsoid, write_faust_layout
 from tiny_configs import faust_run_config, tiny_config
 
-import zernet.training.init_from as init_from_module
 from zernet.cli import main
 from zernet.data import LoaderOptions, load_faust
 from zernet.data.features import feature_channels
 from zernet.geometry import Surface
-from zernet.inference import build_model_from_spec, load_checkpoint, model_spec, predict
+from zernet.inference import build_model_from_spec, load_checkpoint, model_file, model_spec, predict
+from zernet.inference.model_file import pretrained_names
 from zernet.operators import PatchConfig
 from zernet.training import ConfigError, load_config, parse_config, train
-from zernet.training.init_from import export_backbone, initialise_from, load_init_source, pretrained_names
+from zernet.training.init_from import export_backbone, initialise_from, load_init_source
 
 
 @pytest.fixture(scope="module")
@@ -179,9 +179,9 @@ def test_a_backbone_starts_every_weight_but_a_fresh_output_layer(source_run, tmp
 
 
 def test_shipped_weights_are_found_by_name_and_unknown_names_listed(source_run, tmp_path, monkeypatch):
-    monkeypatch.setattr(init_from_module, "_pretrained_folder", lambda: tmp_path)
+    monkeypatch.setattr(model_file, "PRETRAINED", tmp_path)
     export_backbone(source_run, tmp_path / "creatures.pt")
-    assert pretrained_names() == ["creatures"]
+    assert model_file.pretrained_names(("backbone",)) == ["creatures"]
     assert load_init_source("pretrained:creatures").path == tmp_path / "creatures.pt"
     with pytest.raises(FileNotFoundError, match="no weights named 'bodies'.*shipped: pretrained:creatures"):
         load_init_source("pretrained:bodies")
@@ -190,7 +190,7 @@ def test_shipped_weights_are_found_by_name_and_unknown_names_listed(source_run, 
 def test_the_shipped_weights_load():
     """Every shipped file is a backbone (no output layer) or a correspondence model with its template, whose
     output layer can follow another template."""
-    for name in pretrained_names():
+    for name in pretrained_names(("backbone",)):
         source = load_init_source(f"pretrained:{name}")
         head = [key for key in source.weights if key.startswith("output.")]
         assert source.weights and (not head or source.template is not None), name

@@ -1,13 +1,17 @@
-"""Per-vertex model inputs: the feature kinds a data set can use and how each part is computed.
+"""Per-vertex model inputs: the input parts a feature kind joins, and how each is computed.
 
-A feature kind joins parts of :data:`FEATURE_PARTS` with "+" (e.g. ``"xyz+normals"`` or
-``"shape+curvature+membrane"``); :func:`compute_features` puts the parts' channels side by side in that order
-and :func:`feature_channels` says how many there are before any surface is loaded.
+A feature kind joins registered parts with "+" (e.g. ``"xyz+normals"`` or ``"shape+curvature+membrane"``);
+:func:`compute_features` puts the parts' channels side by side in that order and :func:`feature_channels`
+says how many there are before any surface is loaded. The parts are a registry, :data:`FEATURE_PARTS`:
+the built-in ones are registered at the end of this module, and a higher layer adds its own with
+:func:`register_input_part` (``template``, which runs a trained model, registers from :mod:`zernet.matching`
+when that is imported; the ``zernet`` command imports it).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse
@@ -18,13 +22,18 @@ from zernet.geometry import Surface, membrane_stress
 from zernet.zernike import harmonic_pairs, index_to_nm, orders
 
 __all__ = [
+    "InputPart",
     "FEATURE_PARTS",
+    "PARTS_REGISTERED_ELSEWHERE",
+    "register_input_part",
     "MEMBRANE_PRESTRESSES",
     "HKS_EIGENPAIRS",
+    "HKS_TIMES",
     "BOUNDARY_SATURATION",
     "default_features",
     "feature_parts",
     "feature_channels",
+    "feature_slices",
     "needs_patch_operators",
     "shape_descriptors",
     "curvature_descriptors",
@@ -33,23 +42,58 @@ __all__ = [
     "compute_features",
 ]
 
-#: Parts a feature kind is made of, with their channel counts (None: depends on the patch settings, see
-#: :func:`feature_channels`). A kind joins parts with "+", e.g. ``"xyz+normals"`` or
-#: ``"shape+curvature+membrane"``; the channels follow in that order.
-FEATURE_PARTS = {
-    "xyz": 3,
-    "normals": 3,
-    "ones": 1,
-    "shape": None,
-    "curvature": None,
-    "membrane": 3,
-    "hks": 16,
-    "template": 3,
-}
+
+@dataclass(frozen=True)
+class InputPart:
+    """One input part: its channel count and how it is computed.
+
+    Attributes:
+        name: what a feature kind calls it (no "+").
+        width: its channels, or a function of the patch scales' Zernike degrees giving them.
+        compute: ``compute(surface, operators, cache_dir) -> (N, width)`` array; ``operators`` are the
+            surface's patch operators, one per scale (None when the data set builds none).
+        reads_operators: the part is computed from the patch operators (then they are always built).
+    """
+
+    name: str
+    width: int | Callable[[Sequence[int]], int]
+    compute: Callable
+    reads_operators: bool = False
+
+    def channels(self, degrees: Sequence[int]) -> int:
+        return int(self.width(degrees) if callable(self.width) else self.width)
+
+
+#: The registered input parts by name (:func:`register_input_part`).
+FEATURE_PARTS: dict[str, InputPart] = {}
+
+#: Parts that a higher layer registers when it is imported, and which: named in the error when a feature
+#: kind asks for one that is not registered yet.
+PARTS_REGISTERED_ELSEWHERE = {"template": "zernet.matching"}
+
+
+def register_input_part(
+    name: str, width: int | Callable[[Sequence[int]], int], compute: Callable, reads_operators: bool = False
+) -> InputPart:
+    """Add input part ``name`` (see :class:`InputPart`); registering the same function again (a module
+    reloaded) replaces it, another function under a taken name is a ValueError."""
+    if not name or "+" in name:
+        raise ValueError(f"an input part's name is non-empty and has no '+': {name!r}")
+    existing = FEATURE_PARTS.get(name)
+    if existing is not None and (existing.compute.__module__, existing.compute.__qualname__) != (
+        compute.__module__,
+        compute.__qualname__,
+    ):
+        raise ValueError(f"input part {name!r} is already registered by {existing.compute.__module__}")
+    FEATURE_PARTS[name] = InputPart(name, width, compute, reads_operators)
+    return FEATURE_PARTS[name]
+
 
 #: Eigenpairs of the Laplacian behind the "hks" part: its times run from ``4 ln 10 / λ_64`` (a few patch
 #: radii on a body) to ``4 ln 10 / λ_1`` (the whole surface).
 HKS_EIGENPAIRS = 64
+#: Times of the heat kernel signature: the channels of the "hks" part.
+HKS_TIMES = 16
 
 #: Pre-tensions of the :func:`~zernet.geometry.membrane.membrane_stress` channels of the "membrane" feature part.
 MEMBRANE_PRESTRESSES = (0.01, 0.02, 0.04)
@@ -74,8 +118,17 @@ def default_features(surface: Surface) -> np.ndarray:
 
 
 def feature_parts(kind: str) -> list[str]:
-    """The :data:`FEATURE_PARTS` of feature kind ``kind`` ("+"-joined), in order; DatasetError if unknown."""
+    """The registered parts of feature kind ``kind`` ("+"-joined), in order; DatasetError if one is unknown,
+    or not registered yet (then the error says which module registers it)."""
     parts = str(kind).split("+")
+    unregistered = [part for part in parts if part in PARTS_REGISTERED_ELSEWHERE and part not in FEATURE_PARTS]
+    if unregistered:
+        part = unregistered[0]
+        module = PARTS_REGISTERED_ELSEWHERE[part]
+        raise DatasetError(
+            f"feature part {part!r} of {kind!r} is not registered: {module} registers it when imported "
+            f"(the zernet command does; in Python, `import {module}` before training, evaluating or predicting)"
+        )
     unknown = [part for part in parts if part not in FEATURE_PARTS]
     if unknown or len(set(parts)) != len(parts):
         raise DatasetError(
@@ -88,15 +141,17 @@ def feature_parts(kind: str) -> list[str]:
 def feature_channels(kind: str, n_max=5) -> int:
     """Number of input channels of feature ``kind``; ``n_max``: the degree of each patch scale (int or list)."""
     degrees = [n_max] if isinstance(n_max, int) else list(n_max)
-    channels = 0
+    return sum(FEATURE_PARTS[part].channels(degrees) for part in feature_parts(kind))
+
+
+def feature_slices(kind: str, degrees: Sequence[int]) -> dict[str, slice]:
+    """The columns of each part of feature ``kind`` (``degrees``: the Zernike degree of each patch scale)."""
+    slices, start = {}, 0
     for part in feature_parts(kind):
-        if part == "shape":
-            channels += sum(int((orders(n) >= 0).sum()) for n in degrees) + 1
-        elif part == "curvature":
-            channels += 1 + len(degrees)
-        else:
-            channels += FEATURE_PARTS[part]
-    return channels
+        width = FEATURE_PARTS[part].channels(list(degrees))
+        slices[part] = slice(start, start + width)
+        start += width
+    return slices
 
 
 def shape_descriptors(surface: Surface, operator, boundary: bool = True) -> np.ndarray:
@@ -172,17 +227,15 @@ def curvature_descriptors(surface: Surface, radii: Sequence[float]) -> np.ndarra
     return np.stack(columns, axis=1).astype(np.float32)
 
 
-#: Feature parts computed from the surface's patch operators.
-OPERATOR_PARTS = ("shape", "curvature")
-
-
 def needs_patch_operators(kind: str) -> bool:
-    """Whether feature ``kind`` has a part computed from the surface's patch operators (:data:`OPERATOR_PARTS`)."""
-    return any(part in OPERATOR_PARTS for part in feature_parts(kind))
+    """Whether feature ``kind`` has a part computed from the surface's patch operators."""
+    return any(FEATURE_PARTS[part].reads_operators for part in feature_parts(kind))
 
 
 def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_dir=None) -> np.ndarray:
-    """Model input of feature kind ``kind``, (N, C) float32: its :data:`FEATURE_PARTS` side by side.
+    """Model input of feature kind ``kind``, (N, C) float32: its parts side by side.
+
+    The built-in parts:
 
     - ``"xyz"``: :func:`default_features` (3);
     - ``"normals"``: unit vertex normals (3);
@@ -194,39 +247,22 @@ def compute_features(surface: Surface, kind: str = "xyz", operators=None, cache_
     - ``"membrane"``: log of :func:`~zernet.geometry.membrane.membrane_stress` at each of
       :data:`MEMBRANE_PRESTRESSES` (meshes only; cached in ``cache_dir`` when given);
     - ``"hks"``: :func:`heat_kernel_descriptors` (16; meshes and point clouds; the eigenbasis cached in
-      ``cache_dir`` when given);
-    - ``"template"``: human bodies only: where on the template body each vertex lies, read by the template
-      model shipped with zernet (:func:`~zernet.matching.template.body_template_positions`; 3; meshes and
-      point clouds in any pose; cached in ``cache_dir`` when given). The same for one place on every person,
-      unlike xyz: a model trained on a few people carries to new ones.
+      ``cache_dir`` when given).
+
+    Registered by :mod:`zernet.matching`: ``"template"``, human bodies only: where on the template body each
+    vertex lies, read by the template model shipped with zernet (3; meshes and point clouds in any pose;
+    cached in ``cache_dir`` when given). The same for one place on every person, unlike xyz: a model trained
+    on a few people carries to new ones.
 
     ``operators``: the surface's patch operators, one per scale (needed by "shape" and "curvature").
     """
     columns = []
-    for part in feature_parts(kind):
-        if part in OPERATOR_PARTS and not operators:
-            raise DatasetError(f"feature part {part!r} of {kind!r} needs the surface's patch operators")
-        if part == "xyz":
-            columns.append(default_features(surface))
-        elif part == "normals":
-            columns.append(surface.vertex_normals().astype(np.float32))
-        elif part == "ones":
-            columns.append(np.ones((surface.n_vertices, 1), dtype=np.float32))
-        elif part == "shape":
-            columns += [shape_descriptors(surface, op, boundary=False) for op in operators]
-            columns.append(shape_descriptors(surface, operators[0])[:, -1:])
-        elif part == "curvature":
-            columns.append(curvature_descriptors(surface, [float(op.config.r0) for op in operators]))
-        elif part == "membrane":
-            columns.append(membrane_descriptors(surface, cache_dir))
-        elif part == "hks":
-            columns.append(heat_kernel_descriptors(surface, cache_dir))
-        elif part == "template":
-            # Imported here: the template model is itself a zernet model built on this module.
-            from zernet.matching.template import body_template_positions
-
-            columns.append(body_template_positions(surface, cache_dir))
-    return np.concatenate(columns, axis=1).astype(np.float32)
+    for name in feature_parts(kind):
+        part = FEATURE_PARTS[name]
+        if part.reads_operators and not operators:
+            raise DatasetError(f"feature part {name!r} of {kind!r} needs the surface's patch operators")
+        columns.append(np.asarray(part.compute(surface, operators, cache_dir), dtype=np.float32))
+    return np.concatenate(columns, axis=1)
 
 
 def membrane_descriptors(surface: Surface, cache_dir=None) -> np.ndarray:
@@ -245,7 +281,7 @@ def membrane_descriptors(surface: Surface, cache_dir=None) -> np.ndarray:
 
 
 def heat_kernel_descriptors(surface: Surface, cache_dir=None) -> np.ndarray:
-    """The heat kernel signature at :data:`FEATURE_PARTS` ["hks"] times, (N, 16) float32.
+    """The heat kernel signature at :data:`HKS_TIMES` times, (N, 16) float32.
 
     :func:`~zernet.operators.spectral.heat_kernel_signature` of the first :data:`HKS_EIGENPAIRS` eigenpairs
     of robust-laplacian's Laplacian (of the mesh, or of the points of a cloud). Why: a patch sees only a few
@@ -258,4 +294,33 @@ def heat_kernel_descriptors(surface: Surface, cache_dir=None) -> np.ndarray:
     from zernet.operators.spectral import heat_kernel_signature, laplacian_eigenbasis
 
     basis = laplacian_eigenbasis(surface, HKS_EIGENPAIRS, cache_dir=cache_dir)
-    return heat_kernel_signature(basis, FEATURE_PARTS["hks"])
+    return heat_kernel_signature(basis, HKS_TIMES)
+
+
+def _shape_channels(degrees: Sequence[int]) -> int:
+    """The "shape" part's channels: the rotation-invariant coefficients of every scale, the boundary distance."""
+    return sum(int((orders(n) >= 0).sum()) for n in degrees) + 1
+
+
+def _shape_part(surface: Surface, operators, cache_dir) -> np.ndarray:
+    columns = [shape_descriptors(surface, operator, boundary=False) for operator in operators]
+    columns.append(shape_descriptors(surface, operators[0])[:, -1:])
+    return np.concatenate(columns, axis=1)
+
+
+def _curvature_part(surface: Surface, operators, cache_dir) -> np.ndarray:
+    return curvature_descriptors(surface, [float(operator.config.r0) for operator in operators])
+
+
+# The built-in parts (compute_features says what each is).
+register_input_part("xyz", 3, lambda surface, operators, cache_dir: default_features(surface))
+register_input_part("normals", 3, lambda surface, operators, cache_dir: surface.vertex_normals())
+register_input_part("ones", 1, lambda surface, operators, cache_dir: np.ones((surface.n_vertices, 1)))
+register_input_part("shape", _shape_channels, _shape_part, reads_operators=True)
+register_input_part("curvature", lambda degrees: 1 + len(degrees), _curvature_part, reads_operators=True)
+register_input_part(
+    "membrane",
+    len(MEMBRANE_PRESTRESSES),
+    lambda surface, operators, cache_dir: membrane_descriptors(surface, cache_dir),
+)
+register_input_part("hks", HKS_TIMES, lambda surface, operators, cache_dir: heat_kernel_descriptors(surface, cache_dir))

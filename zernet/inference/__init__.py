@@ -1,7 +1,7 @@
 """Running a stored model on a prepared surface: what prediction needs, and training and matching read.
 
 - :mod:`~zernet.inference.spec`: a model rebuilt from its spec (:func:`build_model_from_spec`);
-- :mod:`~zernet.inference.model_file`: reading model files (:func:`load_checkpoint`);
+- :mod:`~zernet.inference.model_file`: the one format of model files and its reader (:func:`read_model_file`);
 - :mod:`~zernet.inference.batch`: one forward pass's input (:class:`~zernet.inference.batch.Batch`);
 - :mod:`~zernet.inference.targets`: how inputs and targets are standardised for the network;
 - :mod:`~zernet.inference.runtime`: the device and precision a model runs at;
@@ -12,13 +12,13 @@
 Nothing here imports :mod:`zernet.training` or :mod:`zernet.matching`: both build on it.
 """
 
-from zernet.inference.model_file import CHECKPOINT_FORMAT, checkpoint_path, load_checkpoint
+from zernet.inference.model_file import checkpoint_path, load_checkpoint, read_model_file
 from zernet.inference.predict import model_from_checkpoint, predict, predict_record
 from zernet.inference.runtime import flush_denormals, keep_freed_memory, precision_autocast, resolve_device
 from zernet.inference.spec import build_model_from_spec, model_spec
 
 __all__ = [
-    "CHECKPOINT_FORMAT",
+    "read_model_file",
     "load_checkpoint",
     "checkpoint_path",
     "build_model_from_spec",

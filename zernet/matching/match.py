@@ -26,11 +26,11 @@ import torch
 from scipy.spatial import cKDTree
 
 from zernet.geometry import FixedScale, Surface, read_surface, repair_surface
+from zernet.inference.model_file import read_model_file
 from zernet.matching.fmap import cycle_confidence, functional_map, nearest_rows, pointmap_from_fmap, zoomout
 from zernet.matching.model import DescriptorModel, load_matching_model
 from zernet.matching.shapes import MatchShape, prepare_shape, rotating_columns
 from zernet.matching.template import (
-    TEMPLATE_FORMAT,
     TemplateModel,
     TemplateShape,
     load_template_model,
@@ -230,10 +230,10 @@ def load_matcher(path: str | os.PathLike | None = None) -> TemplateModel | Descr
     path = Path(path)
     if path.is_file():
         try:
-            stored = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception:  # load_matching_model names what is wrong with the file
-            stored = None
-        if isinstance(stored, dict) and stored.get("format") == TEMPLATE_FORMAT:
+            kind = read_model_file(path)["kind"]
+        except ValueError:  # load_matching_model names what is wrong with the file
+            kind = None
+        if kind == "template":
             return load_template_model(path)
     return load_matching_model(path)[0]
 

@@ -5,9 +5,9 @@ zernet model, :mod:`zernet.nn.models`, with ``out_channels`` = the descriptor si
 inputs (feature kind, patch settings, area, the input standardisation measured on the training shapes)
 and the spectral settings (eigenpairs of the functional-map layer, its regularisation, ZoomOut's range).
 
-A matching model file is a plain dictionary, loaded with ``torch.load(weights_only=True)`` (a crafted file
-cannot run code): ``{"format": MODEL_FORMAT, "spec": MatchingSpec.to_dict(), "model": state dict,
-"provenance": {...}}``. The model shipped with zernet is :data:`PRETRAINED_MODEL`.
+A descriptor model file is a model file of kind ``descriptors`` (:mod:`zernet.inference.model_file`):
+``{"spec": MatchingSpec.to_dict(), "model": state dict, "provenance": {...}}`` beside the format fields.
+The model shipped with zernet is :data:`PRETRAINED_MODEL`.
 """
 
 from __future__ import annotations
@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from zernet.inference.model_file import model_file, pretrained_path, read_model_file
 from zernet.io_utils import atomic_save_torch, plain
 from zernet.nn.models import build_model
 from zernet.operators import PatchConfig
 
 __all__ = [
-    "MODEL_FORMAT",
     "PRETRAINED_MODEL",
     "MatchingSpec",
     "DescriptorModel",
@@ -32,9 +32,8 @@ __all__ = [
     "load_matching_model",
 ]
 
-MODEL_FORMAT = "zernet-matching-1"
 #: The descriptor model shipped in the package (trained on generated bodies only; provenance beside it).
-PRETRAINED_MODEL = Path(__file__).resolve().parent / "pretrained" / "bodies_descriptors.pt"
+PRETRAINED_MODEL = pretrained_path("bodies-match-descriptors")
 
 
 @dataclass(frozen=True)
@@ -122,10 +121,8 @@ class DescriptorModel(torch.nn.Module):
 def save_matching_model(model: DescriptorModel, path: str | Path, provenance: dict | None = None) -> Path:
     """Write ``model`` (spec, weights, ``provenance``) atomically to ``path``."""
     state = {key: value.detach().cpu().clone() for key, value in model.state_dict().items()}
-    return atomic_save_torch(
-        {"format": MODEL_FORMAT, "spec": model.spec.to_dict(), "model": state, "provenance": plain(provenance or {})},
-        path,
-    )
+    contents = {"spec": model.spec.to_dict(), "model": state, "provenance": plain(provenance or {})}
+    return atomic_save_torch(model_file("descriptors", contents), path)
 
 
 def load_matching_model(path: str | Path | None = None) -> tuple[DescriptorModel, dict]:
@@ -134,17 +131,7 @@ def load_matching_model(path: str | Path | None = None) -> tuple[DescriptorModel
     path = PRETRAINED_MODEL if path is None else Path(path)
     if path.is_dir():
         path = path / "best.pt"
-    if not path.is_file():
-        raise FileNotFoundError(f"matching model not found: {path}")
-    try:
-        stored = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # truncated, corrupt, or holding objects weights_only refuses
-        raise ValueError(f"{path}: not a readable zernet matching model ({type(error).__name__}: {error})") from None
-    if not isinstance(stored, dict) or stored.get("format") != MODEL_FORMAT:
-        raise ValueError(
-            f"{path}: not a zernet matching model (expected format {MODEL_FORMAT}); a run of "
-            "`zernet train` is a per-vertex classifier, not a descriptor model"
-        )
+    stored = read_model_file(path, ("descriptors",), "zernet matching model")
     model = DescriptorModel(MatchingSpec.from_dict(stored["spec"]))
     model.load_state_dict(stored["model"])
     return model.eval(), dict(stored.get("provenance") or {})

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from zernet.data import prepare_record
-from zernet.data.features import FEATURE_PARTS
+from zernet.data.features import HKS_TIMES, feature_parts, feature_slices
 from zernet.geometry import FixedScale, Surface, SurfaceWarning, coarsen_surface, validate_surface
 from zernet.operators import Geometry, PatchConfig
 from zernet.operators.spectral import SpectralBasis, heat_kernel_signature, laplacian_eigenbasis
@@ -78,7 +78,7 @@ def input_features(zernet_features: np.ndarray | None, basis: SpectralBasis, fea
     use, already computed; the data sets' ``hks`` part takes its first 64 eigenpairs instead)."""
     columns = [] if zernet_features is None else [zernet_features]
     if "hks" in feature_kind.split("+"):
-        columns.append(heat_kernel_signature(basis, FEATURE_PARTS["hks"]))
+        columns.append(heat_kernel_signature(basis, HKS_TIMES))
     return np.concatenate(columns, axis=1).astype(np.float32)
 
 
@@ -152,9 +152,6 @@ def _eigenbasis(surface: Surface, is_cloud: bool, n_eigen: int, cache_dir) -> Sp
 
 def rotating_columns(feature_kind: str, n_max: int) -> list[slice]:
     """The column slices of the parts that turn with the surface (xyz, normals)."""
-    from zernet.data.features import feature_parts
-    from zernet.training.augment import feature_slices
-
     zernet_kind = "+".join(part for part in feature_kind.split("+") if part != "hks")
     if not zernet_kind:
         return []

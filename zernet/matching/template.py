@@ -27,9 +27,9 @@ Smoothing. The classifier answers each vertex on its own; the template positions
 surface by a short heat diffusion (:func:`zernet.operators.spectral.heat_smoothed`,
 :data:`SMOOTHING_TIME`), which averages out its independent errors (a third off the mean matching error between remeshed bodies).
 
-A template model file is a plain dictionary loaded with ``torch.load(weights_only=True)``:
-``{"format": TEMPLATE_FORMAT, "model_spec", "model" (state dict), "patch_configs", "feature_kind",
-"feature_stats", "area", "coarse_vertices", "template_positions" (C, 3), "provenance"}``; made from a
+A template model file is a model file of kind ``template`` (:mod:`zernet.inference.model_file`):
+``{"model_spec", "model" (state dict), "patch_configs", "feature_kind", "feature_stats", "area",
+"coarse_vertices", "template_positions" (C, 3), "provenance"}`` beside the format fields; made from a
 training run by :func:`save_template_model`. The model shipped with zernet is
 :data:`PRETRAINED_TEMPLATE_MODEL`.
 """
@@ -51,7 +51,12 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from zernet.data import prepare_record
+from zernet.data.features import register_input_part
 from zernet.geometry import FixedScale, Surface, SurfaceWarning, coarsen_surface
+from zernet.inference.batch import Batch, model_basis_orders, model_directional_order
+from zernet.inference.model_file import model_file, pretrained_path, read_model_file
+from zernet.inference.spec import build_model_from_spec
+from zernet.inference.targets import standardise_features
 from zernet.io_utils import atomic_save_torch, atomic_write_bytes, plain
 from zernet.matching.fmap import cycle_confidence
 from zernet.matching.shapes import rotating_columns
@@ -60,7 +65,6 @@ from zernet.operators.cache import CacheWarning
 from zernet.operators.spectral import heat_smoothed
 
 __all__ = [
-    "TEMPLATE_FORMAT",
     "PRETRAINED_TEMPLATE_MODEL",
     "TemplateModel",
     "TemplateShape",
@@ -72,9 +76,8 @@ __all__ = [
     "body_template_positions",
 ]
 
-TEMPLATE_FORMAT = "zernet-template-1"
 #: The template model shipped in the package (trained on generated bodies only; provenance beside it).
-PRETRAINED_TEMPLATE_MODEL = Path(__file__).resolve().parent / "pretrained" / "bodies_template.pt"
+PRETRAINED_TEMPLATE_MODEL = pretrained_path("bodies-match-template")
 
 #: Rigid refinements of the chosen alignment (each one more pass of the classifier).
 ALIGNMENT_STEPS = 3
@@ -151,8 +154,7 @@ def save_template_model(run_checkpoint: dict, template_positions: np.ndarray, pa
     area = preprocess["area"]
     if area is None:  # trained at a fixed scale: surfaces are brought to the training bodies' median area
         area = provenance["training_area"]
-    payload = {
-        "format": TEMPLATE_FORMAT,
+    contents = {
         "model_spec": plain(run_checkpoint["model_spec"]),
         "model": {key: value.half() for key, value in run_checkpoint["model"].items()},
         "patch_configs": plain(preprocess["patch_configs"]),
@@ -164,20 +166,14 @@ def save_template_model(run_checkpoint: dict, template_positions: np.ndarray, pa
         "provenance": plain({**provenance, "unit_scale": unit_scale}),
     }
     path = Path(path)
-    atomic_save_torch(payload, path)
+    atomic_save_torch(model_file("template", contents), path)
     return path
 
 
 def load_template_model(path: str | os.PathLike | None = None, device: str | torch.device = "cpu") -> TemplateModel:
     """A template model from its file (None: the shipped one)."""
-    from zernet.inference.spec import build_model_from_spec
-
     path = PRETRAINED_TEMPLATE_MODEL if path is None else Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no template model file there")
-    payload = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(payload, dict) or payload.get("format") != TEMPLATE_FORMAT:
-        raise ValueError(f"{path}: not a zernet template model (format {TEMPLATE_FORMAT!r} expected)")
+    payload = read_model_file(path, ("template",), "zernet template model")
     network = build_model_from_spec(payload["model_spec"])
     network.load_state_dict({key: value.float() for key, value in payload["model"].items()})
     network.to(device).eval()
@@ -227,9 +223,6 @@ def template_shape(
     ``smoothing``: the heat diffusion time of the positions, in the scaled surface's units (None:
     :data:`SMOOTHING_TIME` times the model's area; 0: none).
     """
-    from zernet.inference.batch import Batch, model_basis_orders, model_directional_order
-    from zernet.inference.targets import standardise_features
-
     area = model.area if area is None else area
     factor = area.factor if isinstance(area, FixedScale) else float(np.sqrt(area / surface.area))
     surface = Surface(surface.vertices * factor, surface.faces, name=surface.name)
@@ -365,3 +358,12 @@ def body_template_positions(surface: Surface, cache_dir: str | os.PathLike | Non
         np.savez(buffer, positions=positions, key=np.asarray(key))
         atomic_write_bytes(path, buffer.getvalue())
     return positions
+
+
+def _template_part(surface: Surface, operators, cache_dir) -> np.ndarray:
+    """The "template" input part (:mod:`zernet.data.features`): :func:`body_template_positions`."""
+    return body_template_positions(surface, cache_dir)
+
+
+# Registered here, not in zernet.data: the part runs a trained model, a layer above the data sets.
+register_input_part("template", 3, _template_part)

@@ -38,7 +38,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from zernet.data.features import FEATURE_PARTS, feature_channels, feature_parts
+from zernet.data.features import feature_parts, feature_slices
 from zernet.inference.batch import with_directional
 from zernet.training.config import ConfigError, TrainSection
 
@@ -46,7 +46,6 @@ __all__ = [
     "ROTATING_PARTS",
     "SCALING_PARTS",
     "augmenting",
-    "feature_slices",
     "check_augmentation",
     "random_rotation",
     "smooth_warp",
@@ -66,16 +65,6 @@ def augmenting(train: TrainSection) -> bool:
         or train.augment_anisotropy > 0
         or train.augment_warp > 0
     )
-
-
-def feature_slices(kind: str, degrees: Sequence[int]) -> dict[str, slice]:
-    """The columns of each part of feature ``kind`` (``degrees``: the Zernike degree of each patch scale)."""
-    slices, start = {}, 0
-    for part in feature_parts(kind):
-        width = FEATURE_PARTS[part] or feature_channels(part, list(degrees))
-        slices[part] = slice(start, start + width)
-        start += width
-    return slices
 
 
 def check_augmentation(train: TrainSection, kind: str) -> None:

@@ -1,7 +1,7 @@
 """Checkpoints: what they hold and how they are written (atomically); read by :mod:`zernet.inference.model_file`.
 
-A checkpoint is a plain dictionary of tensors and plain containers (dicts, lists, strings, numbers), so it
-loads with ``torch.load(weights_only=True)``: a crafted checkpoint cannot run code. It is made in one
+A checkpoint is a model file of kind ``checkpoint`` (:mod:`zernet.inference.model_file`): a plain
+dictionary of tensors and plain containers, so a crafted checkpoint cannot run code. It is made in one
 place, :func:`make_checkpoint`, from the :class:`RunRecord` (what stays fixed through a run: the
 configuration, the model spec, the task, the target and feature scaling, the preprocessing), the model,
 the optimiser, the loop state and the RNG states.
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from zernet.inference.model_file import CHECKPOINT_FORMAT, load_checkpoint
+from zernet.inference.model_file import load_checkpoint, model_file
 from zernet.io_utils import atomic_save_torch, plain, snapshot_file
 from zernet.training.schedule import rng_state
 
@@ -68,24 +68,26 @@ def cpu_state_dict(module_or_optimizer) -> dict:
 
 def make_checkpoint(record: RunRecord, model: torch.nn.Module, optimizer: torch.optim.Optimizer, state: dict) -> dict:
     """The checkpoint after an epoch: ``record``, the weights, the optimiser, the loop ``state``, RNG states."""
-    return {
-        "format": CHECKPOINT_FORMAT,
-        "config": plain(record.config),
-        "model_spec": plain(record.model_spec),
-        "task": record.task,
-        "num_classes": record.num_classes,
-        "correspondence": record.correspondence,
-        "target_stats": record.target_stats,
-        "target_exponent": record.target_exponent,
-        "feature_stats": record.feature_stats,
-        "preprocess": record.preprocess,
-        "template_faces": record.template_faces,
-        "template_vertices": record.template_vertices,
-        "model": cpu_state_dict(model),
-        "optimizer": cpu_state_dict(optimizer),
-        "state": copy.deepcopy(state),
-        "rng": rng_state(),
-    }
+    return model_file(
+        "checkpoint",
+        {
+            "config": plain(record.config),
+            "model_spec": plain(record.model_spec),
+            "task": record.task,
+            "num_classes": record.num_classes,
+            "correspondence": record.correspondence,
+            "target_stats": record.target_stats,
+            "target_exponent": record.target_exponent,
+            "feature_stats": record.feature_stats,
+            "preprocess": record.preprocess,
+            "template_faces": record.template_faces,
+            "template_vertices": record.template_vertices,
+            "model": cpu_state_dict(model),
+            "optimizer": cpu_state_dict(optimizer),
+            "state": copy.deepcopy(state),
+            "rng": rng_state(),
+        },
+    )
 
 
 def save_epoch_checkpoints(checkpoint: dict, run_dir: Path, improved: bool) -> None:

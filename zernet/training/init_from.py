@@ -37,7 +37,6 @@ still reports it), writes to ``train.log`` and to ``metrics.json`` (``init_from`
 
 from __future__ import annotations
 
-import importlib.resources
 import itertools
 from collections.abc import Iterable
 from pathlib import Path
@@ -46,7 +45,14 @@ import numpy as np
 import torch
 
 from zernet.inference.batch import Batch, model_basis_orders, model_directional_order
-from zernet.inference.model_file import checkpoint_path, load_checkpoint
+from zernet.inference.model_file import (
+    checkpoint_path,
+    load_checkpoint,
+    model_file,
+    pretrained_names,
+    pretrained_path,
+    read_model_file,
+)
 from zernet.inference.spec import build_model_from_spec
 from zernet.io_utils import atomic_save_torch
 from zernet.training.config import ConfigError
@@ -57,7 +63,6 @@ __all__ = [
     "VOTING_SHAPES",
     "voting_shapes",
     "InitSource",
-    "pretrained_names",
     "load_init_source",
     "initialise_from",
     "carried_head",
@@ -69,18 +74,12 @@ __all__ = [
 HEAD_PREFIX = "output."
 #: ``pretrained:NAME`` names weights shipped in ``zernet/pretrained/NAME.pt``.
 PRETRAINED_PREFIX = "pretrained:"
+#: The kinds of model file a run starts from (:mod:`zernet.inference.model_file`): a run's checkpoint, a
+#: backbone, or a template model (fine-tuning ``zernet match``'s classifier on bodies of one's own).
+_STARTING_KINDS = ("checkpoint", "backbone", "template")
 #: Training shapes on which a correspondence checkpoint votes for the output row of each vertex of a new
 #: template (:func:`carried_head`): 8 scans of one person name the exact source vertex for 94 % of them.
 VOTING_SHAPES = 8
-
-
-def _pretrained_folder() -> Path:
-    return Path(str(importlib.resources.files("zernet") / "pretrained"))
-
-
-def pretrained_names() -> list[str]:
-    """The names of the weights shipped with zernet (``pretrained:NAME``)."""
-    return sorted(path.stem for path in _pretrained_folder().glob("*.pt"))
 
 
 class InitSource:
@@ -109,43 +108,25 @@ def load_init_source(run: str | Path) -> InitSource:
     """
     if str(run).startswith(PRETRAINED_PREFIX):
         name = str(run)[len(PRETRAINED_PREFIX) :]
-        run = _pretrained_folder() / f"{name}.pt"
+        run = pretrained_path(name)
         if not run.is_file():
-            shipped = ", ".join(PRETRAINED_PREFIX + known for known in pretrained_names()) or "none"
+            shipped = ", ".join(PRETRAINED_PREFIX + known for known in pretrained_names(("backbone",))) or "none"
             raise FileNotFoundError(f"init-from: no weights named {name!r} ship with zernet (shipped: {shipped})")
     run = Path(run).expanduser()
     if not run.exists():
         raise FileNotFoundError(f"--init-from: {run} does not exist (give a run folder or a .pt checkpoint)")
     path = checkpoint_path(run)
-    try:
-        checkpoint = load_checkpoint(path)
-    except ValueError:
-        checkpoint = _template_model_weights(path)
-        if checkpoint is None:
-            raise
+    checkpoint = read_model_file(path, _STARTING_KINDS, "zernet checkpoint")
+    if checkpoint["kind"] == "template":  # its network (one output per template vertex) is a classifier's
+        checkpoint = {
+            "model_spec": checkpoint["model_spec"],
+            "model": checkpoint["model"],
+            "task": "classification",
+            "num_classes": len(checkpoint["template_positions"]),
+        }
     if not isinstance(checkpoint.get("model"), dict):
         raise ValueError(f"--init-from: {path} holds no model weights")
     return InitSource(path, checkpoint)
-
-
-def _template_model_weights(path: Path) -> dict | None:
-    """A template model file (``zernet match``'s classifier) read as a checkpoint to fine-tune, or None when
-    ``path`` is something else: its network (one output per template vertex) is a classification run's."""
-    from zernet.matching.template import TEMPLATE_FORMAT
-
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception:  # load_checkpoint has said what is wrong with it
-        return None
-    if not isinstance(payload, dict) or payload.get("format") != TEMPLATE_FORMAT:
-        return None
-    classes = len(payload["template_positions"])
-    return {
-        "model_spec": payload["model_spec"],
-        "model": payload["model"],
-        "task": "classification",
-        "num_classes": classes,
-    }
 
 
 def initialise_from(
@@ -281,7 +262,8 @@ def export_backbone(run: str | Path, path: str | Path, with_output: bool = False
         for name, value in source["model"].items()
         if with_output or not name.startswith(HEAD_PREFIX)
     }
-    kept = {key: value for key, value in source.items() if key not in ("optimizer", "rng", "model")}
+    dropped = ("optimizer", "rng", "model", "format", "version", "kind")
+    kept = model_file("backbone", {key: value for key, value in source.items() if key not in dropped})
     kept["model"] = weights
     atomic_save_torch(kept, Path(path))
     return {
