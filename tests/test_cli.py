@@ -13,12 +13,14 @@ import trimesh
 import yaml
 from training.tiny_configs import cli_config
 
-from zernet.cli import _ADVICE, DEMO_CONFIG, build_parser, command_advice, main
+from zernet.cli import build_parser, main
+from zernet.cli.demo import DEMO_CONFIG
+from zernet.cli.errors import ADVICE, command_advice
 from zernet.data.synthetic import make_creature
 from zernet.training import check_model_config, load_config, parse_config, resolve_config
 
 REPO = Path(__file__).resolve().parent.parent
-SUBCOMMANDS = ("preprocess", "train", "evaluate", "predict", "demo", "bodies")
+SUBCOMMANDS = ("preprocess", "train", "evaluate", "predict", "demo", "bodies", "match")
 
 
 def write_config(path: Path, config: dict) -> Path:
@@ -149,7 +151,10 @@ def test_demo_runs_end_to_end_on_a_few_tiny_bodies(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "test metrics (2 shapes" in out and "majority_class_accuracy" in out
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    assert metrics["n_shapes"] == 2 and 0.0 <= metrics["summary"]["accuracy"] <= 1.0
+    assert metrics["n_shapes"] == 2
+    # One seeded epoch already beats always naming the most frequent part (measured 0.39 against 0.28): a
+    # model that learnt nothing, or scores on the wrong labels, stays at or below that baseline.
+    assert metrics["summary"]["accuracy"] > metrics["baseline"]["majority_class_accuracy"] + 0.05
     assert any(str(plot).endswith("body_003.png") for plot in metrics["plots"])
     assert yaml.safe_load((run_dir / "config.yaml").read_text())["data"]["kind"] == "bodies"
 
@@ -208,7 +213,7 @@ def test_advice_in_messages_names_only_options_the_command_has(command):
     parser = build_parser()
     subparser = parser._subparsers._group_actions[0].choices[command]
     options = {option for action in subparser._actions for option in action.option_strings}
-    for api_text, _ in _ADVICE:
+    for api_text, _ in ADVICE:
         advice = command_advice(command, f"problem; {api_text}")
         assert api_text not in advice or api_text.startswith("(")
         for word in advice.replace("(", " ").replace(")", " ").split():

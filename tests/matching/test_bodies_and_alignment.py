@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 
 from zernet.data.bodies.forms import closest_points
@@ -70,12 +71,12 @@ def test_matching_configs_build_their_model():
     from pathlib import Path
 
     from zernet.matching.model import DescriptorModel
-    from zernet.matching.train import load_config, make_spec
+    from zernet.matching.train import make_spec, read_config
 
     paths = sorted((Path(__file__).resolve().parents[2] / "configs" / "matching").glob("*.yaml"))
     assert paths
     for path in paths:
-        config = load_config(path)
+        config = read_config(path)
         assert {"data", "spec", "train"} <= set(config)
         model = DescriptorModel(make_spec(config))
         assert model.spec.in_channels == 3 + 16 or model.spec.feature_kind != "xyz+hks"
@@ -90,3 +91,21 @@ def test_a_partial_scan_is_always_the_source_of_its_training_pair():
     assert oriented_pair(forms, 0, 2) == (0, 2)
     assert oriented_pair(forms, 0, 1) == (1, 0) and oriented_pair(forms, 1, 0) == (1, 0)
     assert oriented_pair(forms, 1, 3) is None
+
+
+def test_matching_config_overrides_use_the_training_syntax():
+    """``python -m zernet.matching.train --set`` reads dotted keys as ``zernet train --set`` does: list
+    indices, YAML values (1e-3 a float), and a misspelt section is refused."""
+    from pathlib import Path
+
+    from zernet.matching.train import read_config
+    from zernet.training import ConfigError
+
+    path = Path(__file__).resolve().parents[2] / "configs" / "matching" / "bodies.yaml"
+    config = read_config(path, ["train.steps=7", "spec.patch.0.r0=4.5", "train.lr=1e-3"])
+    assert config["train"]["steps"] == 7 and config["train"]["lr"] == 0.001
+    assert config["spec"]["patch"][0]["r0"] == 4.5 and config["spec"]["patch"][0]["n_samples"] == 1600
+    with pytest.raises(ConfigError, match="trian"):
+        read_config(path, ["trian.steps=7"])
+    with pytest.raises(ConfigError, match="section.key=value"):
+        read_config(path, ["train.steps"])

@@ -19,7 +19,7 @@ Euclidean distance between the predicted and the true target point (x100, over t
 target's area) of the point map read off the layer's ``C`` (no ZoomOut, so it measures the descriptors);
 the weights of the best validation score are kept (``best.pt``).
 
-Run: ``python -m zernet.matching.train CONFIG --out RUN_DIR [--set section.key=value ...]`` (see
+Run: ``python -m zernet.matching.train CONFIG --out RUN_DIR [--set KEY=VALUE ...]`` (see
 ``configs/matching/bodies.yaml``); the run folder gets ``config.yaml``, ``train.log``, ``history.json``,
 ``best.pt`` / ``last.pt`` (matching model files, :func:`zernet.matching.model.save_matching_model`).
 """
@@ -32,6 +32,7 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,8 +50,9 @@ from zernet.matching.model import DescriptorModel, MatchingSpec, save_matching_m
 from zernet.matching.shapes import MatchShape, prepare_shape, rotating_columns
 from zernet.operators import Geometry
 from zernet.training.augment import random_rotation
+from zernet.training.config import ConfigError, apply_overrides, load_config
 
-__all__ = ["TrainingPair", "prepare_bodies", "pair_loss", "validation_error", "train", "load_config", "main"]
+__all__ = ["TrainingPair", "prepare_bodies", "pair_loss", "validation_error", "train", "read_config", "main"]
 
 
 @dataclass
@@ -62,15 +64,19 @@ class TrainingPair:
     truth: np.ndarray  # (N_source,) int64
 
 
-def load_config(path: str | Path, overrides: list[str] = ()) -> dict:
-    """The YAML config with ``section.key=value`` overrides (values parsed as YAML)."""
-    config = yaml.safe_load(Path(path).read_text())
-    for item in overrides:
-        key, _, value = item.partition("=")
-        section, _, name = key.partition(".")
-        if section not in config or not name:
-            raise ValueError(f"override {item!r}: expected section.key=value with a section of {sorted(config)}")
-        config[section][name] = yaml.safe_load(value)
+#: The sections of a matching training config (``configs/matching/``).
+SECTIONS = ("data", "spec", "train")
+
+
+def read_config(path: str | Path, overrides: Sequence[str] = ()) -> dict:
+    """The YAML config with dotted ``KEY=VALUE`` overrides, read and applied as ``zernet train --set`` does
+    (:func:`zernet.training.config.apply_overrides`: ``train.steps=100``, ``spec.patch.0.r0=4.5``)."""
+    config = apply_overrides(load_config(path), overrides)
+    unknown = sorted(set(config) - set(SECTIONS))
+    if unknown:
+        raise ConfigError(
+            f"{path}: unknown section(s) {', '.join(unknown)}; a matching config has {', '.join(SECTIONS)}"
+        )
     return config
 
 
@@ -338,11 +344,20 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m zernet.matching.train", description=__doc__.split("\n")[0])
     parser.add_argument("config")
     parser.add_argument("--out", required=True, help="run folder")
-    parser.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        nargs="+",
+        action="extend",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override config entries with dotted keys, as zernet train --set, e.g. --set train.steps=100 "
+        "spec.patch.0.r0=4.5 (values are read as YAML)",
+    )
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    config = load_config(args.config, args.set)
+    config = read_config(args.config, args.overrides)
     train(copy.deepcopy(config), args.out, command=" ".join(["python -m zernet.matching.train"] + sys.argv[1:]))
     return 0
 

@@ -15,25 +15,23 @@ from pathlib import Path
 
 import numpy as np
 
+from zernet.cli.options import command_parser
 from zernet.io_utils import atomic_write_bytes
 
-__all__ = ["add_match_command", "transfer_field", "source_colour_field"]
 
-
-def add_match_command(sub, parents: list[argparse.ArgumentParser]) -> None:
-    """The ``zernet match`` subcommand."""
-    p = sub.add_parser(
+def add_command(sub) -> None:
+    parser = command_parser(
+        sub,
         "match",
-        parents=parents,
         help="a vertex-to-vertex correspondence between two surfaces",
         description="Match two surfaces (meshes or point clouds, any pose, placement, scale and "
         "triangulation; docs/MATCHING.md). Without --run, the template model shipped with zernet "
         "(trained on generated human bodies) names where on a body each point lies, and points are "
         "paired by that; --descriptors uses the shipped descriptor model and functional maps instead.",
     )
-    p.add_argument("source", type=Path, metavar="SOURCE", help="mesh or point-cloud file")
-    p.add_argument("target", type=Path, metavar="TARGET", help="mesh or point-cloud file")
-    p.add_argument(
+    parser.add_argument("source", type=Path, metavar="SOURCE", help="mesh or point-cloud file")
+    parser.add_argument("target", type=Path, metavar="TARGET", help="mesh or point-cloud file")
+    parser.add_argument(
         "--out",
         type=Path,
         required=True,
@@ -41,7 +39,7 @@ def add_match_command(sub, parents: list[argparse.ArgumentParser]) -> None:
         help="writes PREFIX.npy / PREFIX.txt (target vertex per source vertex), PREFIX_fmap.npy, "
         "PREFIX_confidence.npy and PREFIX.png",
     )
-    p.add_argument(
+    parser.add_argument(
         "--run",
         type=Path,
         default=None,
@@ -49,28 +47,28 @@ def add_match_command(sub, parents: list[argparse.ArgumentParser]) -> None:
         help="a template or descriptor model file, or a descriptor training run folder (default: the "
         "shipped template model)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--descriptors",
         action="store_true",
         help="use the shipped descriptor model (descriptors, functional maps and ZoomOut) instead of the "
         "template model: for shapes other than human bodies, with a model of your own (--run)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--cache-dir",
         type=Path,
         default=None,
         metavar="DIR",
         help="cache of patch operators and eigenbases (default: none)",
     )
-    p.add_argument(
+    parser.add_argument(
         "--same-scale",
         action="store_true",
         help="the two files are in the same units (scans from one scanner): scale both by one factor instead "
         "of each to the model's area, so that a partial SOURCE (one side of a body) is matched as a part of "
         "TARGET",
     )
-    p.add_argument("--no-picture", action="store_true", help="skip PREFIX.png")
-    p.set_defaults(func=run_match)
+    parser.add_argument("--no-picture", action="store_true", help="skip PREFIX.png")
+    parser.set_defaults(handler=run)
 
 
 def source_colour_field(vertices: np.ndarray) -> np.ndarray:
@@ -93,7 +91,7 @@ def transfer_field(field_on_source: np.ndarray, reverse_map: np.ndarray) -> np.n
     return np.asarray(field_on_source)[np.asarray(reverse_map)]
 
 
-def run_match(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from zernet.geometry import read_surface
     from zernet.matching.match import load_matcher, match_surfaces
     from zernet.matching.model import load_matching_model
