@@ -306,7 +306,7 @@ def main(argv=None) -> int:
         title=f"Matching held-out generated bodies ({args.topology}, each remeshed on its own)",
     )
     if example is not None:
-        from zernet.matching.cli import source_colour_field, transfer_field
+        from zernet.cli.match import source_colour_field, transfer_field
 
         source, target, result = example
         field = source_colour_field(source.vertices)
