@@ -1,0 +1,72 @@
+"""The benchmarks' shared harness: result files and the generated-bodies folder it keeps."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from benchmarks import harness
+
+
+def test_markdown_table_aligns_the_first_column_left_and_figures_right():
+    lines = harness.markdown_table(["model", "accuracy"], [["zernet", "97.8 %"], ["feastnet", "95.1 %"]])
+    assert lines == [
+        "| model | accuracy |",
+        "| --- | ---: |",
+        "| zernet | 97.8 % |",
+        "| feastnet | 95.1 % |",
+    ]
+
+
+def test_markdown_table_takes_an_alignment_per_column():
+    assert harness.markdown_table(["a", "b", "c"], [[1, 2, 3]], align="rlr")[1] == "| ---: | --- | ---: |"
+
+
+def test_result_file_keeps_the_dots_of_a_stem():
+    stem = Path("results") / "few_people_more_people_lr2.5e-3"
+    assert harness.result_file(stem, ".json") == Path("results/few_people_more_people_lr2.5e-3.json")
+
+
+def test_write_json_puts_commit_machine_and_command_before_the_result(tmp_path, monkeypatch):
+    monkeypatch.setattr(harness, "commit", lambda checkout=harness.REPO: "abc123")
+    monkeypatch.setattr("sys.argv", [str(harness.REPO / "benchmarks" / "speed" / "bench_startup.py"), "--repeats", "2"])
+    path = harness.write_json(tmp_path / "out" / "bench.json", {"median_s": 1.5})
+    stored = json.loads(path.read_text())
+    assert list(stored)[:3] == ["commit", "machine", "command"]
+    assert stored["commit"] == "abc123"
+    assert stored["command"] == "python -m benchmarks.speed.bench_startup --repeats 2"
+    assert stored["median_s"] == 1.5
+    assert stored["machine"]["cpus"] >= 1 and stored["machine"]["torch"]
+
+
+def test_write_markdown_ends_with_the_command_and_commit(tmp_path, monkeypatch):
+    monkeypatch.setattr(harness, "commit", lambda checkout=harness.REPO: "abc123")
+    monkeypatch.setattr("sys.argv", [str(harness.REPO / "benchmarks" / "experiments" / "scans.py")])
+    text = harness.write_markdown(tmp_path / "scans.md", ["# scans", "", "body"]).read_text()
+    assert text == "# scans\n\nbody\n\nMade by `python -m benchmarks.experiments.scans` at commit `abc123`.\n"
+
+
+def test_commit_is_the_repository_head():
+    head = (harness.REPO / ".git" / "HEAD").read_text().strip()
+    if head.startswith("ref: "):
+        ref = harness.REPO / ".git" / head[5:]
+        if not ref.is_file():
+            pytest.skip("packed ref")
+        head = ref.read_text().strip()
+    assert harness.commit().removesuffix("-dirty") == head
+
+
+def test_ensure_bodies_writes_once_per_set_of_parameters(tmp_path, monkeypatch):
+    calls = []
+
+    def write_bodies(folder, count, seed, topology, poses, n_test, cache_dir, progress, forms, people):
+        calls.append((count, seed, topology, n_test, forms, people))
+        Path(folder).mkdir(parents=True, exist_ok=True)
+
+    monkeypatch.setattr("zernet.data.bodies.write_bodies", write_bodies)
+    folder = tmp_path / "bodies"
+    assert harness.ensure_bodies(folder, count=10, n_test=2, seed=0, topology="coarse-369") == folder
+    harness.ensure_bodies(folder, count=10, n_test=2, seed=0, topology="coarse-369")
+    assert calls == [(10, 0, "coarse-369", 2, None, None)]
+    harness.ensure_bodies(folder, count=10, n_test=2, seed=1, topology="coarse-369")  # another seed: rewritten
+    assert calls[-1] == (10, 1, "coarse-369", 2, None, None) and len(calls) == 2
