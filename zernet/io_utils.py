@@ -11,7 +11,6 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import torch
 
 __all__ = ["atomic_write_bytes", "snapshot_file", "atomic_save_torch", "write_json", "json_ready", "plain"]
 
@@ -83,6 +82,9 @@ def snapshot_file(source: str | os.PathLike, destination: str | os.PathLike) -> 
 
 def atomic_save_torch(obj, path: str | os.PathLike) -> Path:
     """``torch.save`` made atomic (see :func:`atomic_write_bytes`)."""
+    # Imported here: zernet.geometry writes through this module and imports no torch (its layer is below it).
+    import torch
+
     buffer = io.BytesIO()
     torch.save(obj, buffer)
     return atomic_write_bytes(path, buffer.getvalue())
