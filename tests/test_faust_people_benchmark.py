@@ -15,7 +15,7 @@ class _Args:
 def test_each_recipe_splits_by_person_and_parses(tmp_path):
     base, recipes = faust_people.load_recipes()
     assert "shipped" in recipes and recipes["shipped"] == []
-    for name, overrides in recipes.items():
+    for overrides in recipes.values():
         config = faust_people.recipe_config(base, overrides, tmp_path, (6, 7), _Args)
         data = config["data"]
         assert (data["train_indices"], data["val_indices"], data["test_indices"]) == ("0:60", "60:70", "70:80")
