@@ -3,7 +3,7 @@
 What each model is and how it is trained is data, ``configs/recipes/release.yaml``; this script generates the
 bodies a model needs, trains it and ships it: a backbone or a whole correspondence model goes through
 :func:`zernet.training.init_from.export_backbone`, a model of a trainer of its own is copied as that trainer
-wrote it. Beside every shipped ``NAME.pt`` it writes ``NAME.json``: what it is, the configuration, the command,
+wrote it. Beside every shipped ``zernet/pretrained/NAME.pt`` it writes ``NAME.json``: what it is, the configuration, the command,
 the commit and the training history. A run folder that already holds a finished run is shipped as it is, so
 an interrupted release goes on where it stopped.
 
@@ -34,6 +34,7 @@ from zernet.training.config import apply_overrides
 from zernet.training.init_from import export_backbone
 
 RELEASE = RECIPES / "release.yaml"
+PRETRAINED = REPO / "zernet" / "pretrained"
 
 
 def release_models() -> dict[str, dict]:
@@ -55,7 +56,7 @@ def train_and_ship(name: str, recipe: dict) -> None:
     run_dir = REPO / recipe["run"]
     if not (run_dir / "metrics.json").is_file():
         train(run_config(recipe), run_dir, progress=True, overwrite=True)
-    target = REPO / recipe["into"]
+    target = PRETRAINED / f"{name}.pt"
     written = export_backbone(run_dir, target, with_output=recipe["ship"] == "whole")
     state = load_checkpoint(run_dir / "last.pt")["state"]
     history = state["history"]
@@ -81,7 +82,7 @@ def run_trainer_and_ship(name: str, recipe: dict) -> None:
     if not model.is_file():
         command = shlex.split(recipe["command"])
         subprocess.run([sys.executable, *command[1:]] if command[0] == "python" else command, cwd=REPO, check=True)
-    target = REPO / recipe["into"]
+    target = PRETRAINED / f"{name}.pt"
     shutil.copyfile(model, target)
     stored = torch.load(target, map_location="cpu", weights_only=True)
     provenance = {"model_file": target.name, "release": f"python -m benchmarks.experiments.release {name}"}
@@ -93,14 +94,14 @@ def main(argv: list[str] | None = None) -> int:
     models = release_models()
     parser = arguments(__doc__)
     parser.add_argument("names", nargs="*", metavar="NAME", help=f"models to make (default all: {', '.join(models)})")
-    parser.add_argument("--list", action="store_true", help="list the models and where each ships, then stop")
+    parser.add_argument("--list", action="store_true", help="list the models and how each is trained, then stop")
     args = parser.parse_args(argv)
     unknown = sorted(set(args.names) - set(models))
     if unknown:
         parser.error(f"unknown model {', '.join(unknown)}; the models are {', '.join(models)}")
     if args.list:
         for name, recipe in models.items():
-            print(f"{name:24} -> {recipe['into']}")
+            print(f"{name:26} {'trained by ' + recipe['command'] if 'command' in recipe else 'zernet train'}")
         return 0
     for name, recipe in models.items():
         if args.names and name not in args.names:
