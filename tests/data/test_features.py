@@ -157,3 +157,41 @@ def test_heat_kernel_descriptors_of_a_cloud_follow_its_mesh():
     on_mesh, on_cloud = np.log(compute_features(surface, "hks")), np.log(compute_features(cloud, "hks"))
     for column in (2, 6, 10):
         assert np.corrcoef(on_mesh[:, column], on_cloud[:, column])[0, 1] > 0.95
+
+
+def test_a_registered_input_part_joins_every_feature_kind_function(monkeypatch):
+    from zernet.data import features
+
+    monkeypatch.setattr(features, "FEATURE_PARTS", dict(features.FEATURE_PARTS))
+    features.register_input_part("height", 1, lambda surface, operators, cache_dir: surface.vertices[:, 1:2])
+    sphere = _sphere()
+    values = compute_features(sphere, "xyz+height")
+    assert values.shape == (sphere.n_vertices, 4) and values.dtype == np.float32
+    np.testing.assert_allclose(values[:, 3], sphere.vertices[:, 1], rtol=1e-6)
+    assert feature_channels("shape+height", [4]) == feature_channels("shape", [4]) + 1
+    assert features.feature_slices("xyz+height+normals", [4]) == {
+        "xyz": slice(0, 3),
+        "height": slice(3, 4),
+        "normals": slice(4, 7),
+    }
+    assert not features.needs_patch_operators("xyz+height") and features.needs_patch_operators("height+curvature")
+    # The same function again is fine (a module reloaded); another one under a taken name is refused.
+    with pytest.raises(ValueError, match="'xyz' is already registered by zernet.data.features"):
+        features.register_input_part("xyz", 3, _columns)
+    with pytest.raises(ValueError, match="no '\\+'"):
+        features.register_input_part("a+b", 1, _columns)
+
+
+def test_the_template_part_is_registered_by_matching_and_named_when_it_is_not(monkeypatch):
+    import zernet.matching  # noqa: F401  (registers "template")
+    from zernet.data import features
+    from zernet.data.dataset import DatasetError
+
+    assert features.FEATURE_PARTS["template"].channels([5]) == 3
+    assert feature_channels("xyz+hks+template", 5) == 3 + 16 + 3
+    without = {name: part for name, part in features.FEATURE_PARTS.items() if name != "template"}
+    monkeypatch.setattr(features, "FEATURE_PARTS", without)
+    with pytest.raises(DatasetError, match="'template' of 'xyz\\+template' is not registered.*import zernet.matching"):
+        compute_features(_sphere(), "xyz+template")
+    with pytest.raises(DatasetError, match="unknown feature kind 'xyz\\+colour'"):
+        feature_channels("xyz+colour")
