@@ -7,7 +7,8 @@ person ``i // 10``, the people's phenotypes spread over the body model's ranges)
 1. checks how different the people are: the rest-pose height of each, and the mean distance between two
    people's rest poses at the same template vertex (after centring), against 10 bodies whose phenotypes are
    drawn independently (what ``zernet bodies`` without ``--people`` gives);
-2. trains each recipe of ``--recipes`` (``RECIPES`` below) with ``configs/faust_single_scale.yaml``: 72
+2. trains each recipe of ``--recipes`` (``configs/recipes/few_people.yaml``: overrides of
+   ``configs/faust_single_scale.yaml``): 72
    training bodies of people 0-7, 8 validation bodies carved from them by the FAUST loader, the 20 test bodies
    of people 8 and 9; a recipe that starts from pretrained weights first trains (once) on ``--pretrain-count``
    bodies of other, independently drawn people (``zernet bodies --seed 1``), which share no phenotype with the
@@ -18,197 +19,60 @@ person ``i // 10``, the people's phenotypes spread over the body model's ranges)
 4. scores each recipe's selected model on 2 more people of a third draw (``zernet bodies --people 2``, seed
    ``--seed`` + 2, written to ``--unseen`` once): the validation bodies are the training people in other
    poses, so they cannot tell which recipe carries better to new people; these can, without the test people;
-5. writes ``benchmarks/results/few_people.{json,md,png}``.
+5. writes ``benchmarks/experiments/results/few_people.{json,md,png}`` (``--out``).
 
 Recipes are compared on validation (both kinds); the test columns are reported, never used to choose.
 
-    .venv/bin/python benchmarks/few_people.py --topology faust --recipes shipped regularised pretrained
-    .venv/bin/python benchmarks/few_people.py --topology coarse-1229 --epochs 8 --threads 1   # minutes
+    .venv/bin/python -m benchmarks.experiments.few_people --topology faust --recipes shipped regularised pretrained
+    .venv/bin/python -m benchmarks.experiments.few_people --topology coarse-1229 --epochs 8 --threads 1  # minutes
+
+The shipped backbones this benchmark once exported are made by ``benchmarks.experiments.release`` now.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import matplotlib  # noqa: E402
+import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-import yaml  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
+import yaml
 
-from zernet.data.bodies import BodyGenerator, write_bodies  # noqa: E402
-from zernet.data.bodies.pose import draw_phenotype  # noqa: E402
-from zernet.inference import load_checkpoint  # noqa: E402
-from zernet.io_utils import atomic_save_torch, atomic_write_bytes, write_json  # noqa: E402
-from zernet.training import build_dataset, evaluate, load_config, parse_config, train  # noqa: E402
-from zernet.training.config import apply_overrides  # noqa: E402
-from zernet.training.init_from import export_backbone  # noqa: E402
+from benchmarks.harness import (
+    CACHE,
+    EXPERIMENT_RESULTS,
+    RECIPES,
+    REPO,
+    add_data,
+    add_out,
+    add_threads,
+    arguments,
+    ensure_bodies,
+    markdown_table,
+    result_file,
+    write_markdown,
+)
+from benchmarks.harness import write_json as write_result  # a result file, with commit and machine
+from zernet.data.bodies import BodyGenerator
+from zernet.data.bodies.pose import draw_phenotype
+from zernet.inference import load_checkpoint
+from zernet.io_utils import atomic_save_torch, write_json
+from zernet.training import build_dataset, evaluate, load_config, parse_config, train
+from zernet.training.config import apply_overrides
 
-RESULTS = ROOT / "benchmarks" / "results"
-#: A correspondence run on 80 generated people of other phenotypes (made by MANY_PEOPLE_COMMANDS) and its copy
-#: for a template of another vertex order.
-MANY_PEOPLE_COMMANDS = (
-    "zernet bodies data/corr-bodies --count 100 --seed 0 --topology faust ; zernet train "
-    "configs/bodies_correspondence.yaml --run-dir runs/corr --set data.root=data/corr-bodies/correspondence "
-    "data.train_indices=0:80 data.test_indices=80:100 train.epochs=4"
-)
-MANY_PEOPLE = ROOT / "runs" / "corr" / "best.pt"
-#: The same with the inputs xyz + hks + template and the input skip (MANY_PEOPLE_COMMANDS with --run-dir
-#: runs/corr-template and data.features=xyz+hks+template model.input_skip=true).
-MANY_PEOPLE_TEMPLATE = ROOT / "runs" / "corr-template" / "best.pt"
-RENUMBERED_TEMPLATE = ROOT / "runs" / "corr-template-renumbered.pt"
-#: The same inputs on 180 generated people (172 training, 8 validation) for 6 epochs, and its renumbered copy.
-MORE_PEOPLE_COMMANDS = (
-    "zernet bodies data/corr-bodies-200 --count 200 --seed 0 --topology faust ; zernet train "
-    "configs/bodies_correspondence.yaml --run-dir runs/corr-template-180 --set "
-    "data.root=data/corr-bodies-200/correspondence train.epochs=6 data.features=xyz+hks+template "
-    "model.input_skip=true train.threads=1"
-)
-MORE_PEOPLE_TEMPLATE = ROOT / "runs" / "corr-template-180" / "best.pt"
-RENUMBERED_MORE_PEOPLE = ROOT / "runs" / "corr-template-180-renumbered.pt"
-#: The same on 220 generated people (212 training, 8 validation; the first 200 bodies are MORE_PEOPLE's, as a
-#: body depends only on the seed and its number), and its renumbered copy.
-MOST_PEOPLE_COMMANDS = (
-    "zernet bodies data/corr-bodies-240 --count 240 --seed 0 --topology faust ; zernet train "
-    "configs/bodies_correspondence.yaml --run-dir runs/corr-template-240 --set "
-    "data.root=data/corr-bodies-240/correspondence data.train_indices=0:220 data.test_indices=220:240 "
-    "train.epochs=6 data.features=xyz+hks+template model.input_skip=true train.threads=1"
-)
-MOST_PEOPLE_TEMPLATE = ROOT / "runs" / "corr-template-240" / "best.pt"
-RENUMBERED_MOST_PEOPLE = ROOT / "runs" / "corr-template-240-renumbered.pt"
-RENUMBERED = ROOT / "runs" / "corr-renumbered.pt"
-CONFIG = ROOT / "configs" / "faust_single_scale.yaml"
+#: The recipe catalogue: ``base`` (the run configuration), ``recipes`` (name -> --set overrides),
+#: ``pretrained_on_other_people`` and ``renumbered`` (see the file's comments).
+BOOK = yaml.safe_load((RECIPES / "few_people.yaml").read_text())
+CONFIG = REPO / BOOK["base"]
 N_PEOPLE, N_POSES = 10, 10
 #: People of the third draw on which recipes are compared (the validation split holds the training people).
 N_UNSEEN = 2
 N_VERTICES = {"faust": 6890, "coarse-1229": 1229, "coarse-615": 615, "coarse-369": 369}
-#: Recipe -> (train overrides, whether it starts from the weights pretrained on other people).
-RECIPES = {
-    "shipped": ({}, False),
-    # The regularisation tried on real FAUST (issue 36): dropout, rotations about the vertical, scaling.
-    "regularised": (
-        {"model.dropout": 0.25, "train.augment_rotation": "vertical", "train.augment_scale": 0.1},
-        False,
-    ),
-    # Other people's proportions on the inputs: per-axis scaling and a smooth warp of xyz.
-    "proportions": ({"train.augment_anisotropy": 0.1, "train.augment_warp": 0.05}, False),
-    "pretrained": ({"train.lr": 4e-3}, True),
-    # The same start at the shipped learning rate: does the lower rate alone hold the pretrained start back?
-    "pretrained-shipped-lr": ({}, True),
-    # Where on the body a vertex is, read by the head: the heat kernel signature among the inputs and the
-    # inputs beside the convolutions' output (what took clouds of scans from 96.5 to 97.8 %).
-    "position": ({"data.features": "xyz+hks", "model.input_skip": True, "train.init_from": None}, False),
-    # The same from a backbone pretrained with these inputs on other people (as the shipped one is for xyz).
-    "position-pretrained": ({"data.features": "xyz+hks", "model.input_skip": True}, True),
-    # A near miss costs less than a far one: each target spread over the template vertices within 1 % of the
-    # diameter (about one ring at FAUST size; train.label_radius), from the config's shipped backbone.
-    "soft-labels": ({"train.label_radius": 0.01}, False),
-    # Where on the template body each vertex lies, read by the shipped template model (trained on 490 other
-    # generated people in every form): the same for a place on any person, unlike xyz.
-    "template": (
-        {"data.features": "xyz+hks+template", "model.input_skip": True, "train.init_from": None},
-        False,
-    ),
-    # Every weight, the output layer included, from a correspondence model trained on 80 other generated
-    # people of the same topology (``zernet train configs/bodies_correspondence.yaml``, 4 epochs): what
-    # many people teach, then the 8.
-    "many-people": ({"data.features": "xyz", "model.input_skip": False, "train.init_from": str(MANY_PEOPLE)}, False),
-    # The same model with its template's vertices numbered in another order (RENUMBERED, made by
-    # renumbered_checkpoint): the output layer reaches the people's template by the model's vote on 8 of their
-    # training scans, as it reaches a user's copy of FAUST, whose vertex order the generated bodies do not share.
-    # The many people's start kept closer: a lower rate for fewer epochs (the model starts at 88 % exact on
-    # the test people before it sees any of the 8).
-    "many-people-gentle": (
-        {
-            "data.features": "xyz",
-            "model.input_skip": False,
-            "train.init_from": str(MANY_PEOPLE),
-            "train.lr": 3e-3,
-            "train.epochs": 3,
-        },
-        False,
-    ),
-    # The same start and rate with the template feature part (the many people's run read it too:
-    # MANY_PEOPLE_TEMPLATE).
-    "many-people-template": (
-        {
-            "data.features": "xyz+hks+template",
-            "model.input_skip": True,
-            "train.init_from": str(MANY_PEOPLE_TEMPLATE),
-            "train.lr": 3e-3,
-            "train.epochs": 3,
-        },
-        False,
-    ),
-    "many-people-matched": (
-        {
-            "data.features": "xyz",
-            "model.input_skip": False,
-            "train.init_from": str(RENUMBERED),
-            "train.lr": 3e-3,
-            "train.epochs": 3,
-        },
-        False,
-    ),
-    # The shipped start as a user's FAUST meets it: many-people-template from a renumbered copy.
-    "many-people-template-matched": (
-        {
-            "data.features": "xyz+hks+template",
-            "model.input_skip": True,
-            "train.init_from": str(RENUMBERED_TEMPLATE),
-            "train.lr": 3e-3,
-            "train.epochs": 3,
-        },
-        False,
-    ),
-    # The same from the model of 180 people (MORE_PEOPLE_TEMPLATE), renumbered as a user's FAUST meets it.
-    "more-people-template-matched": (
-        {
-            "data.features": "xyz+hks+template",
-            "model.input_skip": True,
-            "train.init_from": str(RENUMBERED_MORE_PEOPLE),
-            "train.lr": 3e-3,
-            "train.epochs": 3,
-        },
-        False,
-    ),
-    # The same for 5 epochs (validation still rose at the third).
-    "more-people-template-matched-5": (
-        {
-            "data.features": "xyz+hks+template",
-            "model.input_skip": True,
-            "train.init_from": str(RENUMBERED_MORE_PEOPLE),
-            "train.lr": 3e-3,
-            "train.epochs": 5,
-        },
-        False,
-    ),
-    # The same from the model of 220 people (MOST_PEOPLE_TEMPLATE).
-    "most-people-template-matched": (
-        {
-            "data.features": "xyz+hks+template",
-            "model.input_skip": True,
-            "train.init_from": str(RENUMBERED_MOST_PEOPLE),
-            "train.lr": 3e-3,
-            "train.epochs": 3,
-        },
-        False,
-    ),
-    "pretrained+proportions": (
-        {"train.lr": 4e-3, "train.augment_anisotropy": 0.1, "train.augment_warp": 0.05},
-        True,
-    ),
-}
 
 
 def renumbered_checkpoint(source: Path, target: Path, seed: int = 0) -> Path:
@@ -228,19 +92,16 @@ def renumbered_checkpoint(source: Path, target: Path, seed: int = 0) -> Path:
     return target
 
 
-def people_bodies(root: Path, topology: str, seed: int, cache_dir: str) -> Path:
+def people_bodies(root: Path, topology: str, seed: int, cache_dir: Path) -> Path:
     """The 10 x 10 people bodies under ``root`` (written once); returns the FAUST-layout folder."""
-    if not (root / "people.json").is_file():
-        write_bodies(root, N_PEOPLE * N_POSES, seed, topology, "varied", 20, cache_dir, progress=True, people=N_PEOPLE)
+    ensure_bodies(root, N_PEOPLE * N_POSES, 20, seed, topology, people=N_PEOPLE, cache_dir=cache_dir)
     return root / "correspondence"
 
 
-def unseen_people(root: Path, topology: str, seed: int, cache_dir: str) -> Path:
+def unseen_people(root: Path, topology: str, seed: int, cache_dir: Path) -> Path:
     """:data:`N_UNSEEN` more people x 10 poses (seed ``seed + 2``), neither trained on nor tested: the
     recipes are compared on them (written once); returns the FAUST-layout folder."""
-    if not (root / "people.json").is_file():
-        count = N_UNSEEN * N_POSES
-        write_bodies(root, count, seed + 2, topology, "varied", N_POSES, cache_dir, progress=True, people=N_UNSEEN)
+    ensure_bodies(root, N_UNSEEN * N_POSES, N_POSES, seed + 2, topology, people=N_UNSEEN, cache_dir=cache_dir)
     return root / "correspondence"
 
 
@@ -266,14 +127,13 @@ def unseen_scores(run_dir: Path, config: dict, unseen_root: Path, rings: int, ra
     }
 
 
-def other_bodies(root: Path, topology: str, seed: int, count: int, cache_dir: str) -> Path:
+def other_bodies(root: Path, topology: str, seed: int, count: int, cache_dir: Path) -> Path:
     """``count`` bodies of independently drawn people (seed ``seed + 1``), 2 of them test, written once."""
-    if not (root / "README.txt").is_file():
-        write_bodies(root, count, seed + 1, topology, "varied", 2, cache_dir, progress=True)
+    ensure_bodies(root, count, 2, seed + 1, topology, cache_dir=cache_dir)
     return root / "correspondence"
 
 
-def diversity(root: Path, topology: str, seed: int, cache_dir: str) -> dict:
+def diversity(root: Path, topology: str, seed: int, cache_dir: Path) -> dict:
     """How different the people are (module docstring, step 1), in centimetres, in their rest poses."""
     people = json.loads((root / "people.json").read_text())["phenotypes"]
     rest = BodyGenerator(topology, "rest", seed, cache_dir)
@@ -304,25 +164,22 @@ def diversity(root: Path, topology: str, seed: int, cache_dir: str) -> dict:
 
 
 def recipe_config(
-    data_root: Path, recipe: str, epochs: int | None, threads: int | None, n_vertices: int, cache_dir: str
+    data_root: Path, recipe: str, epochs: int | None, threads: int | None, n_vertices: int, cache_dir: Path
 ) -> dict:
     config = load_config(CONFIG)
-    config["cache_dir"] = cache_dir
+    config["cache_dir"] = str(cache_dir)
     config["data"].update({"root": str(data_root), "n_vertices": n_vertices})
     config["train"].update({"threads": threads, "keep_epochs": True})
     if epochs is not None:
         config["train"]["epochs"] = epochs
     config["eval"].update({"renders": 0})
-    for key, value in RECIPES[recipe][0].items():
-        section, name = key.split(".")
-        config[section][name] = value
-    return config
+    return apply_overrides(config, BOOK["recipes"][recipe])
 
 
-def architecture_overrides(recipe: str) -> dict:
+def architecture_overrides(recipe: str) -> list[str]:
     """The recipe's overrides that shape the model and its inputs (``data.*``, ``model.*``): a backbone
     pretrained for the recipe must have them too."""
-    return {key: value for key, value in RECIPES[recipe][0].items() if key.split(".")[0] in ("data", "model")}
+    return [override for override in BOOK["recipes"][recipe] if override.split(".")[0] in ("data", "model")]
 
 
 def pretrain(
@@ -332,15 +189,13 @@ def pretrain(
     epochs: int | None,
     threads: int | None,
     n_vertices: int,
-    cache_dir: str,
+    cache_dir: Path,
 ) -> Path:
     """The weights pretrained on other people for ``recipe``'s model and inputs, from scratch (trained once,
     then reused)."""
     if not (run_dir / "best.pt").is_file():
         config = recipe_config(data_root, "shipped", epochs, threads, n_vertices, cache_dir)
-        for key, value in architecture_overrides(recipe).items():
-            section, name = key.split(".")
-            config[section][name] = value
+        config = apply_overrides(config, architecture_overrides(recipe))
         count = len(list(data_root.glob("training/registrations/tr_reg_*.ply")))
         config["data"].update({"train_indices": f"0:{count - 2}", "test_indices": f"{count - 2}:{count}"})
         config["train"].update({"keep_epochs": False, "init_from": None})
@@ -358,34 +213,6 @@ def pretrained_run(args, recipe: str) -> Path:
     return pretrain(
         others, args.runs / name, recipe, args.pretrain_epochs, args.threads, N_VERTICES[topology], args.cache_dir
     )
-
-
-def ship_backbone(run_dir: Path, name: str, trained_on: str, command: str, with_output: bool = False) -> None:
-    """Write the pretrained run's backbone (``with_output``: every weight, with its template) to
-    ``zernet/pretrained/NAME.pt`` and its provenance to NAME.json."""
-    target = ROOT / "zernet" / "pretrained" / f"{name}.pt"
-    written = export_backbone(run_dir, target, with_output=with_output)
-    state = load_checkpoint(run_dir / "last.pt")["state"]
-    history = state["history"]
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    provenance = {
-        "what": "ZerNet correspondence model on human bodies, float16: "
-        + (
-            "every weight and its template (the output layer follows a new template by the model's vote)"
-            if with_output
-            else "every weight but the output layer"
-        ),
-        "trained_on": trained_on,
-        "config": yaml.safe_load((run_dir / "config.yaml").read_text()),
-        "command": command,
-        "commit": commit,
-        "epochs": len(history),
-        "val_accuracy": [entry.get("val_accuracy") for entry in history],
-        "best_epoch": state.get("best_epoch"),
-        **written,
-    }
-    write_json(target.with_suffix(".json"), provenance)
-    print(f"wrote {target} ({written['bytes'] / 1e6:.1f} MB) and its provenance", flush=True)
 
 
 def epoch_scores(run_dir: Path, dataset, rings: int, radius: float, every: int) -> list[dict]:
@@ -449,7 +276,7 @@ def run_recipe(name: str, data_root: Path, runs: Path, pretrained: Path | None, 
         write_json(stored, unseen_scores(run_dir, config, args.unseen_root, rings, radius))
     return {
         "recipe": name,
-        "overrides": RECIPES[name][0],
+        "overrides": BOOK["recipes"][name],
         "pretrained": pretrained is not None,
         "best_epoch": metrics["best_epoch"],
         "val_accuracy_best": max(entry.get("val_accuracy", 0.0) for entry in history),
@@ -468,14 +295,14 @@ def run_recipe(name: str, data_root: Path, runs: Path, pretrained: Path | None, 
     }
 
 
-def markdown(result: dict) -> str:
+def markdown(result: dict) -> list[str]:
     people, independent = result["diversity"]["people"], result["diversity"]["independent draws"]
     lines = [
         "# few_people: correspondence on 8 people, tested on 2 unseen ones (FAUST's structure, generated)",
         "",
         f"{result['topology']} bodies ({result['n_vertices']} vertices), 10 people x 10 poses "
         f"(`zernet bodies --people 10`, seed {result['seed']}); 72 train / 8 validation (people 0-7) / 20 test "
-        f"(people 8-9); `configs/faust_single_scale.yaml`, {result['epochs']} epochs; command `{result['command']}`.",
+        f"(people 8-9); `configs/faust_single_scale.yaml`, {result['epochs']} epochs.",
         "",
         "How different the people are (rest poses): heights "
         f"{min(people['heights_cm']):.0f}-{max(people['heights_cm']):.0f} cm (independent draws "
@@ -490,42 +317,63 @@ def markdown(result: dict) -> str:
         "unrefined), which sees what the validation bodies cannot: how the recipe carries to new people. The "
         "test people are only reported.",
         "",
-        "| recipe | best val exact | unseen-people val | test exact (unrefined) | test exact (refined) | within 1 % "
-        "| beyond 10 % (unrefined / refined) | rings |",
-        "|---|---|---|---|---|---|---|---|",
     ]
+    header = [
+        "recipe",
+        "best val exact",
+        "unseen-people val",
+        "test exact (unrefined)",
+        "test exact (refined)",
+        "within 1 %",
+        "beyond 10 % (unrefined / refined)",
+        "rings",
+    ]
+    rows = []
     for entry in result["recipes"]:
         test, unseen = entry["test"], entry["unseen_validation"]
-        lines.append(
-            f"| {entry['recipe']} | {entry['val_accuracy_best']:.3f} (epoch {entry['best_epoch']}) | "
-            f"{100 * unseen['exact_unrefined']:.1f} / {100 * unseen['exact_refined']:.1f} %, "
-            f"{100 * unseen['beyond_10pct_unrefined']:.2f} % | "
-            f"{100 * test['exact_unrefined']:.1f} % | {100 * test['exact_refined']:.1f} % | "
-            f"{100 * test['within_1pct_refined']:.1f} % | {100 * test['beyond_10pct_unrefined']:.2f} / "
-            f"{100 * test['beyond_10pct_refined']:.2f} % | {entry['refine_rings']} |"
+        rows.append(
+            [
+                entry["recipe"],
+                f"{entry['val_accuracy_best']:.3f} (epoch {entry['best_epoch']})",
+                f"{100 * unseen['exact_unrefined']:.1f} / {100 * unseen['exact_refined']:.1f} %, "
+                f"{100 * unseen['beyond_10pct_unrefined']:.2f} %",
+                f"{100 * test['exact_unrefined']:.1f} %",
+                f"{100 * test['exact_refined']:.1f} %",
+                f"{100 * test['within_1pct_refined']:.1f} %",
+                f"{100 * test['beyond_10pct_unrefined']:.2f} / {100 * test['beyond_10pct_refined']:.2f} %",
+                entry["refine_rings"],
+            ]
         )
+    lines += markdown_table(header, rows)
+    header = [
+        "epoch",
+        "train loss / val loss",
+        "train acc",
+        "val exact",
+        "gap",
+        "test exact unrefined",
+        "refined",
+        "beyond 10 % unrefined",
+    ]
     for entry in result["recipes"]:
-        lines += [
-            "",
-            f"Per epoch, {entry['recipe']}:",
-            "",
-            "| epoch | train loss / val loss | train acc | val exact | gap | test exact unrefined | refined | "
-            "beyond 10 % unrefined |",
-            "|---|---|---|---|---|---|---|---|",
-        ]
+        rows = []
         for row in entry["per_epoch"]:
             train_acc, val_acc = row.get("train_accuracy") or 0.0, row.get("val_accuracy") or 0.0
-            test = (
-                f"{100 * row['test_exact_unrefined']:.1f} % | {100 * row['test_exact_refined']:.1f} % | "
-                f"{100 * row['test_beyond_10pct_unrefined']:.2f} %"
-                if "test_exact_refined" in row
-                else "- | - | -"
+            scored = "test_exact_refined" in row
+            rows.append(
+                [
+                    row["epoch"],
+                    f"{row.get('train_loss') or 0:.3f} / {row.get('val_loss') or 0:.3f}",
+                    f"{train_acc:.3f}",
+                    f"{val_acc:.3f}",
+                    f"{train_acc - val_acc:+.3f}",
+                    f"{100 * row['test_exact_unrefined']:.1f} %" if scored else "-",
+                    f"{100 * row['test_exact_refined']:.1f} %" if scored else "-",
+                    f"{100 * row['test_beyond_10pct_unrefined']:.2f} %" if scored else "-",
+                ]
             )
-            lines.append(
-                f"| {row['epoch']} | {row.get('train_loss') or 0:.3f} / {row.get('val_loss') or 0:.3f} | "
-                f"{train_acc:.3f} | {val_acc:.3f} | {train_acc - val_acc:+.3f} | {test} |"
-            )
-    return "\n".join(lines) + "\n"
+        lines += ["", f"Per epoch, {entry['recipe']}:", "", *markdown_table(header, rows)]
+    return lines
 
 
 def plot(result: dict, path: Path) -> None:
@@ -555,18 +403,24 @@ def plot(result: dict, path: Path) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument("--topology", default="faust", choices=sorted(N_VERTICES))
-    parser.add_argument("--data", type=Path, default=ROOT / "data" / "people", help="the people bodies' folder")
+    add_data(parser, REPO / "data" / "people", "the people bodies' folder (written once)")
     parser.add_argument(
         "--unseen",
         type=Path,
-        default=ROOT / "data" / "people-unseen",
+        default=REPO / "data" / "people-unseen",
         help="the unseen people the recipes are compared on (written once)",
     )
-    parser.add_argument("--others", type=Path, default=ROOT / "data" / "others", help="the pretraining bodies")
-    parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "few_people")
-    parser.add_argument("--recipes", nargs="+", default=["shipped", "pretrained"], choices=sorted(RECIPES))
+    parser.add_argument("--others", type=Path, default=REPO / "data" / "others", help="the pretraining bodies")
+    parser.add_argument("--runs", type=Path, default=REPO / "runs" / "few_people")
+    parser.add_argument(
+        "--recipes",
+        nargs="+",
+        default=["shipped", "pretrained"],
+        choices=list(BOOK["recipes"]),
+        help="recipes of configs/recipes/few_people.yaml",
+    )
     parser.add_argument(
         "--epochs",
         type=int,
@@ -583,22 +437,6 @@ def main() -> None:
         "fixed area, so convolutions learnt on coarser bodies apply to finer ones",
     )
     parser.add_argument(
-        "--export-backbone",
-        metavar="NAME",
-        default=None,
-        help="only pretrain (for the model and inputs of the first of --recipes), then ship the pretrained "
-        "backbone as zernet/pretrained/NAME.pt with NAME.json (its provenance); no recipe is trained",
-    )
-    parser.add_argument(
-        "--export-many-people",
-        metavar="NAME",
-        default=None,
-        help="ship the many-people correspondence run (MANY_PEOPLE; MANY_PEOPLE_TEMPLATE when the first of "
-        "--recipes is many-people-template, MORE_PEOPLE_TEMPLATE when it is a more-people recipe, "
-        "MOST_PEOPLE_TEMPLATE when it is a most-people recipe), output layer "
-        "and template included, as zernet/pretrained/NAME.pt with NAME.json; no recipe is trained",
-    )
-    parser.add_argument(
         "--score-every", type=int, default=1, help="score every K-th epoch on the test people (and the last)"
     )
     parser.add_argument(
@@ -611,76 +449,44 @@ def main() -> None:
         "(e.g. train.lr=2e-3); give each variant its own --runs",
     )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--cache-dir", default=".zernet-cache", help="generated bodies and patch operators")
-    parser.add_argument("--output", type=Path, default=RESULTS / "few_people", help="path without suffix")
+    add_threads(parser)
+    parser.add_argument("--cache-dir", type=Path, default=CACHE, help="generated bodies and patch operators")
+    add_out(parser, EXPERIMENT_RESULTS / "few_people")
     args = parser.parse_args()
 
-    topology = args.pretrain_topology or args.topology
-    if args.export_backbone:
-        count = args.pretrain_count
-        trained_on = (
-            f"{count} generated bodies of independently drawn people ({topology} topology, {count - 10} training, 8 "
-            "validation carved by the FAUST loader, 2 test), never the benchmark's people"
-        )
-        command = "benchmarks/few_people.py " + " ".join(sys.argv[1:])
-        ship_backbone(pretrained_run(args, args.recipes[0]), args.export_backbone, trained_on, command)
-        return
-    if args.export_many_people:
-        trained_on = (
-            "80 generated bodies of independently drawn people (faust topology, 6,890 vertices; 72 training, 8 "
-            "validation carved by the FAUST loader), never the benchmark's people"
-        )
-        run = MANY_PEOPLE_TEMPLATE if args.recipes[0] == "many-people-template" else MANY_PEOPLE
-        command = MANY_PEOPLE_COMMANDS
-        if run == MANY_PEOPLE_TEMPLATE:
-            command = command.replace("runs/corr ", "runs/corr-template ").replace(
-                "train.epochs=4", "train.epochs=4 data.features=xyz+hks+template model.input_skip=true train.threads=1"
-            )
-        if args.recipes[0].startswith("more-people"):
-            run, command = MORE_PEOPLE_TEMPLATE, MORE_PEOPLE_COMMANDS
-            trained_on = trained_on.replace("80 generated", "180 generated").replace("72 training", "172 training")
-        if args.recipes[0].startswith("most-people"):
-            run, command = MOST_PEOPLE_TEMPLATE, MOST_PEOPLE_COMMANDS
-            trained_on = trained_on.replace("80 generated", "220 generated").replace("72 training", "212 training")
-        command += " ; then benchmarks/few_people.py " + " ".join(sys.argv[1:])
-        ship_backbone(run.parent, args.export_many_people, trained_on, command, with_output=True)
-        return
     data_root = people_bodies(args.data, args.topology, args.seed, args.cache_dir)
     args.unseen_root = unseen_people(args.unseen, args.topology, args.seed, args.cache_dir)
+    pretrained_recipes = [name for name in args.recipes if name in BOOK["pretrained_on_other_people"]]
     result = {
         "topology": args.topology,
         "n_vertices": N_VERTICES[args.topology],
         "seed": args.seed,
         "epochs": args.epochs or load_config(CONFIG)["train"]["epochs"],
         "pretraining": None
-        if not any(RECIPES[name][1] for name in args.recipes)
+        if not pretrained_recipes
         else {
             "topology": args.pretrain_topology or args.topology,
             "bodies": args.pretrain_count,
             "epochs": args.pretrain_epochs or load_config(CONFIG)["train"]["epochs"],
         },
-        "command": "benchmarks/few_people.py " + " ".join(sys.argv[1:]),
         "diversity": diversity(args.data, args.topology, args.seed, args.cache_dir),
         "recipes": [],
     }
-    if "many-people-matched" in args.recipes:
-        renumbered_checkpoint(MANY_PEOPLE, RENUMBERED)
-    if "many-people-template-matched" in args.recipes:
-        renumbered_checkpoint(MANY_PEOPLE_TEMPLATE, RENUMBERED_TEMPLATE)
-    if any(name.startswith("more-people") for name in args.recipes):
-        renumbered_checkpoint(MORE_PEOPLE_TEMPLATE, RENUMBERED_MORE_PEOPLE)
-    if "most-people-template-matched" in args.recipes:
-        renumbered_checkpoint(MOST_PEOPLE_TEMPLATE, RENUMBERED_MOST_PEOPLE)
+    for name in args.recipes:
+        starts_from = next(
+            (o.partition("=")[2] for o in BOOK["recipes"][name] if o.startswith("train.init_from=")), None
+        )
+        if starts_from in BOOK["renumbered"]:
+            renumbered_checkpoint(REPO / BOOK["renumbered"][starts_from], REPO / starts_from)
     for name in args.recipes:
         print(f"recipe {name} ...", flush=True)
-        pretrained = pretrained_run(args, name) if RECIPES[name][1] else None
+        pretrained = pretrained_run(args, name) if name in pretrained_recipes else None
         result["recipes"].append(run_recipe(name, data_root, args.runs, pretrained, args))
-        write_json(args.output.with_suffix(".json"), result)
-    text = markdown(result)
-    atomic_write_bytes(args.output.with_suffix(".md"), text.encode())
-    plot(result, args.output.with_suffix(".png"))
-    print(text)
+        write_result(result_file(args.out, ".json"), result)
+    lines = markdown(result)
+    write_markdown(result_file(args.out, ".md"), lines)
+    plot(result, result_file(args.out, ".png"))
+    print("\n".join(lines))
 
 
 if __name__ == "__main__":
