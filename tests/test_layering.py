@@ -73,7 +73,7 @@ def _top_level(module: str) -> str:
 def _package_imports() -> list[tuple[str, str, str]]:
     """(importer, imported, where) for every import from one top-level package of zernet to another."""
     known = {_top_level(_module_name(path)) for path in PACKAGE.rglob("*.py")}
-    edges = []
+    edges = {}
     for path in sorted(PACKAGE.rglob("*.py")):
         importer = _top_level(_module_name(path))
         for name, line in _imported_names(path):
@@ -82,9 +82,10 @@ def _package_imports() -> list[tuple[str, str, str]]:
             imported = _top_level(name)
             if imported not in known:  # ``from zernet import __version__``: the root package itself
                 imported = "zernet"
-            if imported != importer:
-                edges.append((importer, imported, f"{path.relative_to(PACKAGE.parent)}:{line} imports {name}"))
-    return edges
+            where = f"{path.relative_to(PACKAGE.parent)}:{line}"
+            if imported != importer and (imported, where) not in edges:  # one report per import statement
+                edges[imported, where] = (importer, imported, f"{where} imports {name}")
+    return list(edges.values())
 
 
 def _layer_of() -> dict[str, int]:

@@ -35,7 +35,7 @@ class RunRecord:
     """The parts of every checkpoint of a run that do not change from epoch to epoch."""
 
     config: dict  # RunConfig.to_dict()
-    model_spec: dict  # see zernet.training.build.model_spec
+    model_spec: dict  # see zernet.inference.spec.model_spec
     task: str  # classification | regression
     num_classes: int | None
     correspondence: bool
