@@ -174,6 +174,7 @@ def ensure_bodies(
     topology: str = "faust",
     people: int | None = None,
     forms: str | None = None,
+    forms_split: str = "test",
     cache_dir: Path = CACHE,
 ) -> Path:
     """``folder`` holding these generated bodies (``zernet bodies``' layout), written unless the stamp file it
@@ -181,9 +182,22 @@ def ensure_bodies(
     from zernet.data.bodies import write_bodies
 
     stamp = folder / "benchmark-bodies.json"
-    wanted = {"count": count, "n_test": n_test, "seed": seed, "topology": topology, "people": people, "forms": forms}
+    wanted = {"count": count, "n_test": n_test, "seed": seed, "topology": topology, "people": people}
+    wanted.update(forms=forms, forms_split=forms_split)
     if stamp.is_file() and json.loads(stamp.read_text()) == wanted:
         return folder
-    write_bodies(folder, count, seed, topology, "varied", n_test, cache_dir, progress=True, forms=forms, people=people)
+    write_bodies(
+        folder,
+        count,
+        seed,
+        topology,
+        "varied",
+        n_test,
+        cache_dir,
+        True,
+        forms=forms,
+        forms_split=forms_split,
+        people=people,
+    )
     atomic_write_bytes(stamp, json.dumps(wanted, indent=1).encode())
     return folder

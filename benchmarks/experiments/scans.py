@@ -7,12 +7,13 @@ uneven density, and cut to a partial scan; ground truth through the position on 
 
 1. trains each model in ``--models`` (a run folder per model under ``--runs``; an existing run with a
    ``best.pt`` is reused) with ``configs/bodies_segmentation.yaml``, changing only the data folders, the
-   model name and the epochs (and, for ``zernet-mixed``, the training set and the scaling: ``MODELS``);
+   model name and the epochs (and, for ``zernet-mixed``, the training set, the scaling and the recipe of
+   ``configs/recipes/scans.yaml``: ``MODELS``);
 2. predicts every form of every test body with ``zernet.inference.predict`` (what ``zernet predict`` does:
    repairs, the backend chosen by the kind of surface, the refinement the run chose on validation, one
    value per input vertex), and scores the
    vertex accuracy against the form's ground truth; a form that raises counts as *refused*;
-3. writes ``benchmarks/results/scans.md`` and ``scans.json`` (accuracy per model and form, pooled over the
+3. writes ``benchmarks/experiments/results/scans.md`` and ``scans.json`` (``--out``) (accuracy per model and form, pooled over the
    vertices of the 20 test bodies, its drop from the original form, refusals, seconds per shape) and one
    picture per form and zernet model (``scans_<form>.png``, ``scans_mixed_<form>.png``: the first test body
    coloured by the predicted part, and where the prediction is wrong).
@@ -22,7 +23,7 @@ scaled instead by the factor that takes the training bodies (all in metres) to t
 median over the training bodies, as a user who knows their scanner's units would (``predict(scale=...)``,
 ``zernet predict --scale``).
 
-    .venv/bin/python benchmarks/scans.py --bodies data/scans --runs runs/scans --models zernet feastnet zernet-mixed
+    .venv/bin/python -m benchmarks.experiments.scans --bodies data/scans --runs runs/scans --models zernet feastnet zernet-mixed
 """
 
 from __future__ import annotations
@@ -34,49 +35,43 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import matplotlib  # noqa: E402
+import matplotlib
 
 matplotlib.use("Agg")
-import numpy as np  # noqa: E402
-import yaml  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
+import numpy as np
+import yaml
+from scipy.spatial import cKDTree
 
-from zernet.data.bodies import closest_points  # noqa: E402
-from zernet.data.segmentation import HUMAN_PART_NAMES  # noqa: E402
-from zernet.geometry import Surface, read_surface  # noqa: E402
-from zernet.inference import load_checkpoint  # noqa: E402
-from zernet.inference.predict import predict  # noqa: E402
-from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
-from zernet.training import load_config  # noqa: E402
-from zernet.training.config import apply_overrides  # noqa: E402
-from zernet.viz import render_comparison  # noqa: E402
+from benchmarks.harness import (
+    EXPERIMENT_RESULTS,
+    RECIPES,
+    REPO,
+    add_out,
+    add_threads,
+    arguments,
+    ensure_bodies,
+    markdown_table,
+    result_file,
+    write_json,
+    write_markdown,
+)
+from zernet.data.bodies import closest_points
+from zernet.data.segmentation import HUMAN_PART_NAMES
+from zernet.geometry import Surface, read_surface
+from zernet.inference import load_checkpoint
+from zernet.inference.predict import predict
+from zernet.training import load_config
+from zernet.training.config import apply_overrides
+from zernet.viz import render_comparison
 
-RESULTS = ROOT / "benchmarks" / "results"
-CONFIG = ROOT / "configs" / "bodies_segmentation.yaml"
+#: The mixed recipe: ``base``, ``recipes["zernet-mixed"]`` (--set overrides), ``mixed_form_bodies``.
+BOOK = yaml.safe_load((RECIPES / "scans.yaml").read_text())
+CONFIG = REPO / BOOK["base"]
 FORMS = ("original", "remeshed", "decimated", "cloud", "cloud-noisy", "partial")
 #: zernet and FeaStNet (the same widths and dropout) trained on the original bodies; zernet-mixed: zernet
-#: trained from scratch on the original training bodies plus the forms of the first training bodies
-#: (MIXED_FORM_BODIES: augmentation by remeshing, decimation, resampling and one-sided views), at one fixed
-#: scale
-#: (``patch.scale``: the training bodies' median factor to the training area) instead of per-shape area
-#: normalisation, which would enlarge a partial scan to a whole body's area; with the heat kernel signature
-#: as input and every input seen by the head (:data:`MIXED_RECIPE`).
+#: trained from scratch on the original training bodies plus forms of the first training bodies, at one
+#: fixed scale, with the recipe of configs/recipes/scans.yaml.
 MODELS = ("zernet", "feastnet", "zernet-mixed")
-#: Form -> how many training bodies (the first ones) join the mixed training set in that form. Partial
-#: scans and both clouds of all 80 rather than 40: each chosen on 10 validation bodies of another seed in
-#: every form (docs/RECIPES.md, "Segmentation of scans"); with the clouds of 80, refined, every form was as
-#: good or better (noisy half clouds 93.2 -> 94.3 %, clouds 96.3 -> 96.5, the rest within 0.15).
-#: ``--mixed FORM=N`` changes it for one call.
-MIXED_FORM_BODIES = {"remeshed": 40, "decimated": 40, "cloud": 80, "cloud-noisy": 80, "partial": 80}
-#: What the mixed recipe changes in the configuration besides the data and the scale: the head also sees
-#: the inputs (``model.input_skip``) and the inputs include the heat kernel signature (``hks``), so the model
-#: knows where on the body a point is, which the patches (centre value subtracted, a few radii wide) do not
-#: tell it: chosen on the validation bodies of seed 7 (docs/RECIPES.md), clouds 96.5 -> 98.1 %, noisy half
-#: clouds 94.3 -> 96.7, partial scans 95.4 -> 97.9, meshes +0.3-0.4.
-MIXED_RECIPE = ("data.features=xyz+normals+hks", "model.input_skip=true")
 #: Models whose predictions are drawn, and the suffix of their pictures' names.
 PICTURES = {"zernet": "", "zernet-mixed": "_mixed"}
 #: Model options only zernet takes.
@@ -84,26 +79,27 @@ ZERNET_ONLY = ("angular_resolution", "pooling")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument(
         "--bodies",
         type=Path,
-        default=ROOT / "data" / "scans",
+        default=REPO / "data" / "scans",
         help="folder written by 'zernet bodies OUT --forms all' (made if missing)",
     )
-    parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "scans", help="one run folder per model")
+    parser.add_argument("--runs", type=Path, default=REPO / "runs" / "scans", help="one run folder per model")
     parser.add_argument("--models", nargs="+", default=["zernet"], choices=MODELS)
     parser.add_argument("--forms", nargs="+", default=list(FORMS), choices=FORMS)
     parser.add_argument("--epochs", type=int, default=15)
-    parser.add_argument("--threads", type=int, default=1)
+    add_threads(parser, default=1)
     parser.add_argument("--limit", type=int, default=None, help="only the first N test bodies")
-    parser.add_argument("--out", default="scans", help="stem of the result files in benchmarks/results")
+    add_out(parser, EXPERIMENT_RESULTS / "scans")
     parser.add_argument(
         "--mixed",
         nargs="+",
         default=[],
         metavar="FORM=N",
-        help="zernet-mixed: take FORM of the first N training bodies (default: MIXED_FORM_BODIES)",
+        help="zernet-mixed: take FORM of the first N training bodies (default: mixed_form_bodies of "
+        "configs/recipes/scans.yaml)",
     )
     parser.add_argument(
         "--set",
@@ -115,7 +111,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         "(e.g. data.features=xyz+normals+hks model.input_skip=true)",
     )
     args = parser.parse_args(argv)
-    mixed = dict(MIXED_FORM_BODIES)
+    mixed = dict(BOOK["mixed_form_bodies"])
     for item in args.mixed:
         form, _, count = item.partition("=")
         if form not in mixed or not count.isdigit() or not 0 <= int(count) <= 80:
@@ -123,30 +119,6 @@ def parse_args(argv=None) -> argparse.Namespace:
         mixed[form] = int(count)
     args.mixed = mixed
     return args
-
-
-def ensure_bodies(bodies: Path) -> None:
-    """Generate the bodies and their forms unless they are there."""
-    if (bodies / "forms").is_dir() and (bodies / "segmentation").is_dir():
-        return
-    subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "zernet.cli",
-            "bodies",
-            str(bodies),
-            "--count",
-            "100",
-            "--n-test",
-            "20",
-            "--seed",
-            "0",
-            "--forms",
-            "all",
-        ],
-        check=True,
-    )
 
 
 def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
@@ -165,10 +137,7 @@ def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
         mixed = mixed_training_folder(bodies, args.mixed)
         config["data"].update(meshes=str(mixed / "meshes"), labels=str(mixed / "labels"))
         config["patch"]["scale"] = training_scale(bodies, config["patch"].pop("area"))
-        # All the epochs, the best on validation kept: its 8 validation shapes (noisy clouds among them) move
-        # by up to 2 points from one epoch to the next, and patience 4 stopped it at epoch 8 of 18.
-        config["train"]["patience"] = None
-        config = apply_overrides(config, [*MIXED_RECIPE, *args.overrides])
+        config = apply_overrides(config, [*BOOK["recipes"]["zernet-mixed"], *args.overrides])
     path = run_dir.parent / f"{model}.yaml"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(config))
@@ -192,30 +161,11 @@ def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
 
 def mixed_training_folder(bodies: Path, form_bodies: dict[str, int]) -> Path:
     """A segmentation folder of links: the original training and test bodies, plus each form of
-    ``form_bodies`` (:data:`MIXED_FORM_BODIES`) of that many of the first training bodies (generated if
+    ``form_bodies`` (``--mixed``) of that many of the first training bodies (generated if
     missing)."""
-    forms = bodies / "train-forms"
-    if not all((forms / "forms" / form / "meshes" / "train").is_dir() for form in form_bodies):
-        subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "zernet.cli",
-                "bodies",
-                str(forms),
-                "--count",
-                "100",
-                "--n-test",
-                "20",
-                "--seed",
-                "0",
-                "--forms",
-                ",".join(MIXED_FORM_BODIES),
-                "--forms-split",
-                "all",
-            ],
-            check=True,
-        )
+    forms = ensure_bodies(
+        bodies / "train-forms", 100, 20, 0, forms=",".join(BOOK["mixed_form_bodies"]), forms_split="all"
+    )
     mixed = bodies / ("mixed-" + "-".join(f"{form}{count}" for form, count in form_bodies.items()))
     links = [
         (bodies / "segmentation" / kind / split / f"{path.stem}{suffix}", mixed / kind / split / f"{path.stem}{suffix}")
@@ -328,7 +278,7 @@ def percent(fraction: float | None, digits: int = 1) -> str:
     return "-" if fraction is None else f"{100 * fraction:.{digits}f} %"
 
 
-def markdown(results: dict, args, scale: float) -> str:
+def markdown(results: dict, args, scale: float) -> list[str]:
     mixed = args.mixed
     lines = [
         "# Scans as users bring them: segmentation on every form of 20 held-out generated bodies",
@@ -337,7 +287,7 @@ def markdown(results: dict, args, scale: float) -> str:
         "zernet-mixed: zernet trained on the original training bodies plus "
         + ", ".join(f"{form} forms of {count}" for form, count in mixed.items())
         + " of them, at one fixed scale (`patch.scale`) instead of per-shape area normalisation, with "
-        + ", ".join(f"`{item}`" for item in MIXED_RECIPE)
+        + ", ".join(f"`{item}`" for item in BOOK["recipes"]["zernet-mixed"])
         + ". Test split: 20 bodies "
         "never seen in training, each in every form (`zernet bodies ... --forms all`). Accuracy pooled over "
         "the vertices (points) of the form, against the ground truth carried from the original body; "
@@ -349,10 +299,10 @@ def markdown(results: dict, args, scale: float) -> str:
         "the accuracy there / on all other points.",
         f"Partial scans scaled by the training bodies' median factor {scale:.2f} (`predict(scale=...)`).",
         "",
-        "| model | form | accuracy | drop | worst shape | by a boundary | there / elsewhere | refused | rings "
-        "| s / shape |",
-        "|---|---|---|---|---|---|---|---|---|---|",
     ]
+    header = ["model", "form", "accuracy", "drop", "worst shape", "by a boundary", "there / elsewhere"]
+    header += ["refused", "rings", "s / shape"]
+    rows = []
     for model, forms in results.items():
         original = forms.get("original", {}).get("accuracy")
         for form, row in forms.items():
@@ -372,14 +322,13 @@ def markdown(results: dict, args, scale: float) -> str:
                 str(row.get("refine_rings", 0)),
                 "-" if seconds is None else f"{seconds:.1f}",
             ]
-            lines.append(f"| {model} | {form} | " + " | ".join(cells) + " |")
-    lines += ["", "Command: `" + " ".join(["python benchmarks/scans.py", *sys.argv[1:]]) + "`", ""]
-    return "\n".join(lines)
+            rows.append([model, form, *cells])
+    return lines + markdown_table(header, rows, align="llrrrrrrrr")
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    ensure_bodies(args.bodies)
+    ensure_bodies(args.bodies, 100, 20, 0, forms="all")
     scale = training_scale(args.bodies, 15000.0)
     results = {}
     for model in args.models:
@@ -387,20 +336,21 @@ def main(argv=None) -> int:
         results[model] = {}
         for form in args.forms:
             files = form_files(args.bodies, form)[: args.limit]
-            picture = RESULTS / f"{args.out}{PICTURES[model]}_{form}.png" if model in PICTURES else None
+            picture = result_file(args.out, f"{PICTURES[model]}_{form}.png") if model in PICTURES else None
             row = score_form(run_dir, args.bodies, files, scale if form == "partial" else None, picture)
             row["refine_rings"] = int(load_checkpoint(run_dir / "best.pt").get("refine_rings", 0))
             results[model][form] = row
             accuracy = "-" if row["accuracy"] is None else f"{100 * row['accuracy']:.2f} %"
             print(f"{model:9} {form:12} {accuracy:>9}  refused {len(row['refused'])}", flush=True)
     # Models measured by an earlier call with the same --out are kept (one model at a time fits a session).
-    stored = RESULTS / f"{args.out}.json"
+    stored = result_file(args.out, ".json")
     if stored.is_file():
         earlier = json.loads(stored.read_text())["models"]
         results = {**{m: r for m, r in earlier.items() if m not in results}, **results}
-    write_json(stored, {"models": results, "partial_scale": scale, "argv": sys.argv[1:]})
-    atomic_write_bytes(RESULTS / f"{args.out}.md", markdown(results, args, scale).encode())
-    print(markdown(results, args, scale))
+    write_json(stored, {"models": results, "partial_scale": scale})
+    lines = markdown(results, args, scale)
+    write_markdown(result_file(args.out, ".md"), lines)
+    print("\n".join(lines))
     return 0
 
 

@@ -59,7 +59,7 @@ def test_commit_is_the_repository_head():
 def test_ensure_bodies_writes_once_per_set_of_parameters(tmp_path, monkeypatch):
     calls = []
 
-    def write_bodies(folder, count, seed, topology, poses, n_test, cache_dir, progress, forms, people):
+    def write_bodies(folder, count, seed, topology, poses, n_test, cache_dir, progress, forms, forms_split, people):
         calls.append((count, seed, topology, n_test, forms, people))
         Path(folder).mkdir(parents=True, exist_ok=True)
 
