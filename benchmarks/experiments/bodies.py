@@ -27,37 +27,48 @@ with ``resume``, which is exact), and the model after each epoch is scored on th
 Bodies are coarse by default (``--topology coarse-1229``: 1,229 vertices, 50 bodies, 34 train / 6 validation
 / 10 test), so that the whole comparison runs in well under an hour on two cores; ``--topology faust
 --count 100 --n-test 20 --val-count 8`` is the FAUST-sized setting of the issue's targets (hours on a CPU).
-Writes ``benchmarks/results/bodies.md``, ``bodies.json`` and ``bodies.png`` (``--out`` for another stem).
+Writes ``benchmarks/experiments/results/bodies.md``, ``bodies.json`` and ``bodies.png`` (``--out`` for
+another stem).
 
-    .venv/bin/python benchmarks/bodies.py                                   # coarse, 20 epochs, all models
-    .venv/bin/python benchmarks/bodies.py --tasks segmentation --models zernet feastnet --epochs 10
-    .venv/bin/python benchmarks/bodies.py --topology faust --count 100 --n-test 20 --val-count 8 --epochs 30
+    .venv/bin/python -m benchmarks.experiments.bodies                       # coarse, 20 epochs, all models
+    .venv/bin/python -m benchmarks.experiments.bodies --tasks segmentation --models zernet feastnet --epochs 10
+    .venv/bin/python -m benchmarks.experiments.bodies --topology faust --count 100 --n-test 20 --val-count 8 --epochs 30
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import matplotlib  # noqa: E402
+import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
 
-from zernet.data.bodies import TOPOLOGIES, write_bodies  # noqa: E402
+from benchmarks.harness import (
+    CACHE,
+    EXPERIMENT_RESULTS,
+    REPO,
+    add_data,
+    add_out,
+    add_threads,
+    arguments,
+    ensure_bodies,
+    markdown_table,
+    result_file,
+    write_markdown,
+)
+from benchmarks.harness import write_json as write_result  # a result file, with commit and machine
+from zernet.data.bodies import TOPOLOGIES
 from zernet.inference import load_checkpoint
-from zernet.inference.predict import model_from_checkpoint, predict_record  # noqa: E402
-from zernet.io_utils import atomic_write_bytes, plain, write_json  # noqa: E402
+from zernet.inference.predict import model_from_checkpoint, predict_record
+from zernet.io_utils import plain, write_json
 from zernet.training import apply_overrides, build_dataset, load_config, parse_config, train
-from zernet.training.evaluation import evaluate_members, select_refine_rings  # noqa: E402
+from zernet.training.evaluation import evaluate_members, select_refine_rings
 
 MODELS = ("zernet", "zernet-multiscale", "zernet-directional", "paper-zernet", "feastnet")
 TASKS = ("correspondence", "segmentation")
@@ -70,7 +81,7 @@ ZERNET_ONLY = ("angular_resolution", "pooling", "n_scales", "wiring", "nonlinear
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = arguments(__doc__)
     p.add_argument("--tasks", nargs="+", choices=TASKS, default=list(TASKS))
     p.add_argument("--models", nargs="+", choices=MODELS, default=list(MODELS))
     p.add_argument("--epochs", type=int, default=20, help="epochs of every model (default 20)")
@@ -79,7 +90,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--n-test", type=int, default=10, help="of them, test bodies (default 10)")
     p.add_argument("--val-count", type=int, default=6, help="validation bodies carved from the training ones")
     p.add_argument("--seed", type=int, default=0, help="seed of the bodies, the split and the training")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads per training (default 1)")
+    add_threads(p, default=1)
     p.add_argument(
         "--target",
         type=float,
@@ -104,45 +115,21 @@ def parse_args(argv=None) -> argparse.Namespace:
         metavar="KEY=VALUE",
         help="overrides applied to every run's configuration (e.g. train.lr=1e-3)",
     )
-    p.add_argument("--data", type=Path, default=None, help="bodies folder (default data/bodies-TOPOLOGY-COUNT)")
-    p.add_argument("--runs", type=Path, default=ROOT / "runs" / "bench_bodies", help="run folders")
+    add_data(p, None, "bodies folder (default data/bodies-TOPOLOGY-COUNT)")
+    p.add_argument("--runs", type=Path, default=REPO / "runs" / "bench_bodies", help="run folders")
     p.add_argument(
         "--keep",
         action="store_true",
         help="reuse the results in STEM.json of (task, model) pairs whose configuration is unchanged, "
         "and continue an interrupted pair from its last trained epoch (models can be added)",
     )
-    p.add_argument(
-        "--out",
-        type=Path,
-        default=ROOT / "benchmarks" / "results" / "bodies",
-        help="output stem: writes STEM.md, STEM.json and STEM.png",
-    )
+    add_out(p, EXPERIMENT_RESULTS / "bodies")
     return p.parse_args(argv)
-
-
-def ensure_bodies(args) -> Path:
-    """The bodies folder, generated (cached) if it does not hold this topology, count and seed yet."""
-    root = args.data or ROOT / "data" / f"bodies-{args.topology}-{args.count}"
-    stamp = root / "benchmark-bodies.json"
-    wanted = {"topology": args.topology, "count": args.count, "n_test": args.n_test, "seed": args.seed}
-    if not stamp.is_file() or json.loads(stamp.read_text()) != wanted:
-        write_bodies(
-            root,
-            count=args.count,
-            seed=args.seed,
-            topology=args.topology,
-            n_test=args.n_test,
-            cache_dir=ROOT / ".zernet-cache",
-            progress=True,
-        )
-        write_json(stamp, wanted)
-    return root
 
 
 def run_config(task: str, model: str, bodies: Path, args) -> dict:
     """The configuration of one (task, model) run: the task's recipe with the model's section."""
-    config = load_config(ROOT / TASK_CONFIGS[task])
+    config = load_config(REPO / TASK_CONFIGS[task])
     widths = config["model"].get("widths")
     if task == "segmentation":
         config["data"]["meshes"] = str(bodies / "segmentation" / "meshes")
@@ -156,11 +143,11 @@ def run_config(task: str, model: str, bodies: Path, args) -> dict:
     config["data"]["val_count"] = args.val_count
     config["data"]["seed"] = args.seed
     if model == "zernet-multiscale":
-        multi = load_config(ROOT / "configs" / "faust_multi_scale.yaml")
+        multi = load_config(REPO / "configs" / "faust_multi_scale.yaml")
         config["patch"] = multi["patch"]
         config["model"] = dict(multi["model"])
     elif model == "zernet-directional":
-        config["model"] = dict(load_config(ROOT / "configs" / "faust_directional.yaml")["model"])
+        config["model"] = dict(load_config(REPO / "configs" / "faust_directional.yaml")["model"])
     elif model in ("paper-zernet", "feastnet"):
         config["model"] = dict(config["model"], name=model)
     if model == "paper-zernet":  # the paper's sampling rule too: the 50 nearest samples of each patch
@@ -181,7 +168,7 @@ def run_config(task: str, model: str, bodies: Path, args) -> dict:
         }
     )
     config["eval"] = {"renders": 0, "plots": False}  # refinement is chosen once, for the selected model
-    config["cache_dir"] = str(ROOT / ".zernet-cache")
+    config["cache_dir"] = str(CACHE)
     return apply_overrides(config, args.overrides)
 
 
@@ -286,12 +273,10 @@ def _pct(value) -> str:
     return "n/a" if value is None else f"{100 * value:.1f}"
 
 
-def markdown(results: list[dict], args) -> str:
+def markdown(results: list[dict], args) -> list[str]:
     first = results[0]
     lines = [
         "# Generated bodies: zernet variants, the paper's formulation and FeaStNet",
-        "",
-        f"`{' '.join(['benchmarks/bodies.py'] + sys.argv[1:])}`",
         "",
         f"Bodies: topology {args.topology} ({first['n_vertices']} vertices), {first['n_train']} train / "
         f"{first['n_val']} validation / {first['n_test']} test, seed {args.seed}; {args.epochs} epochs each, "
@@ -305,11 +290,9 @@ def markdown(results: list[dict], args) -> str:
         lr = rows[0]["config"]["train"]["lr"]
         lines += [f"## {task} (lr {lr}, target {_pct(rows[0]['target'])} % on test)", ""]
         if task == "correspondence":
-            lines += [
-                "| model | params | exact % | <=1 % diam | <=2.5 % | <=5 % | refined: rings, exact %, <=1 % | "
-                "best epoch | s/epoch | epochs (s) to target |",
-                "|---|---|---|---|---|---|---|---|---|---|",
-            ]
+            header = ["model", "params", "exact %", "<=1 % diam", "<=2.5 %", "<=5 %"]
+            header += ["refined: rings, exact %, <=1 %", "best epoch", "s/epoch", "epochs (s) to target"]
+            table = []
             for r in rows:
                 s, refined = r["selected"], r.get("refined")
                 refined_text = (
@@ -317,35 +300,43 @@ def markdown(results: list[dict], args) -> str:
                     if not refined
                     else (f"{r['refine_rings']}, {_pct(refined['accuracy'])}, {_pct(refined['within_0.01'])}")
                 )
-                lines.append(
-                    f"| {r['model']} | {r['parameters']:,} | {_pct(s['accuracy'])} | {_pct(s['within_0.01'])} "
-                    f"| {_pct(s['within_0.025'])} | {_pct(s['within_0.05'])} | {refined_text} | "
-                    f"{r['best_epoch']} | {r['seconds_per_epoch']:.1f} | {_to_target(r)} |"
+                table.append(
+                    [
+                        r["model"],
+                        f"{r['parameters']:,}",
+                        _pct(s["accuracy"]),
+                        _pct(s["within_0.01"]),
+                        _pct(s["within_0.025"]),
+                        _pct(s["within_0.05"]),
+                        refined_text,
+                        r["best_epoch"],
+                        f"{r['seconds_per_epoch']:.1f}",
+                        _to_target(r),
+                    ]
                 )
         else:
-            lines += [
-                "| model | params | accuracy % | mean IoU | per-part IoU | best epoch | s/epoch | "
-                "epochs (s) to target |",
-                "|---|---|---|---|---|---|---|---|",
+            header = ["model", "params", "accuracy %", "mean IoU", "per-part IoU", "best epoch", "s/epoch"]
+            header += ["epochs (s) to target"]
+            table = [
+                [
+                    r["model"],
+                    f"{r['parameters']:,}",
+                    _pct(r["selected"]["accuracy"]),
+                    f"{r['selected']['mean_iou']:.3f}",
+                    " ".join(f"{v:.2f}" for v in r["selected"]["per_class_iou"]),
+                    r["best_epoch"],
+                    f"{r['seconds_per_epoch']:.1f}",
+                    _to_target(r),
+                ]
+                for r in rows
             ]
-            for r in rows:
-                s = r["selected"]
-                ious = " ".join(f"{v:.2f}" for v in s["per_class_iou"])
-                lines.append(
-                    f"| {r['model']} | {r['parameters']:,} | {_pct(s['accuracy'])} | {s['mean_iou']:.3f} | "
-                    f"{ious} | {r['best_epoch']} | {r['seconds_per_epoch']:.1f} | {_to_target(r)} |"
-                )
-        lines += [
-            "",
-            "Test accuracy of every epoch's model (%):",
-            "",
-            "| model | " + " | ".join(str(e) for e in range(1, len(rows[0]["test_curve"]) + 1)) + " |",
-            "|---|" + "---|" * len(rows[0]["test_curve"]),
-        ]
-        for r in rows:
-            lines.append(f"| {r['model']} | " + " | ".join(f"{100 * a:.1f}" for a in r["test_curve"]) + " |")
+        lines += markdown_table(header, table)
+        epochs = range(1, len(rows[0]["test_curve"]) + 1)
+        curves = [[r["model"], *(f"{100 * a:.1f}" for a in r["test_curve"])] for r in rows]
+        lines += ["", "Test accuracy of every epoch's model (%):", ""]
+        lines += markdown_table(["model", *map(str, epochs)], curves)
         lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 def _to_target(r: dict) -> str:
@@ -387,7 +378,7 @@ def plot(results: list[dict], path: Path) -> None:
 
 def kept_results(args, bodies: Path) -> dict:
     """Results of STEM.json whose run configuration equals this call's, by (task, model)."""
-    path = args.out.with_suffix(".json")
+    path = result_file(args.out, ".json")
     if not args.keep or not path.is_file():
         return {}
     kept = {}
@@ -406,7 +397,7 @@ def _same(stored: dict, config: dict) -> bool:
 def _relative(value):
     """``value`` with paths inside the repository written relative to it (results name no local folders)."""
     if isinstance(value, str):
-        return value[len(str(ROOT)) + 1 :] if value.startswith(str(ROOT) + "/") else value
+        return value[len(str(REPO)) + 1 :] if value.startswith(str(REPO) + "/") else value
     if isinstance(value, dict):
         return {k: _relative(v) for k, v in value.items()}
     if isinstance(value, list):
@@ -416,13 +407,14 @@ def _relative(value):
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    bodies = ensure_bodies(args)
+    folder = args.data or REPO / "data" / f"bodies-{args.topology}-{args.count}"
+    bodies = ensure_bodies(folder, args.count, args.n_test, args.seed, args.topology)
     kept = kept_results(args, bodies)
     results, started = [], time.perf_counter()
     for task in args.tasks:
         for model in args.models:
             if (task, model) in kept:
-                print(f"{task} / {model}: kept from {args.out.with_suffix('.json')}", flush=True)
+                print(f"{task} / {model}: kept from {result_file(args.out, '.json')}", flush=True)
                 results.append(kept[(task, model)])
                 continue
             print(f"{task} / {model}", flush=True)
@@ -432,12 +424,12 @@ def main(argv=None) -> int:
                 "results": results,
                 "wall_seconds": time.perf_counter() - started,
             }
-            write_json(args.out.with_suffix(".json"), _relative(plain(report)))
-            atomic_write_bytes(args.out.with_suffix(".md"), markdown(results, args).encode())
-            plot(results, args.out.with_suffix(".png"))
-    print(markdown(results, args))
+            write_result(result_file(args.out, ".json"), _relative(plain(report)))
+            write_markdown(result_file(args.out, ".md"), markdown(results, args))
+            plot(results, result_file(args.out, ".png"))
+    print("\n".join(markdown(results, args)))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())
