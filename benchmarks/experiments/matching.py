@@ -17,9 +17,9 @@ divided by the square root of the target's area, x100; the curve is the fraction
 within 0-10 % of the target's geodesic diameter. Time per pair: both shapes prepared from scratch (no
 cache: operators, features, eigenbases) plus the match, one thread.
 
-    python benchmarks/matching.py [--topology faust] [--pairs 8] [--model FILE] [--template FILE]
+    .venv/bin/python -m benchmarks.experiments.matching [--topology faust] [--pairs 8] [--model FILE] [--template FILE]
         [--split test|validation] [--methods template,descriptors,zoomout] [--fine-tuned FILE]
-        [--classifier RUN] [--out benchmarks/results/matching]
+        [--classifier RUN] [--out benchmarks/experiments/results/matching]
 
 ``--fine-tuned FILE`` adds a column for a template model fine-tuned from the shipped one on a small labelled
 set (``python -m zernet.matching.train_template BODIES RUN --out FILE --init-from
@@ -34,16 +34,23 @@ shipped model): the pairs a model is chosen on, so the test pairs stay unseen by
 
 from __future__ import annotations
 
-import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchmarks.harness import (
+    CACHE,
+    EXPERIMENT_RESULTS,
+    add_out,
+    arguments,
+    markdown_table,
+    result_file,
+    write_json,
+    write_markdown,
+)
 from zernet.geometry import Surface
-from zernet.io_utils import write_json
 from zernet.matching.bodies import body_forms, ground_truth_map
 from zernet.matching.fmap import zoomout
 from zernet.matching.match import match_shapes, match_surfaces, nearest_vertex_map, shared_scale
@@ -152,7 +159,7 @@ def classifier_reference(run: str, bodies: dict, faces: np.ndarray, indices) -> 
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument("--topology", default="faust")
     parser.add_argument("--pairs", type=int, default=8)
     parser.add_argument("--settings", default="remeshed,rotated,cloud,partial")
@@ -164,8 +171,8 @@ def main(argv=None) -> int:
         help="a template model fine-tuned from the shipped one on a small labelled set (train_template "
         "--init-from): adds its column",
     )
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/matching"))
-    parser.add_argument("--cache-dir", default=".zernet-cache")
+    add_out(parser, EXPERIMENT_RESULTS / "matching")
+    parser.add_argument("--cache-dir", type=Path, default=CACHE)
     parser.add_argument("--split", choices=sorted(SPLITS), default="test", help="test pairs, or validation pairs")
     parser.add_argument(
         "--classifier",
@@ -298,11 +305,10 @@ def main(argv=None) -> int:
             for name in ("template model", "template model, fine-tuned", "descriptor model")
             if name in methods
         }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(args.out.with_suffix(".json"), summary)
+    write_json(result_file(args.out, ".json"), summary)
     plot_error_curve(
         curves,
-        args.out.with_name(args.out.name + "_curves.png"),
+        result_file(args.out, "_curves.png"),
         title=f"Matching held-out generated bodies ({args.topology}, each remeshed on its own)",
     )
     if example is not None:
@@ -313,35 +319,34 @@ def main(argv=None) -> int:
         render_side_by_side(
             [source, target],
             [field, transfer_field(field, result.reverse_map)],
-            args.out.with_name(args.out.name + "_example.png"),
+            result_file(args.out, "_example.png"),
             ["source", "target"],
             title="colour on the source, carried to the target by the template model's map",
         )
-    write_markdown(summary, args.out.with_suffix(".md"), " ".join(["python benchmarks/matching.py"] + sys.argv[1:]))
-    print(args.out.with_suffix(".md").read_text())
+    lines = markdown(summary)
+    write_markdown(result_file(args.out, ".md"), lines)
+    print("\n".join(lines))
     return 0
 
 
-def write_markdown(summary: dict, path: Path, command: str) -> None:
+def markdown(summary: dict) -> list[str]:
     lines = [
         f"# Matching held-out generated bodies ({summary['topology']} topology, {summary['pairs']} "
         f"{summary['split']} pairs)",
         "",
-        f"`{command}` (one thread). Template model: {summary['template']} "
+        f"One thread. Template model: {summary['template']} "
         f"(commit {str(summary['template_provenance'].get('commit'))[:10]}); descriptor model: {summary['model']} "
         f"(commit {str(summary['model_provenance'].get('commit'))[:10]}).",
         "",
         "Mean geodesic error x100 / sqrt(target area) (median in brackets); every body in a form of its own.",
         "",
-        "| setting | " + " | ".join(next(iter(summary["settings"].values()))) + " |",
-        "|---|" + "---:|" * len(next(iter(summary["settings"].values()))),
     ]
-    for setting, methods in summary["settings"].items():
-        lines.append(
-            f"| {setting} | "
-            + " | ".join(f"{m['mean_error_x100']:.2f} ({m['median_error_x100']:.2f})" for m in methods.values())
-            + " |"
-        )
+    methods = list(next(iter(summary["settings"].values())))
+    rows = [
+        [setting, *(f"{m['mean_error_x100']:.2f} ({m['median_error_x100']:.2f})" for m in by_method.values())]
+        for setting, by_method in summary["settings"].items()
+    ]
+    lines += markdown_table(["setting", *methods], rows)
     if "rotation_change" in summary:
         lines += [
             "",
@@ -379,7 +384,7 @@ def write_markdown(summary: dict, path: Path, command: str) -> None:
             f"Fine-tuned template model: `{summary['fine_tuned']}`, made from the shipped one by "
             f"`{summary['fine_tuned_provenance'].get('command')}`.",
         ]
-    path.write_text("\n".join(lines) + "\n")
+    return lines
 
 
 if __name__ == "__main__":
