@@ -128,3 +128,38 @@ def write_faust_layout(root, surfaces) -> None:
     folder.mkdir(parents=True)
     for i, surface in enumerate(surfaces):
         trimesh.Trimesh(surface.vertices, surface.faces, process=False).export(folder / f"tr_reg_{i:03d}.ply")
+
+
+def labelled_sphere(seed: int, name: str = "sphere") -> tuple[Surface, np.ndarray]:
+    """A 42-vertex sphere (radial noise 0.05, seeded) stretched 1.5 times along x, and its part labels: 1 on
+    the upper half (y > 0), else 0. The labels are a plane through the shape, so a small model reading xyz
+    learns them in a few seconds."""
+    sphere = icosphere(subdivisions=1, noise=0.05, seed=seed)
+    vertices = sphere.vertices * np.array([1.5, 1.0, 1.0])
+    return Surface(vertices, sphere.faces, name=name), (vertices[:, 1] > 0).astype(np.int64)
+
+
+def write_labelled_sphere(folder, name: str, seed: int) -> tuple[str, str]:
+    """:func:`labelled_sphere` as ``folder/name.obj`` with its labels in ``folder/name.txt`` (one per line,
+    the layout of the segmentation loader); returns the two files' texts."""
+    surface, labels = labelled_sphere(seed, name)
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh_text = trimesh.Trimesh(surface.vertices, surface.faces, process=False).export(file_type="obj")
+    label_text = "\n".join(str(label) for label in labels) + "\n"
+    (folder / f"{name}.obj").write_text(mesh_text)
+    (folder / f"{name}.txt").write_text(label_text)
+    return mesh_text, label_text
+
+
+def write_labelled_spheres(root, n: int = 6, test: tuple[str, ...] = ("shape5",)) -> None:
+    """Spheres ``shape0``.. ``shape{n-1}`` (seed i) under ``root/train`` or, for those named in ``test``,
+    ``root/test``."""
+    for i in range(n):
+        name = f"shape{i}"
+        write_labelled_sphere(root / ("test" if name in test else "train"), name, seed=i)
+
+
+def majority_fraction(labels: np.ndarray) -> float:
+    """The fraction of ``labels`` in their most frequent class: the accuracy of answering that class everywhere,
+    the baseline a model that has learnt its task must beat."""
+    return float(np.bincount(np.asarray(labels).reshape(-1)).max() / np.size(labels))

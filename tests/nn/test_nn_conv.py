@@ -6,9 +6,11 @@ import math
 import numpy as np
 import pytest
 import torch
+from meshes import icosphere
 
 from zernet.nn import MatrixOperator, RotatedKernelConv, ZernikeConv, harmonic_contraction, harmonic_plan
 from zernet.nn.reference import rotated_kernel_responses
+from zernet.operators import PatchConfig, build_patch_operator
 from zernet.zernike import num_bases, rotate_coefficients, zernike_basis
 
 pytestmark = pytest.mark.filterwarnings("ignore:Sparse CSR tensor support is in beta")
@@ -214,13 +216,8 @@ def test_options_and_errors():
 
 
 def test_real_patch_operator_on_small_mesh():
-    patches = pytest.importorskip("zernet.operators")
-    surface_mod = pytest.importorskip("zernet.geometry")
-    trimesh = pytest.importorskip("trimesh")
-    mesh = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
-    surface = surface_mod.Surface(np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64))
-    config = patches.PatchConfig(r0=0.6, n_samples=1500, patch_size=30, n_max=3)
-    op = patches.build_patch_operator(surface, config)
+    surface = icosphere(2)
+    op = build_patch_operator(surface, PatchConfig(r0=0.6, n_samples=1500, patch_size=30, n_max=3))
     x = torch.as_tensor(surface.vertices, dtype=torch.float32)
     conv = ZernikeConv(3, 4, n_max=3, angular_resolution=8, pooling="continuous")
     out = conv(x, op)
