@@ -1,7 +1,7 @@
 """How much the correspondence refinement gives: the neighbours' agreement against the ring average it replaced.
 
 For one trained correspondence run (its selected model), on its validation split, its test split and, if given,
-the unseen people of ``benchmarks/few_people.py`` (``--unseen``): exact accuracy and the share within 1 % of the
+the unseen people of ``benchmarks.experiments.few_people`` (``--unseen``): exact accuracy and the share within 1 % of the
 geodesic diameter, unrefined and refined over 1, 2 and 3 rings by
 
 * the ring average, ``A_shape · P · A_templateᵀ`` (what ``zernet.inference.refine`` did until 0.2; written out
@@ -10,36 +10,39 @@ geodesic diameter, unrefined and refined over 1, 2 and 3 rings by
 
 and the median seconds each refinement takes per shape (on the run's device, ``--threads`` CPU threads). No
 global step (``eval.refine_spectral``) is applied: the figures compare the local step alone. Writes
-``benchmarks/results/refinement.{json,md}``.
+``benchmarks/experiments/results/refinement.{json,md}`` (``--out``).
 
-    .venv/bin/python benchmarks/refinement.py --run runs/fp7/more-people-template-matched \\
+    .venv/bin/python -m benchmarks.experiments.refinement --run runs/fp7/more-people-template-matched \\
         --unseen data/people-unseen/correspondence --threads 1
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks.harness import (
+    EXPERIMENT_RESULTS,
+    add_device,
+    add_out,
+    add_threads,
+    arguments,
+    markdown_table,
+    result_file,
+    write_json,
+    write_markdown,
+)
+from zernet.inference import load_checkpoint
+from zernet.inference.predict import model_from_checkpoint, predict_record
+from zernet.inference.refine import refine_correspondence, ring_tensor
+from zernet.inference.runtime import resolve_device
+from zernet.metrics import GeodesicErrors
+from zernet.training import build_dataset, parse_config
 
-from zernet.inference import load_checkpoint  # noqa: E402
-from zernet.inference.predict import model_from_checkpoint, predict_record  # noqa: E402
-from zernet.inference.refine import refine_correspondence, ring_tensor  # noqa: E402
-from zernet.inference.runtime import resolve_device  # noqa: E402
-from zernet.io_utils import atomic_write_bytes, write_json  # noqa: E402
-from zernet.metrics import GeodesicErrors  # noqa: E402
-from zernet.training import build_dataset, parse_config  # noqa: E402
-
-RESULTS = ROOT / "benchmarks" / "results" / "refinement"
 RINGS = (1, 2, 3)
 
 
@@ -103,35 +106,34 @@ def score_split(members, dataset, split: str, device: torch.device) -> dict:
     }
 
 
-def markdown(result: dict) -> str:
+def markdown(result: dict) -> list[str]:
     names = list(next(iter(result["splits"].values())))
     labels = list(result["splits"])
     lines = [
         "# Correspondence refinement: the neighbours' agreement against the ring average",
         "",
-        f"Run `{result['run']}` (its selected model); command: `{result['command']}`; {result['seconds']:.0f} s.",
+        f"Run `{result['run']}` (its selected model); {result['seconds']:.0f} s.",
         "Exact accuracy / share within 1 % of the geodesic diameter, no global step.",
         "",
-        "| refinement | " + " | ".join(labels) + " | median seconds per shape |",
-        "|---|" + "---|" * (len(labels) + 1),
     ]
+    rows = []
     for name in names:
         cells = [
             f"{100 * result['splits'][label][name]['exact']:.2f} / {100 * result['splits'][label][name]['within_1pct']:.2f} %"
             for label in labels
         ]
         timing = statistics.median(result["splits"][label][name]["median_seconds_per_shape"] for label in labels)
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | {timing:.2f} |")
-    return "\n".join(lines) + "\n"
+        rows.append([name, *cells, f"{timing:.2f}"])
+    return lines + markdown_table(["refinement", *labels, "median seconds per shape"], rows)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = arguments(__doc__)
     parser.add_argument("--run", type=Path, required=True, help="a correspondence run folder (its best.pt)")
     parser.add_argument("--unseen", type=Path, default=None, help="FAUST-layout folder of unseen people")
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--device", default=None, help="override the run's device (cpu, cuda, ...)")
-    parser.add_argument("--output", type=Path, default=RESULTS, help="path without suffix")
+    add_threads(parser)
+    add_device(parser)
+    add_out(parser, EXPERIMENT_RESULTS / "refinement")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -141,16 +143,15 @@ def main() -> None:
     device = resolve_device(args.device or checkpoint["config"]["train"]["device"])
     members = [(model_from_checkpoint(checkpoint, device), checkpoint)]
     start = time.perf_counter()
-    result = {"run": str(args.run), "command": "benchmarks/refinement.py " + " ".join(sys.argv[1:]), "splits": {}}
+    result = {"run": str(args.run), "splits": {}}
     for label, dataset, split in split_datasets(checkpoint, args.unseen):
         print(f"{label} ...", flush=True)
         result["splits"][label] = score_split(members, dataset, split, device)
     result["seconds"] = time.perf_counter() - start
-    write_json(args.output.with_suffix(".json"), result)
-    text = markdown(result)
-    atomic_write_bytes(args.output.with_suffix(".md"), text.encode())
-    print(text)
-    print(json.dumps({k: v for k, v in result.items() if k != "splits"}))
+    write_json(result_file(args.out, ".json"), result)
+    lines = markdown(result)
+    write_markdown(result_file(args.out, ".md"), lines)
+    print("\n".join(lines))
 
 
 if __name__ == "__main__":
