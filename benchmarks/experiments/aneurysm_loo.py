@@ -4,11 +4,11 @@ For each of the paper's five held-out cases, train on the other 25 aneurysms (a 
 validation, never the held-out case), select the epoch on validation, and evaluate on the held-out case.
 Prints our MAPE, RRMSE, PCC, HR10/20/30 beside the paper's ZerNet numbers, with the epochs and the wall time
 used, then the same columns for the recipe's physics prior alone (the membrane stress estimate with a power
-law fitted on the other cases, no network), and writes ``benchmarks/results/aneurysm_loo.json``.
+law fitted on the other cases, no network), and writes ``benchmarks/experiments/results/aneurysm_loo.json``.
 
-    .venv/bin/python benchmarks/aneurysm_loo.py                       # configs/aneurysm_regression.yaml
-    .venv/bin/python benchmarks/aneurysm_loo.py --set train.epochs=30 --cases TP_Ia105I TP_Ia33I
-    .venv/bin/python benchmarks/aneurysm_loo.py --seeds 3    # each fold an ensemble of three seeds
+    .venv/bin/python -m benchmarks.experiments.aneurysm_loo         # configs/aneurysm_regression.yaml
+    .venv/bin/python -m benchmarks.experiments.aneurysm_loo --set train.epochs=30 --cases TP_Ia105I TP_Ia33I
+    .venv/bin/python -m benchmarks.experiments.aneurysm_loo --seeds 3    # each fold an ensemble of three seeds
 
 Needs the data folder (``--data``, default ``data/aneurysm``: your copy of the aneurysm cases); every fold's run folder is kept under
 ``--runs`` (default ``runs/aneurysm_loo``), so a fold that already has ``metrics.json`` is not retrained
@@ -19,22 +19,17 @@ path, threads, device, evaluation or cache settings) is refused, so the table ne
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from zernet.data.features import MEMBRANE_PRESTRESSES  # noqa: E402
-from zernet.geometry import load_surface, membrane_stress  # noqa: E402
-from zernet.io_utils import atomic_write_bytes  # noqa: E402
-from zernet.metrics import regression_scores  # noqa: E402
-from zernet.training import apply_overrides, evaluate, load_config, resolve_config, train  # noqa: E402
+from benchmarks.harness import EXPERIMENT_RESULTS, REPO, add_data, add_out, arguments, result_file, write_json
+from zernet.data.features import MEMBRANE_PRESTRESSES
+from zernet.geometry import load_surface, membrane_stress
+from zernet.metrics import regression_scores
+from zernet.training import apply_overrides, evaluate, load_config, resolve_config, train
 
 # The paper's Table 3, ZerNet columns (MAPE, RRMSE, HR in %; PCC as a fraction).
 PAPER = {
@@ -117,11 +112,11 @@ def train_fold(config: dict, run_dir: Path, retrain: bool) -> dict | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", default=str(ROOT / "configs" / "aneurysm_regression.yaml"))
-    parser.add_argument("--data", default="data/aneurysm", help="folder of the aneurysm .mat files")
+    parser = arguments(__doc__)
+    parser.add_argument("--config", type=Path, default=REPO / "configs" / "aneurysm_regression.yaml")
+    add_data(parser, Path("data/aneurysm"), "folder of the aneurysm .mat files (your copy)")
     parser.add_argument("--cases", nargs="+", default=list(PAPER))
-    parser.add_argument("--runs", default=str(ROOT / "runs" / "aneurysm_loo"))
+    parser.add_argument("--runs", type=Path, default=REPO / "runs" / "aneurysm_loo")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides")
     parser.add_argument(
         "--seeds",
@@ -131,10 +126,10 @@ def main(argv: list[str] | None = None) -> int:
         "and score the ensemble of the seeds (default 1: one model)",
     )
     parser.add_argument("--retrain", action="store_true", help="train folds that already have metrics")
-    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "aneurysm_loo.json"))
+    add_out(parser, EXPERIMENT_RESULTS / "aneurysm_loo")
     args = parser.parse_args(argv)
 
-    if not Path(args.data).is_dir():
+    if not args.data.is_dir():
         print(f"aneurysm data folder not found: {args.data} (give --data)")
         return 2
     if args.seeds < 1:
@@ -146,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         start = time.perf_counter()
         members = []  # (run folder, metrics) per seed
         for seed in range(args.seeds):
-            run_dir = Path(args.runs) / (case if seed == 0 else f"{case}-seed{seed}")
+            run_dir = args.runs / (case if seed == 0 else f"{case}-seed{seed}")
             config = apply_overrides(base, [f"data.test={case}"] + ([f"train.seed={seed}"] if seed else []))
             metrics = train_fold(config, run_dir, args.retrain)
             if metrics is None:
@@ -188,13 +183,12 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     print("\nthe physics prior alone (membrane stress, power law fitted on the other cases; no network):")
-    baseline = membrane_baseline(Path(args.data), list(results), base.get("cache_dir") or ".zernet-cache")
+    baseline = membrane_baseline(args.data, list(results), base.get("cache_dir") or ".zernet-cache")
     for case, row in baseline.items():
         print(f"{case:<11}" + "".join(f"{row[c]:>16.2f}" for c in COLUMNS))
     baseline_mean = {c: sum(r[c] for r in baseline.values()) / len(baseline) for c in COLUMNS}
     print(f"{'mean':<11}" + "".join(f"{baseline_mean[c]:>16.2f}" for c in COLUMNS))
 
-    out = Path(args.out)
     table = {
         "config": base,
         "seeds": args.seeds,
@@ -203,10 +197,9 @@ def main(argv: list[str] | None = None) -> int:
         "paper_mean": paper_mean,
         "membrane_baseline": {"cases": baseline, "mean": baseline_mean},
     }
-    atomic_write_bytes(out, json.dumps(table, indent=2, default=str).encode())
-    print(f"wrote {out}")
+    write_json(result_file(args.out, ".json"), table)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())
