@@ -1,7 +1,7 @@
 """Side-by-side report: zernet, the paper's own formulation and FeaStNet on the same inputs (issue 5).
 
-    python benchmarks/report.py            # full report (tens of minutes on 2 cores)
-    python benchmarks/report.py --quick    # a few minutes: fewer repeats, 2-epoch training runs
+    .venv/bin/python -m benchmarks.experiments.report            # full report (tens of minutes on 2 cores)
+    .venv/bin/python -m benchmarks.experiments.report --quick    # a few minutes: fewer repeats, 2-epoch runs
 
 In one process, on the same inputs and with the same thread count, it measures
 
@@ -24,11 +24,11 @@ In one process, on the same inputs and with the same thread count, it measures
    bodies, ``--bodies-epochs``) and, when the aneurysm data exist (``--aneurysm-root``, default
    ``data/aneurysm``: your copy of the aneurysm data set), on leave-one-out aneurysm cases.
 
-Tables and plots are drawn by ``benchmarks/report_tables.py``.
+Tables and plots are drawn by ``benchmarks.experiments.report_tables``.
 
-It writes ``<out>/report.md`` (tables, ratios to FeaStNet, the issue's targets), ``<out>/report.json``,
-plots ``<out>/report-*.png`` and the training run folders ``<out>/report-runs/<task>/<model>/``
-(default ``<out>``: ``benchmarks/results``).
+It writes ``STEM.md`` (tables, ratios to FeaStNet, the issue's targets), ``STEM.json``, plots ``STEM-*.png``
+and the training run folders ``STEM-runs/<task>/<model>/`` (``--out STEM``, default
+``benchmarks/experiments/results/report``).
 """
 
 from __future__ import annotations
@@ -46,14 +46,13 @@ from pathlib import Path
 
 import torch
 import yaml
-from report_tables import (
-    BODY_AREA,
+
+from benchmarks.experiments.report_tables import (
     BODY_PATCH,
-    ROOT,
     check_targets,
     environment,
     load_average,
-    plain,
+    picture,
     plot_memory,
     plot_times,
     plot_training,
@@ -61,11 +60,21 @@ from report_tables import (
     training_models,
     write_report,
 )
-
-from zernet.data.bodies import BodyGenerator
+from benchmarks.harness import (
+    BODY_AREA,
+    CACHE,
+    EXPERIMENT_RESULTS,
+    REPO,
+    add_out,
+    add_threads,
+    arguments,
+    body_surface,
+    result_file,
+    write_json,
+)
 from zernet.data.preprocess import mesh_edge_index
-from zernet.geometry import normalize_area
 from zernet.inference import keep_freed_memory, load_checkpoint
+from zernet.io_utils import plain
 from zernet.nn.models import build_model
 from zernet.operators import Geometry, PatchConfig, PatchOperator, build_patch_operator
 from zernet.training import train
@@ -75,20 +84,9 @@ from zernet.training import train
 # --------------------------------------------------------------------------------------------------------
 
 
-def body_surface(cache_dir: str):
-    """The timing surface: a generated posed body of the FAUST-sized topology (6,890 vertices), at area 15000.
-
-    Body 0 of seed 0, poses "varied" (``zernet.data.bodies``), cached under ``cache_dir``.
-    """
-    body = BodyGenerator("faust", "varied", seed=0, cache_dir=cache_dir).body(0)
-    surface, _ = normalize_area(body.surface(), BODY_AREA)
-    surface.name = f"generated body ({surface.n_vertices} vertices)"
-    return surface
-
-
 def build_inputs(workdir: Path, cache_dir: str) -> tuple[dict, dict]:
     """Surface, operator and edges for the timing runs; returns (inputs, build timings)."""
-    surface = body_surface(cache_dir)
+    surface, _ = body_surface(0, BODY_AREA, Path(cache_dir))
     started = time.perf_counter()
     operator = build_patch_operator(surface, PatchConfig(**BODY_PATCH), cache_dir=None)
     operator_seconds = time.perf_counter() - started
@@ -255,7 +253,8 @@ def measure_memory(specs: list[dict], inputs: dict, threads: int) -> dict:
     for spec in specs:
         command = [
             sys.executable,
-            str(Path(__file__).resolve()),
+            "-m",
+            "benchmarks.experiments.report",
             "--probe-memory",
             json.dumps(spec),
             "--operator",
@@ -265,7 +264,7 @@ def measure_memory(specs: list[dict], inputs: dict, threads: int) -> dict:
             "--threads",
             str(threads),
         ]
-        done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT)
+        done = subprocess.run(command, capture_output=True, text=True, cwd=REPO)
         if done.returncode != 0:
             results[spec["label"]] = {"error": done.stderr.strip().splitlines()[-1] if done.stderr else "failed"}
         else:
@@ -297,7 +296,7 @@ def training_tasks(args) -> list[dict]:
     generated bodies (configs/demo.yaml: 40 coarse-615 bodies, segmentation and correspondence) for
     ``--bodies-epochs`` (skipped at 0 or without the bodies extra), then the aneurysm cases.
     """
-    creatures = yaml.safe_load((ROOT / "configs" / "creatures.yaml").read_text())
+    creatures = yaml.safe_load((REPO / "configs" / "creatures.yaml").read_text())
     tasks = []
     for name, slug, metric, higher in (
         ("segmentation", "synthetic-segmentation", "accuracy", True),
@@ -314,7 +313,7 @@ def training_tasks(args) -> list[dict]:
             }
         )
     if args.bodies_epochs and importlib.util.find_spec("anny") is not None:
-        bodies = yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())
+        bodies = yaml.safe_load((REPO / "configs" / "demo.yaml").read_text())
         for name in ("segmentation", "correspondence"):
             tasks.append(
                 {
@@ -335,9 +334,9 @@ def aneurysm_tasks(args) -> list[dict]:
     tasks = []
     root = Path(args.aneurysm_root)
     if not root.is_absolute():
-        root = (ROOT / root).resolve()
+        root = (REPO / root).resolve()
     if root.is_dir() and args.aneurysm_cases:
-        base = yaml.safe_load((ROOT / "configs" / "aneurysm_regression.yaml").read_text())
+        base = yaml.safe_load((REPO / "configs" / "aneurysm_regression.yaml").read_text())
         for case in args.aneurysm_cases.split(","):
             config = json.loads(json.dumps(base))
             config["data"]["root"] = str(root)
@@ -369,7 +368,7 @@ def aneurysm_tasks(args) -> list[dict]:
     return tasks
 
 
-def run_training(tasks: list[dict], models: list[dict], out: Path, threads: int, cache_dir: str) -> dict:
+def run_training(tasks: list[dict], models: list[dict], runs: Path, threads: int, cache_dir: str) -> dict:
     results = {}
     for task in tasks:
         results[task["slug"]] = {}
@@ -387,7 +386,7 @@ def run_training(tasks: list[dict], models: list[dict], out: Path, threads: int,
             train_section.update({"seed": 0, "threads": threads, "device": "cpu", "patience": None})
             config["eval"] = {"plots": False, "renders": 0}
             config["cache_dir"] = cache_dir
-            run_dir = out / "report-runs" / task["slug"] / spec["label"]
+            run_dir = runs / task["slug"] / spec["label"]
             print(f"  training {spec['label']} on {task['task']} ({train_section['epochs']} epochs)", flush=True)
             started = time.perf_counter()
             try:
@@ -415,16 +414,14 @@ def run_training(tasks: list[dict], models: list[dict], out: Path, threads: int,
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = arguments(__doc__)
     parser.add_argument(
         "--quick",
         action="store_true",
         help="fewer models and rounds, 2-epoch training (bodies too), one aneurysm case with 1 epoch",
     )
-    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"), help="output folder")
-    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    add_out(parser, EXPERIMENT_RESULTS / "report")
+    add_threads(parser, default=2)
     parser.add_argument("--rounds", type=int, default=None, help="timing rounds (default 5, quick 2)")
     parser.add_argument("--epochs", type=int, default=None, help="synthetic training epochs (default 15, quick 2)")
     parser.add_argument(
@@ -449,9 +446,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="angular resolution s of zernet and paper-zernet in the training runs (default 4)",
     )
     parser.add_argument("--skip", default="", help="comma-separated parts to skip: timing,memory,training")
-    parser.add_argument(
-        "--cache-dir", default=str(ROOT / ".zernet-cache"), help="patch-operator cache of the data sets"
-    )
+    parser.add_argument("--cache-dir", default=str(CACHE), help="patch-operator cache of the data sets")
     parser.add_argument("--probe-memory", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--operator", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--edges", default=None, help=argparse.SUPPRESS)
@@ -475,11 +470,8 @@ def main(argv=None) -> int:
     skip = {part.strip() for part in args.skip.split(",") if part.strip()}
     torch.set_num_threads(args.threads)
     keep_freed_memory()  # as the zernet command does, for every model alike
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-
-    command = " ".join(["python benchmarks/report.py", *(argv if argv is not None else sys.argv[1:])])
-    results: dict = {"environment": environment(args.threads), "quick": args.quick, "command": command}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    results: dict = {"environment": environment(args.threads), "quick": args.quick}
     specs = timing_models(args.quick)
     with tempfile.TemporaryDirectory(prefix="zernet-report-") as workdir:
         if not {"timing", "memory"} <= skip:
@@ -489,23 +481,24 @@ def main(argv=None) -> int:
             if "timing" not in skip:
                 print("timing training steps and inference passes", flush=True)
                 results["times"] = measure_times(specs, inputs, args.rounds)
-                plot_times(results["times"], out / "report-times.png")
+                plot_times(results["times"], picture(args.out, "times"))
             if "memory" not in skip:
                 print("peak memory, one child process per model", flush=True)
                 results["memory"] = measure_memory(specs, inputs, args.threads)
-                plot_memory(results["memory"], out / "report-memory.png")
+                plot_memory(results["memory"], picture(args.out, "memory"))
     tasks = training_tasks(args)
     results["tasks"] = [{k: v for k, v in task.items() if k != "config"} for task in tasks]
     if "training" not in skip:
         print("fixed-budget training runs", flush=True)
-        results["training"] = run_training(tasks, training_models(args.train_s), out, args.threads, args.cache_dir)
+        runs = result_file(args.out, "-runs")
+        results["training"] = run_training(tasks, training_models(args.train_s), runs, args.threads, args.cache_dir)
         for task in tasks:
-            plot_training(task, results["training"].get(task["slug"], {}), out / f"report-training-{task['slug']}.png")
+            training = results["training"].get(task["slug"], {})
+            plot_training(task, training, picture(args.out, f"training-{task['slug']}"))
     results["environment"]["load_average_end"] = load_average()
     results["targets"] = check_targets(results)
-    (out / "report.json").write_text(json.dumps(plain(results), indent=1), encoding="utf-8")
-    path = write_report(out, results, args)
-    print(f"wrote {path}")
+    write_json(result_file(args.out, ".json"), plain(results))
+    write_report(args.out, results, args)
     for line in results["targets"]:
         print(line)
     return 0

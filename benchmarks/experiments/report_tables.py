@@ -1,5 +1,6 @@
-"""What ``benchmarks/report.py`` compares and how it presents it: constants, the models of each table, the
-environment line, number formats, plots, ``report.md`` and the targets check. Nothing here measures anything.
+"""What ``benchmarks.experiments.report`` compares and how it presents it: constants, the models of each table,
+the environment line, number formats, plots, ``report.md`` and the targets check. Nothing here measures
+anything.
 """
 
 from __future__ import annotations
@@ -7,7 +8,6 @@ from __future__ import annotations
 import datetime
 import os
 import platform
-import subprocess
 from pathlib import Path
 
 import matplotlib
@@ -17,13 +17,13 @@ import torch_geometric
 import yaml
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import matplotlib.ticker  # noqa: E402
+import matplotlib.pyplot as plt
+import matplotlib.ticker
 
-ROOT = Path(__file__).resolve().parents[1]
+from benchmarks.harness import REPO, commit, markdown_table, result_file, write_markdown
+
 N_VERTICES = 6890
 WIDTHS = (64, 128, 256, 512)
-BODY_AREA = 15000.0
 # The shipped FAUST recipe (configs/faust_single_scale.yaml): every sample within r0 fitted, r0/4 left out.
 BODY_PATCH = dict(r0=5.5, n_samples=12000, n_max=5, inner_radius=1.375, subtract_center=True, backend="front")
 BASELINE = "feastnet"
@@ -71,18 +71,9 @@ def training_models(angular_resolution: int) -> list[dict]:
 
 
 def environment(threads: int) -> dict:
-    try:
-        commit = (
-            subprocess.run(
-                ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
-            ).stdout.strip()
-            or "unknown"
-        )
-    except OSError:
-        commit = "unknown"
     return {
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "commit": commit,
+        "commit": commit(),
         "torch": torch.__version__,
         "torch_geometric": torch_geometric.__version__,
         "threads": threads,
@@ -100,21 +91,9 @@ def load_average() -> list[float] | None:
         return None
 
 
-def plain(value):
-    if isinstance(value, dict):
-        return {str(k): plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [plain(v) for v in value]
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
 def aneurysm_recipe_summary() -> str:
     """One line naming the shipped aneurysm recipe's model, for the report's text."""
-    model = yaml.safe_load((ROOT / "configs" / "aneurysm_regression.yaml").read_text())["model"]
+    model = yaml.safe_load((REPO / "configs" / "aneurysm_regression.yaml").read_text())["model"]
     options = ", ".join(f"{key} {value}" for key, value in model.items() if key != "name")
     return f"{model['name']}, {options}"
 
@@ -206,8 +185,7 @@ def _header_lines(results: dict) -> list[str]:
     return [
         "# zernet vs the paper's formulation vs FeaStNet",
         "",
-        f"Generated {env['date']} by `{results['command']}` "
-        f"(commit `{env['commit']}`), torch {env['torch']}, torch_geometric {env['torch_geometric']}, "
+        f"Generated {env['date']} (commit `{env['commit']}`), torch {env['torch']}, torch_geometric {env['torch_geometric']}, "
         f"{env['threads']} CPU thread(s) on {env['machine']} ({env['cpus']} logical CPUs), float32.",
         "All measurements in one process on the same inputs; memory in one child process per model.",
         f"Load average (1, 5, 15 min) at the start: {env.get('load_average_start')}, at the end: "
@@ -225,17 +203,24 @@ def _inputs_lines(builds: dict) -> list[str]:
         f"{builds['n_vertices']:,} vertices, {builds['n_faces']:,} faces, area {builds['area']:.0f}; patch "
         "settings " + ", ".join(f"{k} = {v}" for k, v in BODY_PATCH.items()) + ".",
         "",
-        "| what | seconds | notes |",
-        "|---|---:|---|",
-        f"| zernet patch operator (polar coordinates, fit, sparse matrix) | {builds['operator_seconds']:.2f} | "
-        f"{builds['operator_nnz']:,} non-zeros, {builds['operator_nnz_per_row']:.1f} per row; used by zernet "
-        "and by paper-zernet (which re-fits from its patch data every layer and step) |",
-        f"| FeaStNet graph (mesh edges) | {builds['edges_seconds']:.3f} | {builds['n_edges']:,} edges |",
+        *markdown_table(
+            ["what", "seconds", "notes"],
+            [
+                [
+                    "zernet patch operator (polar coordinates, fit, sparse matrix)",
+                    f"{builds['operator_seconds']:.2f}",
+                    f"{builds['operator_nnz']:,} non-zeros, {builds['operator_nnz_per_row']:.1f} per row; used by "
+                    "zernet and by paper-zernet (which re-fits from its patch data every layer and step)",
+                ],
+                ["FeaStNet graph (mesh edges)", f"{builds['edges_seconds']:.3f}", f"{builds['n_edges']:,} edges"],
+            ],
+            align="lrl",
+        ),
         "",
     ]
 
 
-def _times_lines(times: dict, rounds: int) -> list[str]:
+def _times_lines(times: dict, rounds: int, picture: str) -> list[str]:
     base = times.get(BASELINE)
     lines = [
         f"## Training step and inference, {N_VERTICES}-way output",
@@ -243,20 +228,26 @@ def _times_lines(times: dict, rounds: int) -> list[str]:
         f"Widths {'-'.join(map(str, WIDTHS))} unless the name says otherwise; cross-entropy against vertex ids, "
         f"Adam; median of {rounds} rounds after one warm-up (models interleaved).",
         "",
-        "| model | parameters | training step (s) | × FeaStNet | inference (s) | × FeaStNet |",
-        "|---|---:|---:|---:|---:|---:|",
     ]
+    rows = []
     for label, t in times.items():
         ratio_s = t["step_seconds"] / base["step_seconds"] if base else None
         ratio_i = t["inference_seconds"] / base["inference_seconds"] if base else None
-        lines.append(
-            f"| {label} | {t['parameters']:,} | {t['step_seconds']:.3f} | {_fmt(ratio_s, 2)} | "
-            f"{t['inference_seconds']:.3f} | {_fmt(ratio_i, 2)} |"
+        rows.append(
+            [
+                label,
+                f"{t['parameters']:,}",
+                f"{t['step_seconds']:.3f}",
+                _fmt(ratio_s, 2),
+                f"{t['inference_seconds']:.3f}",
+                _fmt(ratio_i, 2),
+            ]
         )
-    return lines + ["", "![step and inference times](report-times.png)", ""]
+    header = ["model", "parameters", "training step (s)", "× FeaStNet", "inference (s)", "× FeaStNet"]
+    return lines + markdown_table(header, rows) + ["", f"![step and inference times]({picture})", ""]
 
 
-def _memory_lines(memory: dict) -> list[str]:
+def _memory_lines(memory: dict, picture: str) -> list[str]:
     lines = [
         "## Peak memory of a training step",
         "",
@@ -265,17 +256,17 @@ def _memory_lines(memory: dict) -> list[str]:
         "`/proc/self/clear_refs`; the process-lifetime `ru_maxrss` where unsupported); 'added' is that peak "
         "minus the resident size just before the model was built (inputs excluded).",
         "",
-        "| model | peak RSS (MiB) | added (MiB) | added × FeaStNet |",
-        "|---|---:|---:|---:|",
     ]
     base = memory.get(BASELINE, {}).get("model_bytes")
+    rows = []
     for label, m in memory.items():
         if "error" in m:
-            lines.append(f"| {label} | failed: {m['error']} | | |")
+            rows.append([label, f"failed: {m['error']}", "", ""])
             continue
         ratio = m["model_bytes"] / base if base else None
-        lines.append(f"| {label} | {_mib(m['peak_bytes'])} | {_mib(m['model_bytes'])} | {_fmt(ratio, 2)} |")
-    return lines + ["", "![peak memory](report-memory.png)", ""]
+        rows.append([label, _mib(m["peak_bytes"]), _mib(m["model_bytes"]), _fmt(ratio, 2)])
+    header = ["model", "peak RSS (MiB)", "added (MiB)", "added × FeaStNet"]
+    return lines + markdown_table(header, rows) + ["", f"![peak memory]({picture})", ""]
 
 
 def _training_intro(args) -> list[str]:
@@ -298,56 +289,63 @@ def _training_intro(args) -> list[str]:
     ]
 
 
-def _task_lines(task: dict, runs: dict) -> list[str]:
+def _task_lines(task: dict, runs: dict, picture: str) -> list[str]:
     metric = task["metric"]
     base = runs.get(BASELINE, {}).get("summary", {}).get(metric)
     base_time = runs.get(BASELINE, {}).get("train_seconds")
-    lines = [
-        f"### {task['task']}",
-        "",
-        f"| model | test {metric} ({'higher' if task['higher'] else 'lower'} is better) | "
-        f"× FeaStNet | epochs | best epoch | training seconds | × FeaStNet |",
-        "|---|---:|---:|---:|---:|---:|---:|",
-    ]
+    header = ["model", f"test {metric} ({'higher' if task['higher'] else 'lower'} is better)", "× FeaStNet"]
+    header += ["epochs", "best epoch", "training seconds", "× FeaStNet"]
+    rows = []
     for label, run in runs.items():
         if "error" in run:
-            lines.append(f"| {label} | failed: {run['error']} | | | | | |")
+            rows.append([label, f"failed: {run['error']}", "", "", "", "", ""])
             continue
         value = run["summary"].get(metric)
         ratio = value / base if (value is not None and base) else None
         ratio_t = run["train_seconds"] / base_time if base_time else None
-        lines.append(
-            f"| {label} | {_fmt(value, 4)} | {_fmt(ratio, 2)} | {run['epochs']} | "
-            f"{run['best_epoch']} | {_fmt(run['train_seconds'], 1)} | {_fmt(ratio_t, 2)} |"
+        rows.append(
+            [
+                label,
+                _fmt(value, 4),
+                _fmt(ratio, 2),
+                run["epochs"],
+                run["best_epoch"],
+                _fmt(run["train_seconds"], 1),
+                _fmt(ratio_t, 2),
+            ]
         )
+    lines = [f"### {task['task']}", "", *markdown_table(header, rows)]
     baseline = next((run.get("baseline") for run in runs.values() if run.get("baseline")), None)
     if baseline:
         lines.append("")
         lines.append("Reference: " + ", ".join(f"{k} {_fmt(v, 4)}" for k, v in baseline.items()) + ".")
-    return lines + ["", f"![{task['task']}](report-training-{task['slug']}.png)", ""]
+    return lines + ["", f"![{task['task']}]({picture})", ""]
 
 
-def write_report(out: Path, results: dict, args) -> Path:
-    """``<out>/report.md`` from the measured ``results`` (the sections that were measured)."""
+def picture(stem: Path, part: str) -> Path:
+    """The report's picture of ``part`` (``times``, ``memory``, ``training-<task>``), beside ``STEM.md``."""
+    return result_file(stem, f"-{part}.png")
+
+
+def write_report(stem: Path, results: dict, args) -> Path:
+    """``STEM.md`` from the measured ``results`` (the sections that were measured)."""
     lines = _header_lines(results)
     if results.get("builds"):
         lines += _inputs_lines(results["builds"])
     if results.get("times"):
-        lines += _times_lines(results["times"], args.rounds)
+        lines += _times_lines(results["times"], args.rounds, picture(stem, "times").name)
     if results.get("memory"):
-        lines += _memory_lines(results["memory"])
+        lines += _memory_lines(results["memory"], picture(stem, "memory").name)
     training = results.get("training", {})
     if training:
         lines += _training_intro(args)
         for task in results["tasks"]:
             if training.get(task["slug"]):
-                lines += _task_lines(task, training[task["slug"]])
+                task_picture = picture(stem, f"training-{task['slug']}").name
+                lines += _task_lines(task, training[task["slug"]], task_picture)
     lines += ["## Targets of issue 5", ""]
     lines += [f"- {line}" for line in results.get("targets", [])]
-    lines.append("")
-    path = out / "report.md"
-    path.write_text("\n".join(lines), encoding="utf-8")
-    return path
+    return write_markdown(result_file(stem, ".md"), lines)
 
 
 def check_targets(results: dict) -> list[str]:
