@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from zernet.data import DatasetError, LoaderOptions, ShapeSource, build_dataset, training_forms
 from zernet.data.bodies.forms import closest_points
 from zernet.data.synthetic import load_creature, make_creature, make_synthetic_dataset
-from zernet.data.training_forms import form_counts, form_sources, load_form
+from zernet.data.training_forms import form_sources, load_form
 from zernet.geometry import Surface
 from zernet.operators import PatchConfig
 from zernet.training import train
@@ -134,14 +134,13 @@ def _without_target(seed):
 def test_rates_give_whole_copies_and_a_seeded_share():
     training = [_creature_source(f"s{i}", seed=i) for i in range(8)]
     made = form_sources(training, {"cloud": 2, "partial": 0.25}, seed=0)
-    names = [source.name for source in made]
-    assert form_counts(names) == {"cloud": 16, "partial": 2}
-    assert "s0#cloud" in names and "s0#cloud2" in names
-    assert len(set(names)) == len(names)
-    # A form's draws do not depend on the other forms asked for.
-    alone = [source.name for source in form_sources(training, {"partial": 0.25}, seed=0)]
-    assert alone == [name for name in names if name.endswith("#partial")]
-    assert alone != [s.name for s in form_sources(training, {"partial": 0.25}, seed=1)] or len(alone) == 0
+    names = {form: [source.name for source in sources] for form, sources in made.items()}
+    assert names["cloud"] == [f"s{i}#cloud{copy}" for i in range(8) for copy in ("", "2")]
+    assert len(names["partial"]) == 2
+    # A form's draws do not depend on the other forms asked for; another seed draws other shapes.
+    assert [s.name for s in form_sources(training, {"partial": 0.25}, seed=0)["partial"]] == names["partial"]
+    other_seeds = [[s.name for s in form_sources(training, {"partial": 0.25}, seed)["partial"]] for seed in (1, 2, 3)]
+    assert any(other != names["partial"] for other in other_seeds)
 
 
 def test_forms_join_the_training_split_only_and_are_cached(tmp_path, monkeypatch):

@@ -53,7 +53,7 @@ from zernet.data.dataset import DatasetError, ShapeDataset, ShapeRecord, as_targ
 from zernet.data.features import compute_features, feature_channels, feature_parts
 from zernet.data.pool import WORKER_DIED, run_jobs
 from zernet.data.source import ShapeSource, file_key
-from zernet.data.training_forms import form_counts, form_sources
+from zernet.data.training_forms import form_sources
 from zernet.geometry import Surface, normalize_area, resolve_backend, validate_surface
 from zernet.geometry.cloud_mesh import mesh_from_cloud
 from zernet.operators import Geometry, PatchConfig, build_patch_operator
@@ -372,18 +372,18 @@ def build_dataset(
     splits = _index_splits(split_names, names, {s.name for s in sources}, n_val, seed)
     if forms:
         made = form_sources([kept[i] for i in splits["train"]], forms, seed)
+        every_form = [source for sources in made.values() for source in sources]
         form_failures = preprocess_shapes(
-            made, configs, cache_dir, target_area, workers, repair, progress, description="forms"
+            every_form, configs, cache_dir, target_area, workers, repair, progress, description="forms"
         )
-        _report_failures(form_failures, len(made), on_error)
+        _report_failures(form_failures, len(every_form), on_error)
         failures.update(form_failures)
-        made = [source for source in made if source.name not in form_failures]
-        splits["train"] += range(len(names), len(names) + len(made))
-        loaders += [
-            _record_loader(source, configs, cache_dir, target_area, task, feature_kind, repair) for source in made
-        ]
-        names += [source.name for source in made]
-        info = {**(info or {}), "forms": form_counts(names)}
+        made = {form: [s for s in sources if s.name not in form_failures] for form, sources in made.items()}
+        for sources in made.values():
+            splits["train"] += range(len(names), len(names) + len(sources))
+            loaders += [_record_loader(s, configs, cache_dir, target_area, task, feature_kind, repair) for s in sources]
+            names += [s.name for s in sources]
+        info = {**(info or {}), "forms": {form: len(sources) for form, sources in made.items()}}
 
     if in_memory is None:
         in_memory = _estimate_vertices(loaders) * len(configs) <= IN_MEMORY_VERTEX_LIMIT

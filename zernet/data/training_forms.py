@@ -46,7 +46,7 @@ from zernet.data.dataset import DatasetError
 from zernet.data.source import ShapeSource
 from zernet.geometry import Surface, SurfaceWarning, validate_surface
 
-__all__ = ["FORM_NAMES", "FORMS_VERSION", "check_form_rates", "form_sources", "load_form", "form_counts"]
+__all__ = ["FORM_NAMES", "FORMS_VERSION", "check_form_rates", "form_sources", "load_form"]
 
 #: The forms a training shape can be trained in, as :mod:`zernet.data.bodies.forms` names them.
 FORM_NAMES = ("remeshed", "decimated", "cloud", "cloud-noisy", "partial")
@@ -55,8 +55,6 @@ FORMS_VERSION = 1
 #: Noise of the noisy cloud per unit of sqrt(area): 2 mm on a human body of 1.8 m² (the generated
 #: bodies' and FAUST's size), the same relative noise on a shape of any size or unit.
 NOISE_PER_SIZE = 0.0015
-#: Separates a training shape's name from its form's in the form's name (``tr_reg_003#cloud``).
-FORM_SEPARATOR = "#"
 
 _MAKERS = {
     "remeshed": remeshed_form,
@@ -97,37 +95,31 @@ def check_form_rates(forms: Mapping[str, float] | None) -> dict[str, float]:
     return {name: float(forms[name]) for name in FORM_NAMES if forms.get(name, 0) > 0}
 
 
-def form_sources(training: Sequence[ShapeSource], forms: Mapping[str, float], seed: int) -> list[ShapeSource]:
-    """The sources of the forms of the ``training`` shapes: per form of rate r, ``floor(r)`` copies of every
-    shape and one more of ``round(frac(r) * len(training))`` shapes drawn by ``seed``; form by form, shape by
-    shape (in ``training`` order), copy by copy. Each form's draws depend on ``seed``, its shape, form and
-    copy only, so asking for another form or rate does not change the forms already made."""
-    sources = []
+def form_sources(
+    training: Sequence[ShapeSource], forms: Mapping[str, float], seed: int
+) -> dict[str, list[ShapeSource]]:
+    """The sources of the forms of the ``training`` shapes, {form: sources}: per form of rate r,
+    ``floor(r)`` copies of every shape and one more of ``round(frac(r) * len(training))`` shapes drawn by
+    ``seed``, shape by shape (in ``training`` order), copy by copy. Each form's draws depend on ``seed``, its
+    shape, form and copy only, so asking for another form or rate does not change the forms already made."""
+    sources: dict[str, list[ShapeSource]] = {}
     for form, rate in check_form_rates(forms).items():
         whole, fraction = int(rate), rate - int(rate)
         extra = round(fraction * len(training))
         chooser = np.random.default_rng(_digest_seed(f"choose|{form}|{seed}"))
         chosen = set(chooser.permutation(len(training))[:extra].tolist())
-        for position, source in enumerate(training):
-            for copy in range(whole + (position in chosen)):
-                sources.append(_form_source(source, form, copy, seed))
+        sources[form] = [
+            _form_source(source, form, copy, seed)
+            for position, source in enumerate(training)
+            for copy in range(whole + (position in chosen))
+        ]
     return sources
-
-
-def form_counts(names: Sequence[str]) -> dict[str, int]:
-    """{form: number of shapes} among shape ``names`` (those made by :func:`form_sources`)."""
-    counts = dict.fromkeys(FORM_NAMES, 0)
-    for name in names:
-        form = name.rpartition(FORM_SEPARATOR)[2].rstrip("0123456789")
-        if FORM_SEPARATOR in name and form in counts:
-            counts[form] += 1
-    return {form: count for form, count in counts.items() if count}
 
 
 def _form_source(source: ShapeSource, form: str, copy: int, seed: int) -> ShapeSource:
     """The source of copy ``copy`` of ``form`` of ``source``: named ``<name>#<form>`` (``#<form><copy+1>``
     beyond the first copy), cached under the source's key plus the form, copy, seed and forms version."""
-    name = f"{source.name}{FORM_SEPARATOR}{form}" + (str(copy + 1) if copy else "")
+    name = f"{source.name}#{form}" + (str(copy + 1) if copy else "")
     form_seed = _digest_seed(f"{source.key or source.name}|{form}|{copy}|{seed}")
     key = None if source.key is None else f"{source.key}|form={form}|copy={copy}|seed={seed}|v{FORMS_VERSION}"
     return replace(source, name=name, load=partial(load_form, source, form, form_seed), key=key)
