@@ -49,7 +49,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.harness import BODY_AREA, SPEED_RESULTS, add_out, arguments, body_surface, result_file, write_json
+from benchmarks.harness import (
+    BODY_AREA,
+    SPEED_RESULTS,
+    add_out,
+    arguments,
+    body_surface,
+    markdown_table,
+    result_file,
+    write_json,
+)
 from benchmarks.speed.bench_operator import mannequin
 from zernet.data.dataset import DatasetError
 from zernet.data.preprocess import ShapeSource, build_dataset
@@ -270,30 +279,30 @@ def main(argv=None) -> int:
         f"{len(directional.pairs)} vertex pairs"
     )
     print("per-surface preparation (s): " + ", ".join(f"{key} {value:.2f}" for key, value in preparation.items()))
-    print("\n| threads | model | first step (s) | median step, wall (s) | ratio | median step, CPU (s) | CPU ratio |")
-    print("|---|---|---|---|---|---|---|")
-    for threads, by_model in results["threads"].items():
-        for name, row in by_model.items():
-            ratio, cpu_ratio = row.get("ratio_to_single"), row.get("cpu_ratio_to_single")
-            text = lambda value: f"{value:.2f}x" if value is not None else "-"  # noqa: E731
-            print(
-                f"| {threads} | {name} | {row['first_step_s']:.2f} | {row['median_s']:.2f} | {text(ratio)} | "
-                f"{row['median_cpu_s']:.2f} | {text(cpu_ratio)} |"
-            )
-    print("\nstreamed (record read back from the cache on every step):")
-    print(
-        "\n| threads | model | median preparation, wall (s) | median preparation, CPU (s) | median step + "
-        "preparation, wall (s) | ratio | median step + preparation, CPU (s) | CPU ratio |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
-    for threads, by_model in results["streamed"].items():
-        for name, row in by_model.items():
-            ratio, cpu_ratio = row.get("ratio_to_single"), row.get("cpu_ratio_to_single")
-            text = lambda value: f"{value:.2f}x" if value is not None else "-"  # noqa: E731
-            print(
-                f"| {threads} | {name} | {row['median_preparation_s']:.2f} | {row['median_preparation_cpu_s']:.2f} | "
-                f"{row['median_s']:.2f} | {text(ratio)} | {row['median_cpu_s']:.2f} | {text(cpu_ratio)} |"
-            )
+
+    def times(value) -> str:
+        return "-" if value is None else f"{value:.2f}x"
+
+    rows = [
+        [threads, name, f"{row['first_step_s']:.2f}", f"{row['median_s']:.2f}", times(row.get("ratio_to_single"))]
+        + [f"{row['median_cpu_s']:.2f}", times(row.get("cpu_ratio_to_single"))]
+        for threads, by_model in results["threads"].items()
+        for name, row in by_model.items()
+    ]
+    header = ["threads", "model", "first step (s)", "median step, wall (s)", "ratio", "median step, CPU (s)"]
+    header += ["CPU ratio"]
+    print("\n" + "\n".join(markdown_table(header, rows, align="llrrrrr")))
+    print("\nstreamed (record read back from the cache on every step):\n")
+    rows = [
+        [threads, name, f"{row['median_preparation_s']:.2f}", f"{row['median_preparation_cpu_s']:.2f}"]
+        + [f"{row['median_s']:.2f}", times(row.get("ratio_to_single"))]
+        + [f"{row['median_cpu_s']:.2f}", times(row.get("cpu_ratio_to_single"))]
+        for threads, by_model in results["streamed"].items()
+        for name, row in by_model.items()
+    ]
+    header = ["threads", "model", "median preparation, wall (s)", "median preparation, CPU (s)"]
+    header += ["median step + preparation, wall (s)", "ratio", "median step + preparation, CPU (s)", "CPU ratio"]
+    print("\n".join(markdown_table(header, rows, align="llrrrrrr")))
     write_json(result_file(args.out, ".json"), results)
     return 0
 
