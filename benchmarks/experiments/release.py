@@ -23,11 +23,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-import torch
 import yaml
 
 from benchmarks.harness import RECIPES, REPO, arguments, commit, ensure_bodies
 from zernet.inference import load_checkpoint
+from zernet.inference.model_file import read_model_file
 from zernet.io_utils import plain, write_json
 from zernet.training import load_config, train
 from zernet.training.config import apply_overrides
@@ -84,7 +84,7 @@ def run_trainer_and_ship(name: str, recipe: dict) -> None:
         subprocess.run([sys.executable, *command[1:]] if command[0] == "python" else command, cwd=REPO, check=True)
     target = PRETRAINED / f"{name}.pt"
     shutil.copyfile(model, target)
-    stored = torch.load(target, map_location="cpu", weights_only=True)
+    stored = read_model_file(target)
     provenance = {"model_file": target.name, "release": f"python -m benchmarks.experiments.release {name}"}
     write_json(target.with_suffix(".json"), plain({**provenance, **(stored.get("provenance") or {})}))
     print(f"wrote {target} and its provenance", flush=True)
