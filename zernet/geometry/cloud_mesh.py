@@ -25,7 +25,7 @@ vertex (so per-point features and predictions stay one per point):
    rim of a partial scan) stay open.
 
 The front only stops at holes, which truncates a patch instead of bending it through the air. Measured
-in ``benchmarks/bench_geodesics.py`` against exact polyhedral geodesics on the mesh the points came from.
+in ``benchmarks/speed/bench_geodesics.py`` against exact polyhedral geodesics on the mesh the points came from.
 
 Public API: :data:`CLOUD_MESH_NEIGHBOURS`, :func:`triangulate_cloud`, :func:`mesh_from_cloud`.
 """

@@ -12,7 +12,7 @@ belief times, for every neighbour ``k``, the probability ``k`` gives to landing 
 belief propagation on the mesh, with "neighbours map within a ring of each other" as the pairwise term).
 A product asks every neighbour, where an average (``A · P · Aᵀ``, the first form of this module) lets a few
 sure ones outvote the rest: on 20 scans of 2 unseen generated people it turns 96.5 % exact into 99.4 % over
-one ring and 99.7 % over two, where the average gave 98.9 and 98.5 % (``benchmarks/refinement.py``). ``ε`` keeps one disagreeing neighbour (across a seam the
+one ring and 99.7 % over two, where the average gave 98.9 and 98.5 % (``benchmarks/experiments/refinement.py``). ``ε`` keeps one disagreeing neighbour (across a seam the
 network got wrong) from vetoing a vertex. A whole region mapped to the wrong place (a left leg on the
 right one) agrees with itself and stays as it is: that is the work of the global step that follows
 (:mod:`zernet.inference.spectral_refine`). The rings count mesh edges, so they follow the surface and never
@@ -56,7 +56,7 @@ __all__ = [
 
 #: Segmentation: vertices predicted with at least this probability keep their answer. Chosen on 10 generated
 #: validation bodies (another seed than the benchmark's) in six forms, with a model trained on the mixed
-#: forms of ``benchmarks/scans.py``; accuracy raw / averaged everywhere / below 0.9 only, 2 rings: original
+#: forms of ``benchmarks/experiments/scans.py``; accuracy raw / averaged everywhere / below 0.9 only, 2 rings: original
 #: 99.15 / 98.93 / 99.23 %, remeshed 98.28 / 98.23 / 98.37, decimated 98.39 / 97.72 / 98.35, uniform cloud
 #: 95.20 / 96.49 / 96.21, noisy half cloud 90.47 / 93.34 / 92.79, partial 93.58 / 95.91 / 95.36.
 SEGMENTATION_CONFIDENCE = 0.9
@@ -125,7 +125,7 @@ _KEPT = 8
 _RINGS: dict[tuple, torch.Tensor] = {}
 
 #: ``ε`` of the module docstring, in units of the uniform probability ``1 / M``: a neighbour that gives a
-#: ring less than this counts as this. On the unseen validation people of ``benchmarks/few_people.py`` (the
+#: ring less than this counts as this. On the unseen validation people of ``benchmarks/experiments/few_people.py`` (the
 #: shipped FAUST recipe's model), 2 / 7 / 20 / 60 gave 99.39 / 99.38 / 99.37 / 99.36 % exact after one ring
 #: and 99.74 / 99.74 / 99.72 / 99.72 % after two: it hardly matters below 20; 7 (1e-3 at 6,890 vertices)
 #: lets a neighbour that gives a ring a thousandth of its mass still count as a weak "no", not a veto.

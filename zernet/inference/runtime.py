@@ -44,7 +44,7 @@ def keep_freed_memory() -> bool:
     A training step on a FAUST-sized mesh allocates and frees tensors of hundreds of MB (the 6,890 x 6,890
     logits and their gradient). glibc serves such blocks with ``mmap`` and returns them with ``munmap``, so
     every step page-faults the same memory in again: about a quarter of a correspondence step on this
-    2-core machine (benchmarks/bench_layers.py). Disabling ``mmap`` for large blocks and the heap trim keeps
+    2-core machine (benchmarks/speed/bench_layers.py). Disabling ``mmap`` for large blocks and the heap trim keeps
     the peak footprint unchanged and the pages resident. Called by the ``zernet`` command and the
     benchmarks; a library user may call it too. Returns False where it does not apply (not glibc) and
     leaves the allocator alone when the user set ``MALLOC_MMAP_MAX_`` or ``MALLOC_TRIM_THRESHOLD_``.
@@ -67,7 +67,7 @@ def flush_denormals():
     Late in a correspondence run the softmax gives most of the 6,890 classes probabilities of ``e^-90`` and
     less, so the output layer's gradient fills with denormals, and x86 CPUs compute on them through a slow
     path: a matrix product with denormal inputs took 160x its normal time on the 2-core development machine,
-    and training steps with a converged model's weights 3.1x theirs (``benchmarks/bench_denormals.py``).
+    and training steps with a converged model's weights 3.1x theirs (``benchmarks/speed/bench_denormals.py``).
     Training runs its epochs inside this block. Only there: the flag is process-wide for the calling thread,
     and some compiled geometry code (the shape features) crashes under it, so it is switched off again on
     leaving. The flag is per thread; BLAS threads started before the block keep theirs, so at several threads

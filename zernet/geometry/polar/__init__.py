@@ -6,7 +6,7 @@ distance and ``θ`` the angle of the initial direction of the geodesic, measured
 direction ``e1`` towards ``e2 = n × e1`` (so ``(e1, e2, n)`` is right-handed).
 
 Three backends (their speed and accuracy against exact geodesics are measured by
-``benchmarks/bench_geodesics.py`` and ``benchmarks/bench_operator.py``). The default (``backend=None``,
+``benchmarks/speed/bench_geodesics.py`` and ``benchmarks/speed/bench_operator.py``). The default (``backend=None``,
 :func:`resolve_backend`) is ``"front"``; a point cloud gets it through a triangulation of its own points
 (:mod:`zernet.geometry.cloud_mesh`), built before the polar coordinates by the operator builder.
 

@@ -15,7 +15,7 @@ the operator's own ridge ``λ`` by default; see :class:`PaperZernikeConv`). The 
 the same seed and an interchangeable state dict. It exists to measure, in one run, what the two changes buy.
 Since the map is the same, the paper's formulation can also be trained at zernet's speed: ``zernet`` with
 ``pooling: max`` on operators of the paper's 50 nearest samples (``patch_size: 50``); the weights then run
-unchanged in this network (``benchmarks/bench_paper_layer.py`` scores a run both ways and times both steps).
+unchanged in this network (``benchmarks/speed/bench_paper_layer.py`` scores a run both ways and times both steps).
 
 It accepts a batch of surfaces (a block-diagonal :class:`~zernet.operators.Geometry`): each patch of a
 concatenated operator only sees its own surface.
