@@ -70,3 +70,18 @@ def test_ensure_bodies_writes_once_per_set_of_parameters(tmp_path, monkeypatch):
     assert calls == [(10, 0, "coarse-369", 2, None, None)]
     harness.ensure_bodies(folder, count=10, n_test=2, seed=1, topology="coarse-369")  # another seed: rewritten
     assert calls[-1] == (10, 1, "coarse-369", 2, None, None) and len(calls) == 2
+
+
+def test_body_surface_is_the_first_generated_training_body():
+    pytest.importorskip("anny")  # the optional bodies extra
+    import numpy as np
+
+    from zernet.data.bodies import generate_bodies
+    from zernet.data.segmentation import HUMAN_PART_NAMES
+
+    body = generate_bodies(count=2, seed=0, topology="faust", n_test=1, progress=False)[0]
+    as_generated, parts = harness.body_surface(seed=0, area=None)
+    assert np.array_equal(as_generated.vertices, body.vertices) and np.array_equal(as_generated.faces, body.faces)
+    assert list(parts) == [HUMAN_PART_NAMES[part] for part in body.parts]
+    scaled, _ = harness.body_surface(seed=0)
+    assert scaled.area == pytest.approx(harness.BODY_AREA)
