@@ -184,21 +184,20 @@ def test_gradcheck_and_backward_is_transpose():
 
 
 def test_a_forward_pass_without_gradients_builds_no_transpose():
-    # Prediction and matching never backpropagate: the transpose (as costly as the matrix) is left out, and
-    # built the first time a gradient needs it, for the batch of several surfaces too.
+    # Prediction and matching never backpropagate: the backward's order of the pairs is left out, and built
+    # the first time a gradient needs it, for the batch of several surfaces too.
     op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3))
     batch = PatchOperator.concatenate([op, op])
     x = torch.randn(2 * op.n_vertices, 2, dtype=torch.float64)
     with torch.no_grad():
         values = batch.apply(x)
-    assert [pair[1] for pair in batch._tensors.values()] == [None]
-    assert [pair[1] for pair in op._tensors.values()] == [None]
+    assert op.pairs._transposed is None
     x.requires_grad_(True)
     g = torch.randn(2 * op.n_vertices, op.k, 2, dtype=torch.float64)
     (grad,) = torch.autograd.grad(batch.apply(x), x, g)
     torch.testing.assert_close(values, batch.apply(x).detach())
     assert np.allclose(grad.numpy(), batch.matrix.T @ g.reshape(-1, 2).numpy())
-    assert all(pair[1] is not None for pair in op._tensors.values())
+    assert op.pairs._transposed is not None
 
 
 def test_apply_in_another_basis_order_is_the_gathered_apply():
@@ -218,20 +217,19 @@ def test_apply_in_another_basis_order_is_the_gathered_apply():
             op.apply(x, basis_order=bad)
 
 
-def test_to_prepares_the_basis_orders_asked_for():
-    # A data pipeline prepares the reordered matrices ahead (PatchOperator.to with basis_orders), so the
-    # forward pass finds them built: apply adds no tensors, and the values are those of the gathered apply.
+def test_to_prepares_the_backward_order_once_and_checks_the_basis_orders():
+    # A data pipeline prepares the operator ahead (PatchOperator.to), so the backward finds the pairs' order
+    # by column built; a basis order needs nothing prepared (it picks values), but a bad one is an error.
     op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3))
     order = tuple(np.random.default_rng(2).permutation(op.k).tolist())
     other_k = tuple(range(op.k + 5))[::-1]  # an order for another n_max (multi-scale models): skipped
     assert op.to("cpu", basis_orders=[order, other_k]) is op
-    prepared = set(op._tensors)
-    assert prepared == {(torch.float32, torch.device("cpu"), order)}  # only what was asked for
+    built = op.pairs._transposed
+    assert built is not None and op.prepared_nbytes == op.pairs.nbytes
+    op.to("cpu", basis_orders=[order])  # already there: nothing rebuilt
+    assert op.pairs._transposed is built
     x = torch.randn(op.n_vertices, 2)
     torch.testing.assert_close(op.apply(x, basis_order=order), op.apply(x)[:, list(order)])
-    assert (torch.float32, torch.device("cpu"), order) in op._tensors and len(op._tensors) == 2  # + natural order
-    op.to("cpu", basis_orders=[order])  # already there: nothing rebuilt
-    assert len(op._tensors) == 2
     with pytest.raises(ValueError, match="permutation"):
         op.to("cpu", basis_orders=[(0,) * op.k])
 
@@ -284,21 +282,49 @@ def test_two_components_and_concatenate():
 
 # ---------------------------------------------------------------------- files and cache
 def test_save_load_round_trip(tmp_path):
-    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=800, inner_radius=0.3))
-    assert op.matrix.dtype == np.float64  # built without a cache: the fit's float64
+    config = PatchConfig(r0=2.0, n_samples=800, inner_radius=0.3, precision="float32")
+    op = build_patch_operator(bumpy_sphere(1), config)
+    assert op.pairs.values.dtype == np.float64  # built without a cache: the fit's float64
     op.save(tmp_path / "op.zop")
     back = PatchOperator.load(tmp_path / "op.zop")
-    # The file holds the layout the layers read: float32 values, int32 indices, the transpose beside.
-    assert back.matrix.dtype == np.float32 and back.matrix.indices.dtype == np.int32
+    # The file holds the pairs in the config's precision, indices in their narrowest types.
+    assert back.pairs.values.dtype == np.float32 and back.pairs.columns.dtype == np.uint16
+    assert back.patch_samples.dtype == np.uint16
     assert (back.matrix != op.matrix.astype(np.float32)).nnz == 0
-    assert (back.transpose != op.matrix.T.astype(np.float32)).nnz == 0 and back.transpose.has_sorted_indices
-    assert not back.matrix.data.flags.writeable  # a view of the mapped file, not a copy
+    assert not back.pairs.values.flags.writeable  # a view of the mapped file, not a copy
     assert back.config == op.config and back.lam == op.lam
     assert np.array_equal(back.patch_sample_index, op.patch_sample_index)
     assert np.array_equal(back.frames, op.frames)
-    assert np.allclose(back.patch_basis, op.patch_basis)
+    np.testing.assert_allclose(back.patch_radius, op.patch_radius, atol=1e-7)  # float32 in the file
+    assert np.allclose(back.patch_basis, op.patch_basis, atol=1e-5)
     assert op.patch_radius[op.patch_sample_index >= 0].min() >= 0.3 / 2.0  # inner radius applied
     assert PatchConfig.from_dict(op.config.to_dict()) == op.config
+
+
+@pytest.mark.parametrize("precision, tolerance", [("float32", 1e-6), ("float16", 1e-3), ("bfloat16", 8e-3)])
+def test_stored_precisions_against_the_float32_csr_operator_of_format_4(tmp_path, precision, tolerance):
+    # Format 4 stored the float32 CSR matrix and multiplied by it with torch; the compact operator read back
+    # gives the same layer inputs within 1e-6 of their largest in float32 (asked: 1e-5), and a half
+    # precision within its rounding (float16 about 2e-4, bfloat16 about 2e-3 measured).
+    surface = bumpy_sphere(2)
+    config = PatchConfig(r0=2.0, n_samples=2000, inner_radius=0.5, subtract_center=True, precision=precision)
+    reference = build_patch_operator(surface, config).matrix.astype(np.float32)
+    old = torch.sparse_csr_tensor(
+        torch.from_numpy(reference.indptr.astype(np.int64)),
+        torch.from_numpy(reference.indices.astype(np.int64)),
+        torch.from_numpy(reference.data),
+        size=reference.shape,
+    )
+    cached = build_patch_operator(surface, config, cache_dir=tmp_path)
+    assert cached.pairs.precision == precision
+    x = torch.randn(surface.n_vertices, 16, requires_grad=True)
+    g = torch.randn(surface.n_vertices, cached.k, 16)
+    got = cached.apply(x)
+    (grad,) = torch.autograd.grad(got, x, g)
+    expected = (old @ x.detach()).reshape(got.shape)
+    expected_grad = old.t() @ g.reshape(-1, 16)
+    assert (got.detach() - expected).abs().max() <= tolerance * expected.abs().max()
+    assert (grad - expected_grad).abs().max() <= tolerance * expected_grad.abs().max()
 
 
 def test_cache_hit_and_bad_files_are_rebuilt(tmp_path):
@@ -346,6 +372,8 @@ def test_config_validation():
         PatchConfig(r0=1.0, backend="magic")
     with pytest.raises(ValueError):
         PatchConfig(r0=1.0, ridge=0.0)
+    with pytest.raises(ValueError, match="precision"):
+        PatchConfig(r0=1.0, precision="float64")  # the fit's own precision is not a storage option
     assert PatchConfig(r0=1.0).k == num_bases(5) == 21
 
 
@@ -357,10 +385,11 @@ def test_the_checksum_is_verified_once_per_file_version(tmp_path, monkeypatch):
     op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=500)).as_cached()
     path, data = tmp_path / "op.zop", op.to_bytes(key="k")
     path.write_bytes(data)  # written by another process
+    reference = op.matrix  # (numba loads its compiled kernels with sha256 too: before counting)
     hashed, sha256 = [], hashlib.sha256
     monkeypatch.setattr(cache.hashlib, "sha256", lambda data=b"": hashed.append(len(data)) or sha256(data))
     for _ in range(3):
-        assert (PatchOperator.load(path, key="k").matrix != op.matrix).nnz == 0
+        assert (PatchOperator.load(path, key="k").matrix != reference).nnz == 0
     assert len(hashed) == 1  # a streamed data set rereads its files every epoch
     path.write_bytes(data)
     os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))  # a rewritten file
@@ -372,20 +401,21 @@ def test_the_checksum_is_verified_once_per_file_version(tmp_path, monkeypatch):
     assert len(hashed) == 3
 
 
-def test_an_operator_file_of_the_previous_format_is_named_and_rebuilt(tmp_path):
-    from zernet.operators.cache import legacy_cache_path
+@pytest.mark.parametrize("which", [0, 1])
+def test_an_operator_file_of_an_older_format_is_named_and_rebuilt(tmp_path, which):
+    from zernet.operators.cache import legacy_cache_paths
 
     surface, config = bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=500)
-    legacy = legacy_cache_path(tmp_path, surface, config, "front")
-    legacy.write_bytes(b"an operator of format 3")
-    with pytest.warns(CacheWarning, match="older format"):
+    legacy = legacy_cache_paths(tmp_path, surface, config, "front")[which]  # format 4 (.zop), format 3 (.npz)
+    legacy.write_bytes(b"an operator of an older format")
+    with pytest.warns(CacheWarning, match=f"{legacy.name} is a patch operator cached in an older format"):
         op = build_patch_operator(surface, config, cache_dir=tmp_path)
-    assert op.cache_file.suffix == ".zop" and op.cache_file.exists()
+    assert op.cache_file.suffix == ".zop" and op.cache_file.exists() and op.cache_file != legacy
 
 
-# ---------------------------------------------------------------------- the stored transpose
-def test_reordered_rows_and_columns_are_the_gathered_matrix_and_its_transpose():
-    from zernet.operators.sparse import reorder_basis_columns, reorder_basis_rows, transpose_csr
+# ---------------------------------------------------------------------- products
+def test_reordered_rows_are_the_gathered_matrix():
+    from zernet.operators.sparse import reorder_basis_rows
 
     op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3))
     order = np.random.default_rng(3).permutation(op.k)
@@ -393,24 +423,20 @@ def test_reordered_rows_and_columns_are_the_gathered_matrix_and_its_transpose():
     expected = op.matrix[rows].tocsr()
     reordered = reorder_basis_rows(op.matrix, op.k, order)
     assert (reordered != expected).nnz == 0 and np.array_equal(reordered.indptr, expected.indptr)
-    transposed = reorder_basis_columns(transpose_csr(op.matrix), op.k, order)
-    reference = expected.T.tocsr()
-    reference.sort_indices()
-    for name in ("indptr", "indices", "data"):  # the same arrays scipy's transpose gives, entry by entry
-        assert np.array_equal(getattr(transposed, name), getattr(reference, name)), name
 
 
-def test_a_loaded_operator_applies_and_backpropagates_without_transposing(tmp_path, monkeypatch):
-    import scipy.sparse
+def test_a_loaded_operator_applies_and_backpropagates_from_its_pairs(tmp_path, monkeypatch):
+    from zernet.operators.pairs import VertexPairs
 
-    op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3), cache_dir=tmp_path)
+    config = PatchConfig(r0=2.0, n_samples=600, n_max=3, precision="float32")
+    op = build_patch_operator(bumpy_sphere(1), config, cache_dir=tmp_path)
     loaded = PatchOperator.load(op.cache_file)
+    matrix = loaded.matrix.astype(np.float64)
 
     def must_not_run(*args, **kwargs):
-        raise AssertionError("a transpose was built although the operator stores one")
+        raise AssertionError("a product expanded the pairs into a matrix")
 
-    monkeypatch.setattr("zernet.operators.patch.transpose_csr", must_not_run)
-    monkeypatch.setattr(scipy.sparse.csr_matrix, "tocsc", must_not_run)
+    monkeypatch.setattr(VertexPairs, "to_csr", must_not_run)
     order = tuple(np.random.default_rng(4).permutation(loaded.k).tolist())
     x = torch.randn(loaded.n_vertices, 3, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(
@@ -419,25 +445,23 @@ def test_a_loaded_operator_applies_and_backpropagates_without_transposing(tmp_pa
     g = torch.randn(loaded.n_vertices, loaded.k, 3, dtype=torch.float64)
     (grad,) = torch.autograd.grad(loaded.apply(x, basis_order=order), x, g)
     inverse = np.argsort(order)
-    expected = loaded.matrix.T.astype(np.float64) @ g[:, inverse].reshape(-1, 3).numpy()
+    expected = matrix.T @ g[:, inverse].reshape(-1, 3).numpy()
     np.testing.assert_allclose(grad.numpy(), expected, rtol=1e-12, atol=1e-12)
     x32 = x.detach().float().requires_grad_()
     (grad32,) = torch.autograd.grad(loaded.apply(x32, basis_order=order), x32, g.float())
     np.testing.assert_allclose(grad32.numpy(), expected, rtol=1e-4, atol=1e-5)
 
 
-def test_reordered_columns_of_any_sparse_pattern():
-    import scipy.sparse
-
-    from zernet.operators.sparse import reorder_basis_columns
-
-    k, n = 6, 9
-    order = np.random.default_rng(5).permutation(k)
-    for density in (0.2, 0.7, 1.0):  # incomplete vertex blocks (sorted by insertion) and complete ones
-        matrix = scipy.sparse.random(13, n * k, density=density, format="csr", random_state=6)
-        columns = (np.arange(n)[:, None] * k + order[None, :]).ravel()
-        expected = matrix[:, columns].tocsr()
-        expected.sort_indices()
-        got = reorder_basis_columns(matrix, k, order)
-        for name in ("indptr", "indices", "data"):
-            assert np.array_equal(getattr(got, name), getattr(expected, name)), (density, name)
+def test_the_expanded_matrices_of_other_devices_are_the_pairs_products():
+    # Off the CPU the pairs are expanded into a CSR matrix and its transpose for each product; the expansion
+    # is device-independent torch, checked here on the CPU against the pairs' own products.
+    ops = [build_patch_operator(bumpy_sphere(1, seed), PatchConfig(r0=2.0, n_samples=600, n_max=3)) for seed in (0, 1)]
+    batch = PatchOperator.concatenate(ops)
+    order = tuple(np.random.default_rng(6).permutation(batch.k).tolist())
+    matrix, transpose = batch._expanded(torch.float64, torch.device("cpu"), order, transpose=True)
+    x = torch.randn(batch.n_vertices, 4, dtype=torch.float64)
+    g = torch.randn(batch.n_vertices, batch.k, 4, dtype=torch.float64)
+    torch.testing.assert_close((matrix @ x).reshape(g.shape), batch.apply(x, basis_order=order))
+    x.requires_grad_(True)
+    (grad,) = torch.autograd.grad(batch.apply(x, basis_order=order), x, g)
+    torch.testing.assert_close(transpose @ g.reshape(-1, 4), grad)

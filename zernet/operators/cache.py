@@ -4,8 +4,8 @@
 config), keyed by :func:`cache_key` = ``sha256(geometry_hash, config JSON, polar backend used and its version, format
 version)``: a file written by another backend version, another fit or an older format gets another key
 (and a stale file under the same name is rejected by its stored version), so it is rebuilt, never misread.
-A file of the previous format (``<old key>.npz``) is named in a :class:`CacheWarning` when its operator is
-rebuilt (it is no longer read and can be deleted).
+A file of an older format (format 4's ``<old key>.zop``, format 3's ``<old key>.npz``) is named in a
+:class:`CacheWarning` when its operator is rebuilt (it is no longer read and can be deleted).
 
 **Array files** (:func:`write_arrays`, :func:`read_arrays`): an 8-byte magic, the length of a JSON header,
 the header (format version, key, free ``meta`` values, the sha256 of the data and every array's dtype,
@@ -19,10 +19,12 @@ another format version or for another key; the builder then warns with :class:`C
 Files are written atomically (:func:`zernet.io_utils.atomic_write_bytes`: a reader sees the old file or the
 new one, and a mapped old file stays valid after a rename replaces it).
 
-A patch operator's file holds its matrix and the matrix's transpose as the layers read them (float32
-values, int32 indices, sorted CSR: :meth:`zernet.operators.PatchOperator.to_arrays`), so preparing it for a
-training step is a copy (or none), never a transpose; about 190 MB for 6,890 vertices with every sample
-within r0. Beside it, ``<key>.transport.zop`` keeps the operator's vertex pairs and transport angles once a
+A patch operator's file holds its matrix as the layers read it: vertex pairs with ``k`` values each
+(:mod:`zernet.operators.pairs`; values in ``PatchConfig.precision``, float16 by default, indices in their
+narrowest types; :meth:`zernet.operators.PatchOperator.to_arrays`), so preparing it for a training step
+is one counting pass for the backward's order, never a decode. With the shipped FAUST settings a
+6,890-vertex body's file is about 28 MB in float16 (format 4, float32 CSR with its transpose: 195 MB;
+``benchmarks/speed/bench_operator.py``). Beside it, ``<key>.transport.zop`` keeps the operator's vertex pairs and transport angles once a
 directional model has asked for them (:func:`zernet.operators.directional.patch_transport`).
 
 This module knows arrays, not operators: :class:`~zernet.operators.PatchOperator` turns itself into
@@ -54,7 +56,7 @@ __all__ = [
     "CacheWarning",
     "cache_key",
     "cache_path",
-    "legacy_cache_path",
+    "legacy_cache_paths",
     "pack_arrays",
     "unpack_arrays",
     "write_arrays",
@@ -70,7 +72,9 @@ __all__ = [
 #: Version 2: degree-weighted ridge, all samples within r0 by default, backend and its version in the key.
 #: Version 3: the ridge weighs every basis but the piston equally (operators of version 2 differ).
 #: Version 4: raw memory-mapped arrays (:func:`write_arrays`): float32 matrix with its stored transpose.
-FORMAT_VERSION = 4
+#: Version 5: the matrix as vertex pairs (:class:`zernet.operators.pairs.VertexPairs`), values in the
+#: config's ``precision``, no stored transpose, the patch samples as flat lists.
+FORMAT_VERSION = 5
 
 #: Version of the checked ``.npz`` payload (:func:`pack_payload`), which other modules use for small files.
 PAYLOAD_VERSION = 3
@@ -84,17 +88,19 @@ class CacheWarning(UserWarning):
     """A cached operator file could not be trusted (corrupt, truncated, stale) and is being rebuilt."""
 
 
-def cache_key(surface, config, backend: str | None = None, version: int | None = None) -> str:
+def cache_key(surface, config, backend: str | None = None) -> str:
     """sha256 of the surface's ``geometry_hash()``, the config (``to_dict()``, JSON with sorted keys), the
     polar backend used on this surface (``backend``, default :func:`zernet.geometry.resolve_backend` of
-    ``config.backend``) with its version (:data:`zernet.geometry.BACKEND_VERSIONS`) and the format version
-    (``version``, default :data:`FORMAT_VERSION`)."""
+    ``config.backend``) with its version (:data:`zernet.geometry.BACKEND_VERSIONS`) and :data:`FORMAT_VERSION`."""
     backend = resolve_backend(surface, config.backend) if backend is None else backend
-    version = FORMAT_VERSION if version is None else int(version)
+    return _key(surface, config.to_dict(), backend, FORMAT_VERSION)
+
+
+def _key(surface, config: dict, backend: str, version: int) -> str:
     text = json.dumps(
         {
             "geometry": surface.geometry_hash(),
-            "config": config.to_dict(),
+            "config": config,
             "backend": backend,
             "backend_version": BACKEND_VERSIONS.get(backend),
             "version": version,
@@ -109,9 +115,14 @@ def cache_path(cache_dir: str | os.PathLike, key: str) -> Path:
     return Path(cache_dir) / f"{key}.zop"
 
 
-def legacy_cache_path(cache_dir: str | os.PathLike, surface, config, backend: str) -> Path:
-    """Where format 3 (the previous one, a checked ``.npz``) kept the same operator."""
-    return Path(cache_dir) / f"{cache_key(surface, config, backend, version=3)}.npz"
+def legacy_cache_paths(cache_dir: str | os.PathLike, surface, config, backend: str) -> list[Path]:
+    """Where formats 4 (``.zop``, the CSR matrix and its transpose) and 3 (a checked ``.npz``) kept the same
+    operator; their keys knew no ``precision``."""
+    old_config = {name: value for name, value in config.to_dict().items() if name != "precision"}
+    return [
+        Path(cache_dir) / f"{_key(surface, old_config, backend, 4)}.zop",
+        Path(cache_dir) / f"{_key(surface, old_config, backend, 3)}.npz",
+    ]
 
 
 # ---------------------------------------------------------------------------------------------- array files

@@ -347,7 +347,7 @@ def patch_transport(operator) -> tuple[np.ndarray, np.ndarray]:
         try:
             arrays, _ = read_arrays(path, key=key)
             pairs, angles = arrays["pairs"].astype(np.int64), arrays["angles"]
-            n = operator.matrix.shape[1]
+            n = int(operator.n_vertices)
             if (
                 pairs.ndim != 2
                 or pairs.shape[1] != 2
@@ -364,7 +364,7 @@ def patch_transport(operator) -> tuple[np.ndarray, np.ndarray]:
     pairs = patch_pairs(operator.matrix, int(operator.k))
     angles = transport_angles(np.asarray(frames, dtype=np.float64), pairs[:, 0], pairs[:, 1])
     if path is not None:
-        index_dtype = np.int32 if operator.matrix.shape[1] < 2**31 else np.int64  # half the file
+        index_dtype = np.int32 if operator.n_vertices < 2**31 else np.int64  # half the file
         try:
             write_arrays(path, {"pairs": pairs.astype(index_dtype), "angles": angles}, key=key)
         except OSError as error:  # a read-only cache still works, it just recomputes them

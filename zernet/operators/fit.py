@@ -39,10 +39,11 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-import scipy.sparse
 
 from zernet.threads import thread_map
 from zernet.zernike import num_bases, zernike_basis
+
+from .pairs import VertexPairs, narrow_index_dtype, narrow_indptr
 
 __all__ = ["ridge_weights", "fit_groups", "fit_patches", "carry_to_vertices"]
 
@@ -118,8 +119,9 @@ def fit_patches(
 
 def carry_to_vertices(
     groups: list, sample_index: np.ndarray, interpolation, k: int, subtract_center: bool
-) -> scipy.sparse.csr_matrix:
-    """The fit of every patch carried from samples to mesh vertices: ``A = blockrows_p(P_p · Interp[patch p])``.
+) -> VertexPairs:
+    """The fit of every patch carried from samples to mesh vertices: ``A = blockrows_p(P_p · Interp[patch p])``,
+    written as vertex pairs (:class:`zernet.operators.pairs.VertexPairs`, float64).
 
     Args:
         groups: ``(rows, fit)`` pairs of :func:`fit_groups`: (g,) vertices and their (g, k, n) fit matrices.
@@ -129,9 +131,8 @@ def carry_to_vertices(
         subtract_center: also subtract ``(P_p 1) f(p)`` (the fit of ``f - f(p)``).
 
     Returns:
-        (N k, N) CSR matrix; rows ``p k .. p k + k - 1`` are vertex ``p``'s coefficients and share its
-        columns, the distinct vertices its samples interpolate from (ascending). A vertex without a patch
-        has empty rows.
+        The pairs ``(p, q)`` with ``q`` the distinct vertices ``p``'s samples interpolate from (ascending)
+        and their ``k`` coefficients each. A vertex without a patch has no pairs.
     """
     n_vertices = sample_index.shape[0]
     indptr_in = interpolation.indptr.astype(np.int64)
@@ -160,7 +161,7 @@ def carry_to_vertices(
             interpolation.data,
             n_vertices,
             subtract_center,
-            indptr[rows * k],
+            indptr[rows],
             columns,
             values,
         )
@@ -169,14 +170,12 @@ def carry_to_vertices(
     width = np.zeros(n_vertices, dtype=np.int64)
     for (rows, _), group_width in zip(groups, thread_map(patch_widths, groups)):
         width[rows] = group_width
-    indptr = np.zeros(n_vertices * k + 1, dtype=np.int64)
-    np.cumsum(np.repeat(width, k), out=indptr[1:])
-    # The index dtype scipy would pick: written in place, so the matrix is built without a copy.
-    index_dtype = np.int32 if max(indptr[-1], n_vertices) < np.iinfo(np.int32).max else np.int64
-    columns = np.empty(indptr[-1], dtype=index_dtype)
-    values = np.zeros(indptr[-1])
+    indptr = np.zeros(n_vertices + 1, dtype=np.int64)
+    np.cumsum(width, out=indptr[1:])
+    columns = np.empty(indptr[-1], dtype=narrow_index_dtype(max(n_vertices - 1, 0)))
+    values = np.zeros((indptr[-1], k))
     thread_map(carry, groups)
-    return scipy.sparse.csr_matrix((values, columns, indptr.astype(index_dtype)), shape=(n_vertices * k, n_vertices))
+    return VertexPairs(narrow_indptr(indptr), columns, values, "float64")
 
 
 @numba.njit(cache=True, nogil=True)
@@ -206,8 +205,8 @@ def _patch_widths(rows, sample_index, indptr, indices, n_vertices, subtract_cent
 
 @numba.njit(cache=True, nogil=True)
 def _carry(rows, block, sample_index, indptr, indices, data, n_vertices, subtract_center, row_start, columns, values):
-    """Compiled :func:`carry_to_vertices` for one group: each patch's ``k × width`` values (row-major, from
-    ``row_start``) by a dense scatter into a slot per touched vertex."""
+    """Compiled :func:`carry_to_vertices` for one group: each patch's pairs (from ``row_start``) and their
+    ``k`` values, by a dense scatter into a slot per touched vertex."""
     g, k, n = block.shape
     slot = np.full(n_vertices, -1, dtype=np.int64)
     members = np.empty(16, dtype=np.int64)
@@ -237,20 +236,20 @@ def _carry(rows, block, sample_index, indptr, indices, data, n_vertices, subtrac
         at = row_start[a]
         for c in range(count):
             slot[ordered[c]] = c
-            columns[at + c : at + k * count : count] = ordered[c]
+            columns[at + c] = ordered[c]
         for j in range(n):
             s = sample_index[a, j]
             for t in range(indptr[s], indptr[s + 1]):
                 c = slot[indices[t]]
                 weight = data[t]
                 for i in range(k):
-                    values[at + i * count + c] += block[a, i, j] * weight
+                    values[at + c, i] += block[a, i, j] * weight
         if subtract_center:
             c = slot[rows[a]]
             for i in range(k):
                 row_sum = 0.0
                 for j in range(n):
                     row_sum += block[a, i, j]
-                values[at + i * count + c] -= row_sum
+                values[at + c, i] -= row_sum
         for c in range(count):
             slot[ordered[c]] = -1

@@ -5,7 +5,7 @@ coefficients of a field ``f`` are the ridge least-squares fit (piston unpenalise
 with ``P_p = (B_pᵀ B_p + λ W)⁻¹ B_pᵀ`` (``B_p``: n_p × k Zernike values; ``W`` and λ in
 :mod:`zernet.operators.fit`). Samples carry vertex features by barycentric interpolation, so the whole
 map is ``A = blockrows_p(P_p · Interp[patch of p])``, an ``(N·k) × N`` CSR matrix built once per surface
-and applied with a custom autograd function (:class:`SparseApply`) that keeps its transpose.
+and applied with a custom autograd function (:class:`~zernet.operators.pairs.PairApply`) on the CPU.
 
 Patch selection (the sampling rule): by default (``patch_size=None``) a patch holds **every** sample
 within ``r0`` (leaving out those with ``r < inner_radius``), so the samples cover the whole disk and the
@@ -24,16 +24,21 @@ same vertices, so the operator is still ``(N·k) × N`` over the points) and sam
 
 ``subtract_center``: the fit is of ``f(sample) − f(p)``, i.e. ``A_p ← A_p − (P_p 1) e_pᵀ`` (still linear).
 
-Precision: the fit is computed in float64. An operator kept in the cache holds float32 values (the
-precision the layers compute in; the file format is :mod:`zernet.operators.cache`), and
+Storage: the matrix is kept as vertex pairs ``(p, q)`` with the ``k`` values of each
+(:mod:`zernet.operators.pairs`): a vertex's ``k`` rows read the same vertices, so this is the matrix
+without its repeated indices, and the products read it directly (no stored transpose).
+
+Precision: the fit is computed in float64. An operator kept in the cache holds its values in
+``PatchConfig.precision`` (float16 by default; the file format is :mod:`zernet.operators.cache`), and
 :func:`build_patch_operator` with a ``cache_dir`` returns the operator as the file holds it, whether it was
-built now or read back; without a cache the float64 matrix is kept.
+built now or read back; without a cache the float64 values are kept. The layers compute in float32 (or
+float64) whatever the stored precision.
 
 Cache: :func:`build_patch_operator` with ``cache_dir`` keeps one file per (geometry, config); the key and
 the checked file format are in :mod:`zernet.operators.cache`; the key holds the backend actually used and
 its version, so an operator built by an older backend or fit is rebuilt, never reused. A loaded operator's
-arrays are views of the memory-mapped file: holding it costs page cache, and preparing its matrices for a
-step is a copy of the arrays the layers read (the matrix and its stored transpose), never a transpose.
+arrays are views of the memory-mapped file: holding it costs page cache the kernel can drop and read
+back, and preparing it for a step builds only the backward's order of the pairs (once per operator).
 """
 
 from __future__ import annotations
@@ -59,7 +64,7 @@ from .cache import (
     CacheWarning,
     cache_key,
     cache_path,
-    legacy_cache_path,
+    legacy_cache_paths,
     pack_arrays,
     read_arrays,
     sparse_from_arrays,
@@ -68,20 +73,11 @@ from .cache import (
     write_arrays,
 )
 from .fit import carry_to_vertices, fit_groups, fit_patches, ridge_weights
-from .sparse import (
-    SparseApply,
-    basis_orders_of_size,
-    block_diagonal_csr,
-    canonical_device,
-    checked_basis_order,
-    csr_copy_to,
-    csr_nbytes,
-    pinned_csr,
-    reorder_basis_columns,
-    reorder_basis_rows,
-    to_torch_csr,
-    transpose_csr,
-)
+from .pairs import PRECISIONS, PairApply, VertexPairs, expanded_csr, narrow_index_dtype, narrow_indptr
+from .sparse import SparseApply, basis_orders_of_size, block_diagonal_csr, canonical_device, checked_basis_order
+
+#: The precisions a cached operator's values can be stored in (``PatchConfig.precision``).
+STORED_PRECISIONS = tuple(p for p in PRECISIONS if p != "float64")
 
 __all__ = [
     "PatchConfig",
@@ -112,6 +108,9 @@ class PatchConfig:
             front propagation; a point cloud is triangulated through its points first), ``"fast"`` or
             ``"accurate"``.
         seed: seed of the surface sampling.
+        precision: how the operator cache stores the matrix's values: ``"float16"`` (default: half the
+            bytes of float32; layer outputs within about 2e-4 of the float32 operator's, relative to their
+            largest), ``"float32"`` or ``"bfloat16"`` (about 2e-3). The fit is float64 whatever it is.
     """
 
     r0: float
@@ -123,6 +122,7 @@ class PatchConfig:
     ridge: float = 1e-3
     backend: str | None = None
     seed: int = 0
+    precision: str = "float16"
 
     def __post_init__(self) -> None:
         if not self.r0 > 0:
@@ -135,6 +135,8 @@ class PatchConfig:
             raise ValueError(
                 f"PatchConfig.ridge must be positive (it keeps truncated patches well-posed), got {self.ridge}"
             )
+        if self.precision not in STORED_PRECISIONS:
+            raise ValueError(f"PatchConfig.precision must be one of {STORED_PRECISIONS}, got {self.precision!r}")
         if self.backend is not None and self.backend not in BACKENDS:
             raise ValueError(f"PatchConfig.backend must be None (automatic) or one of {BACKENDS}, got {self.backend!r}")
 
@@ -161,26 +163,25 @@ class PatchOperator:
         k: Zernike coefficients per vertex.
         n_max: highest Zernike degree.
         config: the :class:`PatchConfig` it was built with.
-        matrix: scipy CSR (N·k, N), sorted indices; row ``p·k + j`` gives coefficient j at vertex p. float64
-            as built, float32 as cached (module docstring).
-        transpose: scipy CSR (N, N·k), ``matrix.T`` with sorted indices, in the matrix's dtype: what the
-            backward of :meth:`apply` multiplies by. Built on first use (or given, e.g. read from the
-            cache file) and kept.
+        pairs: the matrix ``A`` ``(N·k, N)`` as vertex pairs with ``k`` values each
+            (:class:`~zernet.operators.pairs.VertexPairs`): float64 as built, ``config.precision`` as cached
+            (module docstring). Row ``p·k + j`` of ``A`` gives coefficient j at vertex p.
         frames: (N, 3, 3) rows (e1, e2, normal); θ is measured from e1 towards e2.
-        patch_sample_index: (N, n) int64 sample ids per patch, nearest first, -1 where a patch is shorter.
-        patch_radius: (N, n) float64 normalised radius r / r0 (0 where -1).
-        patch_angle: (N, n) float64 θ (0 where -1).
         interpolation: scipy CSR (M, N) vertex field -> samples.
         lam: the absolute ridge λ used.
         ridge_weights: (k,) the diagonal of the ridge's ``W``: 0 for the piston, 1 otherwise (:mod:`zernet.operators.fit`).
         cache_file: the cache file :func:`build_patch_operator` read it from or wrote it to (``None``
             otherwise); files derived from the operator, like its directional transport angles
             (:func:`zernet.operators.directional.patch_transport`), are kept beside it.
+
+    The patch samples (:attr:`patch_sample_index`, :attr:`patch_radius`, :attr:`patch_angle`) are kept as
+    one flat list per patch (``patch_indptr``, ``patch_samples``, ``patch_r``, ``patch_theta``: nearest
+    first) and padded into ``(N, n)`` arrays when asked for.
     """
 
     def __init__(
         self,
-        matrix: scipy.sparse.csr_matrix,
+        pairs: VertexPairs,
         frames: np.ndarray,
         patch_sample_index: np.ndarray,
         patch_radius: np.ndarray,
@@ -188,18 +189,33 @@ class PatchOperator:
         interpolation: scipy.sparse.csr_matrix,
         config: PatchConfig,
         lam: float = 0.0,
-        transpose: scipy.sparse.csr_matrix | None = None,
     ) -> None:
-        matrix = matrix.tocsr()
-        if not matrix.has_sorted_indices:
-            matrix = matrix.copy()
-            matrix.sort_indices()
-        self.matrix = matrix
-        self._transpose = None if transpose is None else transpose.tocsr()
+        valid = patch_sample_index >= 0
+        counts = valid.sum(axis=1)
+        if np.any(valid[:, 1:] & ~valid[:, :-1]):
+            raise ValueError("patch_sample_index must hold each patch's samples first, then -1")
+        patch_indptr = np.zeros(len(counts) + 1, dtype=np.int64)
+        np.cumsum(counts, out=patch_indptr[1:])
+        n_samples = interpolation.shape[0]
+        self._init(
+            pairs,
+            frames,
+            (
+                narrow_indptr(patch_indptr),
+                patch_sample_index[valid].astype(narrow_index_dtype(max(n_samples - 1, 0))),
+                patch_radius[valid],
+                patch_angle[valid],
+            ),
+            interpolation,
+            config,
+            lam,
+        )
+
+    def _init(self, pairs, frames, patches, interpolation, config, lam) -> None:
+        """Set every attribute from the compact patch lists ``(indptr, samples, r, theta)``."""
+        self.pairs = pairs
         self.frames = frames
-        self.patch_sample_index = patch_sample_index
-        self.patch_radius = patch_radius
-        self.patch_angle = patch_angle
+        self.patch_indptr, self.patch_samples, self.patch_r, self.patch_theta = patches
         self.interpolation = interpolation.tocsr()
         self.config = config
         self.lam = float(lam)
@@ -207,23 +223,53 @@ class PatchOperator:
         self.n_max = config.n_max
         self.k = config.k
         self.ridge_weights = ridge_weights(config.n_max)
-        if self.matrix.shape != (self.n_vertices * self.k, self.n_vertices):
+        if (pairs.n_vertices, pairs.k) != (self.n_vertices, self.k):
             raise ValueError(
-                f"operator matrix has shape {self.matrix.shape}, expected {(self.n_vertices * self.k, self.n_vertices)}"
+                f"operator pairs are for {pairs.n_vertices} vertices and k = {pairs.k}, expected "
+                f"{self.n_vertices} and {self.k}"
             )
-        if self._transpose is not None and (
-            self._transpose.shape != self.matrix.shape[::-1] or self._transpose.nnz != self.matrix.nnz
-        ):
-            raise ValueError(
-                f"transpose has shape {self._transpose.shape} and {self._transpose.nnz} entries, "
-                f"expected {self.matrix.shape[::-1]} and {self.matrix.nnz}"
-            )
-        self._tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # (dtype, device, basis order)
+        if self.patch_indptr.shape[0] != self.n_vertices + 1 or self.patch_indptr[-1] != len(self.patch_samples):
+            raise ValueError("the patch lists do not fit the vertices")
+        self._devices: dict[torch.device, dict[str, torch.Tensor]] = {}  # the pairs as tensors, off the CPU
         self._parts: list[PatchOperator] = []  # the surfaces of a batch (set by concatenate)
         self._basis: np.ndarray | None = None
+        self._padded: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.cache_file: Path | None = None
 
     # ------------------------------------------------------------------ data
+    def _padded_patches(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(index, r, theta)`` (N, n) padded with -1 / 0, built on first use and kept."""
+        if self._padded is None:
+            if self._parts:
+                self._padded = _joined_patches(self._parts)
+            else:
+                counts = np.diff(self.patch_indptr.astype(np.int64))
+                width = max(int(counts.max(initial=0)), 1)
+                rows = np.repeat(np.arange(self.n_vertices), counts)
+                rank = np.arange(len(rows)) - self.patch_indptr.astype(np.int64)[rows]
+                index = np.full((self.n_vertices, width), -1, dtype=np.int64)
+                r, theta = np.zeros((self.n_vertices, width)), np.zeros((self.n_vertices, width))
+                index[rows, rank] = self.patch_samples
+                r[rows, rank] = self.patch_r
+                theta[rows, rank] = self.patch_theta
+                self._padded = (index, r, theta)
+        return self._padded
+
+    @property
+    def patch_sample_index(self) -> np.ndarray:
+        """(N, n) int64 sample ids per patch, nearest first, -1 where a patch is shorter."""
+        return self._padded_patches()[0]
+
+    @property
+    def patch_radius(self) -> np.ndarray:
+        """(N, n) float64 normalised radius r / r0 (0 where the index is -1)."""
+        return self._padded_patches()[1]
+
+    @property
+    def patch_angle(self) -> np.ndarray:
+        """(N, n) float64 θ (0 where the index is -1)."""
+        return self._padded_patches()[2]
+
     @property
     def patch_basis(self) -> np.ndarray:
         """(N, n, k) float64 Zernike values at the patch samples (0 where the index is -1); computed on
@@ -235,16 +281,19 @@ class PatchOperator:
         return self._basis
 
     @property
-    def transpose(self) -> scipy.sparse.csr_matrix:
-        """``matrix.T`` as sorted CSR (see the class docstring), built once and kept."""
-        if self._transpose is None:
-            self._transpose = transpose_csr(self.matrix)  # (a batch's is joined from its surfaces')
-        return self._transpose
+    def matrix(self) -> scipy.sparse.csr_matrix:
+        """``A`` as a scipy CSR matrix ``(N·k, N)`` with sorted indices (float32 for a stored half
+        precision), built from the pairs on every access: hold it if you read it more than once."""
+        if self._parts:
+            matrix = scipy.sparse.block_diag([part.matrix for part in self._parts], format="csr")
+            matrix.has_sorted_indices = True  # blocks of sorted rows, column offsets increasing
+            return matrix
+        return self.pairs.to_csr()
 
     @property
     def nnz(self) -> int:
-        """Non-zeros of the matrix."""
-        return sum(part.nnz for part in self._parts) if self._parts else int(self.matrix.nnz)
+        """Stored entries of the matrix: ``k`` per vertex pair."""
+        return sum(part.nnz for part in self._parts) if self._parts else self.pairs.n_pairs * self.k
 
     def __repr__(self) -> str:
         return f"PatchOperator(N={self.n_vertices}, k={self.k}, nnz={self.nnz}, r0={self.config.r0})"
@@ -254,40 +303,8 @@ class PatchOperator:
     # in another order (the harmonic contraction, grouped by frequency) ask for it instead of gathering.
     accepts_basis_order = True
 
-    def _torch_matrices(
-        self, dtype: torch.dtype, device: torch.device, basis_order: tuple | None = None, transpose: bool = True
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """CSR tensors of A and Aᵀ (rows of A in ``basis_order`` within each vertex, the columns of Aᵀ
-        likewise) for this dtype and device, built on first use and kept. Aᵀ is the stored
-        :attr:`transpose`, never re-sorted; below float64 the arrays are cast first (half the bytes to
-        reorder and move). With ``transpose=False`` Aᵀ is not built (None unless built before): a forward
-        pass without gradients never reads it, and building it costs as much as A."""
-        device = canonical_device(device)
-        key = (dtype, device, basis_order)
-        held = self._tensors.get(key)
-        if held is not None and (held[1] is not None or not transpose):
-            return held
-        if self._parts:  # a batch: its surfaces' own tensors, stacked
-            built = [part._torch_matrices(dtype, device, basis_order, transpose) for part in self._parts]
-            matrix = held[0] if held is not None else block_diagonal_csr([b[0] for b in built])
-            self._tensors[key] = (matrix, block_diagonal_csr([b[1] for b in built]) if transpose else None)
-            return self._tensors[key]
-        matrix = held[0] if held is not None else to_torch_csr(self._host_csr(False, dtype, basis_order), dtype, device)
-        self._tensors[key] = (
-            matrix,
-            to_torch_csr(self._host_csr(True, dtype, basis_order), dtype, device) if transpose else None,
-        )
-        return self._tensors[key]
-
-    def _host_csr(self, transposed: bool, dtype: torch.dtype, basis_order: tuple | None) -> scipy.sparse.csr_matrix:
-        """A or Aᵀ on the host, cast to float32 below float64 and in ``basis_order``."""
-        matrix = self.transpose if transposed else self.matrix
-        if dtype != torch.float64 and matrix.dtype == np.float64:
-            matrix = matrix.astype(np.float32)
-        if basis_order is not None:
-            reorder = reorder_basis_columns if transposed else reorder_basis_rows
-            matrix = reorder(matrix, self.k, basis_order)
-        return matrix
+    def _surfaces(self) -> list[PatchOperator]:
+        return self._parts or [self]
 
     def apply(self, x: torch.Tensor, basis_order: tuple | None = None) -> torch.Tensor:
         """Zernike coefficients of the features' local patches.
@@ -295,97 +312,109 @@ class PatchOperator:
         Args:
             x: (N,) or (N, *C) tensor; any floating dtype and device.
             basis_order: optional permutation of ``range(k)``: coefficient ``i`` of the output is basis
-                ``basis_order[i]`` (the same as ``apply(x)[:, basis_order]``, without the gather; the
-                reordered matrix is built once and kept).
+                ``basis_order[i]`` (the same as ``apply(x)[:, basis_order]``, without the gather).
 
         Returns:
-            (N, k) or (N, k, *C), same dtype and device; differentiable in ``x``.
+            (N, k) or (N, k, *C), same dtype and device; differentiable in ``x``. On the CPU the product
+            reads the pairs (:class:`~zernet.operators.pairs.PairApply`, float32 or float64 as ``x``); on
+            another device it expands them there (:func:`~zernet.operators.pairs.expanded_csr`).
         """
         if x.shape[0] != self.n_vertices:
             raise ValueError(f"features have {x.shape[0]} rows but the operator has {self.n_vertices} vertices")
         trailing = x.shape[1:]
         flat = x.reshape(self.n_vertices, -1)
-        needs_transpose = torch.is_grad_enabled() and flat.requires_grad  # only the backward reads Aᵀ
         order = checked_basis_order(basis_order, self.k)
-        matrix, transpose = self._torch_matrices(x.dtype, x.device, order, needs_transpose)
-        out = SparseApply.apply(flat.contiguous(), matrix, transpose)
+        order = tuple(range(self.k)) if order is None else order
+        if x.device.type == "cpu":
+            compute = x.dtype if x.dtype in (torch.float32, torch.float64) else torch.float32
+            parts = [part.pairs for part in self._surfaces()]
+            out = PairApply.apply(flat.to(compute).contiguous(), parts, np.asarray(order, dtype=np.int64)).to(x.dtype)
+        else:
+            needs_transpose = torch.is_grad_enabled() and flat.requires_grad  # only the backward reads Aᵀ
+            matrix, transpose = self._expanded(x.dtype, x.device, order, needs_transpose)
+            out = SparseApply.apply(flat.contiguous(), matrix, transpose)
         return out.reshape((self.n_vertices, self.k) + tuple(trailing))
 
     __call__ = apply
 
-    def to(self, device, basis_orders: Sequence[tuple] = ()) -> PatchOperator:
-        """Move the cached torch tensors to ``device`` (the next :meth:`apply` there needs no conversion).
-
-        ``basis_orders``: the orders the model's layers will ask :meth:`apply` for
-        (:meth:`zernet.nn.ZernikeConv.operator_basis_order`; orders of another ``k`` are skipped); their
-        float32 tensors are built now, so a data pipeline pays for them on its read-ahead thread, not
-        inside the forward pass. Without any, the natural order is built.
-
-        Returns ``self``; the numpy/scipy data stay on the host. Tensors for other devices are dropped.
-        """
+    def _expanded(self, dtype, device, order: tuple, transpose: bool):
+        """``(A, Aᵀ)`` as torch CSR on ``device`` (Aᵀ ``None`` unless ``transpose``), from the pairs held
+        there (:meth:`to`), for this product only."""
         device = canonical_device(device)
+        built = []
+        for part in self._surfaces():
+            tensors = part._devices.get(device)
+            if tensors is None:
+                tensors = part._devices[device] = {n: t.to(device) for n, t in part.pairs.torch_arrays().items()}
+            built.append(expanded_csr(tensors, self.k, part.n_vertices, dtype, order))
+        matrix = block_diagonal_csr([b[0] for b in built])
+        return matrix, (block_diagonal_csr([b[1] for b in built]) if transpose else None)
+
+    def to(self, device, basis_orders: Sequence[tuple] = ()) -> PatchOperator:
+        """Prepare the operator for products on ``device``: on the CPU the pairs' transposed order (built
+        once, the pairs themselves stay where they are: a memory-mapped file's pages); elsewhere the pairs as
+        tensors on that device (those of other devices are dropped).
+
+        ``basis_orders`` (the orders the model's layers will ask :meth:`apply` for) cost nothing to prepare:
+        a basis order is read from the pairs' values as they are; it is accepted like other operators'.
+        Returns ``self``."""
+        device = canonical_device(device)
+        basis_orders_of_size(basis_orders, self.k)  # checked: an order that is no permutation is an error
         for part in self._parts:
             part.to(device, basis_orders)
-        wanted = {(torch.float32, order) for order in basis_orders_of_size(basis_orders, self.k)}
-        if self._tensors and all(have == device for _, have, _ in self._tensors):
-            for dtype, order in wanted:  # already there (training calls this every step): add what is missing
-                self._torch_matrices(dtype, device, order)
+        if self._parts:
             return self
-        kinds = {(dtype, order) for dtype, _, order in self._tensors} | wanted or {(torch.float32, None)}
-        self._tensors = {}
-        for dtype, order in kinds:
-            self._torch_matrices(dtype, device, order)
+        self.pairs.transposed()
+        self._devices = {d: t for d, t in self._devices.items() if d == device or d.type == "cpu"}
+        if device.type != "cpu" and device not in self._devices:
+            self._devices[device] = {name: t.to(device) for name, t in self.pairs.torch_arrays().items()}
         return self
 
     def copy_to(self, device, non_blocking: bool = False) -> PatchOperator:
-        """A copy whose prepared tensors (:meth:`to`) are on ``device``, sharing the host arrays; this one
-        keeps its own. With ``non_blocking`` and pinned tensors (:meth:`pin_memory`) the copies to a GPU run
-        asynchronously (a host-resident record copied for one step, :mod:`zernet.training.residency`)."""
+        """A copy whose pairs are held on ``device``, sharing the host arrays; this one keeps its own. With
+        ``non_blocking`` and pinned tensors (:meth:`pin_memory`) the copies to a GPU run asynchronously (a
+        host-resident record copied for one step, :mod:`zernet.training.residency`)."""
         device = canonical_device(device)
         copy = PatchOperator.__new__(PatchOperator)
         copy.__dict__.update(self.__dict__)
         copy._parts = [part.copy_to(device, non_blocking) for part in self._parts]
-        copy._tensors = {
-            (dtype, device, order): tuple(None if m is None else csr_copy_to(m, device, non_blocking) for m in matrices)
-            for (dtype, _, order), matrices in self._tensors.items()
-        }
+        if not self._parts:
+            source = self._devices.get(torch.device("cpu")) or self.pairs.torch_arrays()
+            copy._devices = {device: {n: t.to(device, non_blocking=non_blocking) for n, t in source.items()}}
         return copy
 
     def pin_memory(self) -> PatchOperator:
-        """Put the prepared host tensors in page-locked memory (CUDA only); returns ``self``."""
+        """Hold the pairs as page-locked host tensors (CUDA only: the copies of :meth:`copy_to` then run
+        asynchronously); returns ``self``."""
         for part in self._parts:
             part.pin_memory()
-        self._tensors = {
-            key: tuple(pinned_csr(m) if m is not None and m.device.type == "cpu" else m for m in matrices)
-            for key, matrices in self._tensors.items()
-        }
+        if not self._parts:
+            self._devices[torch.device("cpu")] = {n: t.pin_memory() for n, t in self.pairs.torch_arrays().items()}
         return self
 
     @property
     def prepared_nbytes(self) -> int:
-        """Bytes of the prepared torch tensors (:meth:`to`) this operator holds."""
-        own = sum(csr_nbytes(m) for matrices in self._tensors.values() for m in matrices if m is not None)
-        return own if not self._parts else sum(part.prepared_nbytes for part in self._parts)
+        """Bytes this operator holds for products: its pairs (with their transposed order) and their
+        copies as tensors (:meth:`to`, :meth:`pin_memory`)."""
+        if self._parts:
+            return sum(part.prepared_nbytes for part in self._parts)
+        return self.pairs.nbytes + sum(VertexPairs.torch_nbytes(t) for t in self._devices.values())
 
     def __getstate__(self):
         state = dict(self.__dict__)
-        state["_tensors"] = {}  # torch tensors are rebuilt on demand after unpickling
+        state["_devices"] = {}  # tensors are rebuilt on demand after unpickling
         state["_basis"] = None
+        state["_padded"] = None
         return state
-
-    def __setstate__(self, state):
-        state.setdefault("_parts", [])  # pickled by an older version
-        self.__dict__.update(state)
 
     # ------------------------------------------------------------------ batching
     @staticmethod
     def concatenate(ops: list[PatchOperator]) -> PatchOperator:
         """Block-diagonal operator of several surfaces (vertices and samples stacked in order).
 
-        All operators must have the same ``k``; the result carries the first operator's config. Its torch
-        tensors stack the surfaces' own prepared tensors (:meth:`to`; no host work when they are already
-        on the device), and its host arrays (``matrix``, the patch arrays padded to the longest patch with
-        -1 / 0, ``interpolation``) are joined on first access only.
+        All operators must have the same ``k``; the result carries the first operator's config. Its products
+        read the surfaces' own pairs (no copy), and its host arrays (``frames``, ``interpolation``, the patch
+        arrays padded to the longest patch with -1 / 0) are joined on first access only.
         """
         ops = [part for op in ops for part in (op._parts or [op])]
         if not ops:
@@ -400,61 +429,74 @@ class PatchOperator:
             n_max=ops[0].n_max,
             k=ops[0].k,
             ridge_weights=ops[0].ridge_weights,
-            _tensors={},
+            _devices={},
             _parts=ops,
             _basis=None,
+            _padded=None,
             cache_file=None,
         )
         return batch
 
     #: Host arrays of a batch (:meth:`concatenate`), joined from its surfaces on first access.
-    _JOINED = ("matrix", "_transpose", "frames", "patch_sample_index", "patch_radius", "patch_angle", "interpolation")
+    _JOINED = ("frames", "interpolation")
 
     def __getattr__(self, name):
         # Called only for attributes not set: the host arrays of a batch, joined once from its surfaces.
         parts = self.__dict__.get("_parts")
         if not parts or name not in PatchOperator._JOINED:
             raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
-        self.__dict__.update(_joined_arrays(parts))
+        self.__dict__.update(
+            frames=np.concatenate([op.frames for op in parts]),
+            interpolation=scipy.sparse.block_diag([op.interpolation for op in parts], format="csr"),
+        )
         return self.__dict__[name]
 
     # ------------------------------------------------------------------ files
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
         """Everything that defines the operator as ``(arrays, meta)``: named numpy arrays and JSON values
-        (the cache file's content). The matrix and its transpose in the layout the layers read: float32
-        values, int32 indices where they fit, sorted."""
+        (the cache file's content). The pairs with values in ``config.precision``, the patch lists with
+        radii and angles in float32 (float16 for a half precision), indices in their narrowest types."""
+        precision = self.config.precision
+        pairs = self.pairs.with_precision(precision)
+        real = np.float32 if precision == "float32" else np.float16
         arrays = {
+            "pair_indptr": pairs.indptr,
+            "pair_columns": pairs.columns,
+            "pair_values": pairs.values,
             "frames": self.frames,
-            "patch_sample_index": self.patch_sample_index,
-            "patch_radius": self.patch_radius,
-            "patch_angle": self.patch_angle,
+            "patch_indptr": self.patch_indptr,
+            "patch_samples": self.patch_samples,
+            "patch_r": self.patch_r.astype(real),
+            "patch_theta": self.patch_theta.astype(real),
         }
-        for name, matrix in (("matrix", self.matrix), ("transpose", self.transpose)):
-            arrays.update(sparse_to_arrays(name, matrix.astype(np.float32)))
         arrays.update(sparse_to_arrays("interpolation", self.interpolation))
-        return arrays, {"config": self.config.to_dict(), "lam": self.lam}
+        return arrays, {"config": self.config.to_dict(), "lam": self.lam, "precision": precision}
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], meta: dict, name: str = "<arrays>") -> PatchOperator:
-        """Inverse of :meth:`to_arrays` over the same arrays (no copy); ``ValueError`` naming ``name`` if they
-        do not fit together."""
+        """Inverse of :meth:`to_arrays` over the same arrays (no copy but the patch radii and angles, read as
+        float64); ``ValueError`` naming ``name`` if they do not fit together."""
         try:
-            return cls(
-                matrix=sparse_from_arrays(arrays, "matrix", sorted_indices=True),
-                transpose=sparse_from_arrays(arrays, "transpose", sorted_indices=True),
-                frames=arrays["frames"],
-                patch_sample_index=arrays["patch_sample_index"],
-                patch_radius=arrays["patch_radius"],
-                patch_angle=arrays["patch_angle"],
-                interpolation=sparse_from_arrays(arrays, "interpolation"),
-                config=PatchConfig.from_dict(dict(meta["config"])),
-                lam=float(meta["lam"]),
+            operator = cls.__new__(cls)
+            operator._init(
+                VertexPairs(arrays["pair_indptr"], arrays["pair_columns"], arrays["pair_values"], meta["precision"]),
+                arrays["frames"],
+                (
+                    arrays["patch_indptr"],
+                    arrays["patch_samples"],
+                    arrays["patch_r"].astype(np.float64),
+                    arrays["patch_theta"].astype(np.float64),
+                ),
+                sparse_from_arrays(arrays, "interpolation"),
+                PatchConfig.from_dict(dict(meta["config"])),
+                float(meta["lam"]),
             )
+            return operator
         except Exception as error:  # noqa: BLE001
             raise ValueError(f"{name}: inconsistent operator payload ({type(error).__name__}: {error})") from error
 
     def as_cached(self) -> PatchOperator:
-        """The operator as its cache file holds it (float32 matrix and transpose), without writing one."""
+        """The operator as its cache file holds it (values in ``config.precision``), without writing one."""
         arrays, meta = self.to_arrays()
         return PatchOperator.from_arrays(arrays, meta)
 
@@ -479,8 +521,8 @@ class PatchOperator:
         return cls.from_arrays(*read_arrays(path, key=key), name=str(path))
 
 
-def _joined_arrays(ops: list[PatchOperator]) -> dict:
-    """The host arrays of the block-diagonal operator of ``ops`` (see :meth:`PatchOperator.concatenate`)."""
+def _joined_patches(ops: list[PatchOperator]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The padded patch arrays of the block-diagonal operator of ``ops`` (:meth:`PatchOperator.concatenate`)."""
     width = max(op.patch_sample_index.shape[1] for op in ops)
     sample_offset = np.cumsum([0] + [op.interpolation.shape[0] for op in ops])[:-1]
 
@@ -495,17 +537,8 @@ def _joined_arrays(ops: list[PatchOperator]) -> dict:
             for op, off in zip(ops, sample_offset)
         ]
     )
-    matrix = scipy.sparse.block_diag([op.matrix for op in ops], format="csr")
-    matrix.has_sorted_indices = True  # blocks of sorted rows, column offsets increasing
-    return {
-        "matrix": matrix,
-        "_transpose": scipy.sparse.block_diag([op.transpose for op in ops], format="csr"),
-        "frames": np.concatenate([op.frames for op in ops]),
-        "patch_sample_index": index,
-        "patch_radius": np.concatenate([pad(op.patch_radius, 0.0) for op in ops]),
-        "patch_angle": np.concatenate([pad(op.patch_angle, 0.0) for op in ops]),
-        "interpolation": scipy.sparse.block_diag([op.interpolation for op in ops], format="csr"),
-    }
+    radius = np.concatenate([pad(op.patch_radius, 0.0) for op in ops])
+    return index, radius, np.concatenate([pad(op.patch_angle, 0.0) for op in ops])
 
 
 # ====================================================================== building
@@ -542,14 +575,14 @@ def build_patch_operator(
                 return operator
             except (ValueError, OSError) as error:
                 warnings.warn(f"rebuilding cached patch operator {path}: {error}", CacheWarning, stacklevel=2)
-        legacy = legacy_cache_path(cache_dir, surface, config, backend)
-        if legacy.exists():
-            warnings.warn(
-                f"{legacy} is a patch operator cached in an older format; rebuilding it in format "
-                f"{FORMAT_VERSION} as {path.name} (the old file is no longer read and can be deleted)",
-                CacheWarning,
-                stacklevel=2,
-            )
+        for legacy in legacy_cache_paths(cache_dir, surface, config, backend):
+            if legacy.exists():
+                warnings.warn(
+                    f"{legacy} is a patch operator cached in an older format; rebuilding it in format "
+                    f"{FORMAT_VERSION} as {path.name} (the old file is no longer read and can be deleted)",
+                    CacheWarning,
+                    stacklevel=2,
+                )
     start = time.perf_counter()
     samples = sample_surface(surface, config.n_samples, seed=config.seed)
     polar = compute_polar(surface, samples, config.r0, backend=backend, n_jobs=n_jobs)
@@ -562,7 +595,7 @@ def build_patch_operator(
         print(f"{surface.name}: operator {operator} in {time.perf_counter() - start:.2f} s")
     if path is not None:
         operator.save(path, key=key)
-        operator = operator.as_cached()
+        operator = PatchOperator.load(path, key=key)  # mapped: its pages are the file's, not a copy
         operator.cache_file = path
     return operator
 
@@ -608,10 +641,8 @@ def assemble_operator(center, sample, radius, angle, frames, interpolation, conf
     index, r, theta = select_patches(center, sample, radius, angle, frames.shape[0], config)
     counts = (index >= 0).sum(axis=1)
     groups, lam = fit_groups(r, theta, counts, config.n_max, config.ridge)
-    matrix = carry_to_vertices(groups, index, interpolation, config.k, config.subtract_center)
-    matrix.eliminate_zeros()
     return PatchOperator(
-        matrix=matrix,
+        pairs=carry_to_vertices(groups, index, interpolation, config.k, config.subtract_center),
         frames=frames,
         patch_sample_index=index,
         patch_radius=r,

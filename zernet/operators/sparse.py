@@ -1,15 +1,13 @@
 """Sparse products in torch with a stored transpose, and the CSR arrays they need.
 
-Every sparse product in zernet (patch operators, directional operators, the paper baseline's sample
-gather) goes through :class:`SparseApply`: ``torch.sparse.mm`` would re-sort the transposed matrix on
-every backward pass, while a stored CSR transpose makes the backward one more plain product. The
-transposes are built once per matrix (:func:`csr_transpose`) and kept: a patch operator keeps its own in
-its cache file (:mod:`zernet.operators.cache`), so no training step builds one.
+Torch CSR products (directional operators, the paper baseline's sample gather, patch operators off the
+CPU, :mod:`zernet.operators.pairs`) go through :class:`SparseApply`: ``torch.sparse.mm`` would re-sort
+the transposed matrix on every backward pass, while a transpose built once (:func:`csr_transpose`) makes
+the backward one more plain product. On the CPU a patch operator's products read its vertex pairs
+directly instead (:class:`zernet.operators.pairs.PairApply`).
 
-A layer may ask for its operator's rows in another order within each vertex (:func:`reorder_basis_rows`);
-the transpose of that matrix is the stored transpose with its columns relabelled the same way
-(:func:`reorder_basis_columns`): both are one pass over the arrays (compiled with numba), never a sort of
-the whole matrix.
+A matrix operator may be asked for its rows in another order within each vertex (:func:`reorder_basis_rows`:
+one pass over the arrays, compiled with numba, never a sort of the whole matrix).
 """
 
 from __future__ import annotations
@@ -25,15 +23,12 @@ __all__ = [
     "SparseApply",
     "to_torch_csr",
     "csr_transpose",
-    "transpose_csr",
     "checked_basis_order",
     "basis_orders_of_size",
     "reorder_basis_rows",
-    "reorder_basis_columns",
     "block_diagonal_csr",
     "csr_copy_to",
-    "pinned_csr",
-    "csr_nbytes",
+    "csr_from",
     "canonical_device",
 ]
 
@@ -106,12 +101,6 @@ def _csr(indptr, indices, data, shape) -> scipy.sparse.csr_matrix:
     return matrix
 
 
-def transpose_csr(matrix: scipy.sparse.csr_matrix) -> scipy.sparse.csr_matrix:
-    """``matrix.T`` as a CSR matrix with sorted indices (the same values as ``matrix.T.tocsr()``)."""
-    matrix = scipy.sparse.csr_matrix(matrix)
-    return _csr(*csr_transpose(matrix.indptr, matrix.indices, matrix.data, matrix.shape[1]), matrix.shape[::-1])
-
-
 @numba.njit(cache=True, nogil=True)
 def _reorder_rows_kernel(indptr, indices, data, k, order, out_indptr, out_indices, out_data):
     dest = 0
@@ -137,51 +126,6 @@ def reorder_basis_rows(matrix: scipy.sparse.csr_matrix, k: int, basis_order) -> 
         matrix.indptr, matrix.indices, matrix.data, int(k), np.asarray(basis_order, np.int64), indptr, indices, data
     )
     return _csr(indptr, indices, data, matrix.shape)
-
-
-@numba.njit(cache=True, nogil=True)
-def _reorder_columns_kernel(indptr, indices, data, k, inverse, out_indices, out_data):
-    # In each row the columns of one vertex p (p k .. p k + k - 1) are consecutive entries. A complete block
-    # (all k of them: a patch fit's rows of one vertex share their columns) is scattered to its new order;
-    # another is put in order by insertion (at most k entries).
-    for row in range(indptr.shape[0] - 1):
-        e, end = indptr[row], indptr[row + 1]
-        while e < end:
-            p = indices[e] // k
-            if e + k <= end and indices[e + k - 1] == p * k + k - 1:
-                for j in range(k):
-                    out_indices[e + inverse[j]] = p * k + inverse[j]
-                    out_data[e + inverse[j]] = data[e + j]
-                e += k
-                continue
-            start = e
-            while e < end and indices[e] // k == p:
-                column = p * k + inverse[indices[e] - p * k]
-                value = data[e]
-                t = e
-                while t > start and out_indices[t - 1] > column:
-                    out_indices[t] = out_indices[t - 1]
-                    out_data[t] = out_data[t - 1]
-                    t -= 1
-                out_indices[t] = column
-                out_data[t] = value
-                e += 1
-
-
-def reorder_basis_columns(matrix: scipy.sparse.csr_matrix, k: int, basis_order) -> scipy.sparse.csr_matrix:
-    """Columns of a ``(·, N k)`` matrix reordered within each vertex: new column ``p k + i`` is old column
-    ``p k + basis_order[i]``. The transpose of :func:`reorder_basis_rows` of ``A`` is this of ``Aᵀ``.
-    Needs sorted indices; the result has them too."""
-    matrix = scipy.sparse.csr_matrix(matrix)
-    if matrix.shape[1] % k:
-        raise ValueError(f"a matrix of {matrix.shape[1]} columns has no {k} columns per vertex")
-    if not matrix.has_sorted_indices:
-        matrix = matrix.copy()
-        matrix.sort_indices()
-    inverse = np.argsort(np.asarray(basis_order, np.int64)).astype(np.int64)
-    indices, data = np.empty_like(matrix.indices), np.empty_like(matrix.data)
-    _reorder_columns_kernel(matrix.indptr, matrix.indices, matrix.data, int(k), inverse, indices, data)
-    return _csr(matrix.indptr, indices, data, matrix.shape)
 
 
 def _owned(array: np.ndarray, dtype) -> torch.Tensor:
@@ -225,7 +169,8 @@ def canonical_device(device) -> torch.device:
     return device
 
 
-def _csr_from(crow: torch.Tensor, col: torch.Tensor, values: torch.Tensor, size) -> torch.Tensor:
+def csr_from(crow: torch.Tensor, col: torch.Tensor, values: torch.Tensor, size) -> torch.Tensor:
+    """A torch CSR tensor over these arrays (not checked: the callers build them sorted)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
         return torch.sparse_csr_tensor(crow, col, values, size=size, check_invariants=False)
@@ -237,25 +182,13 @@ def csr_copy_to(matrix: torch.Tensor, device, non_blocking: bool = False) -> tor
     device = torch.device(device)
     if matrix.device == canonical_device(device):
         return matrix
-    return _csr_from(
+    return csr_from(
         *(
             t.to(device, non_blocking=non_blocking)
             for t in (matrix.crow_indices(), matrix.col_indices(), matrix.values())
         ),
         matrix.shape,
     )
-
-
-def pinned_csr(matrix: torch.Tensor) -> torch.Tensor:
-    """A host CSR matrix in page-locked memory (copies to a GPU can then run asynchronously)."""
-    return _csr_from(
-        *(t.pin_memory() for t in (matrix.crow_indices(), matrix.col_indices(), matrix.values())), matrix.shape
-    )
-
-
-def csr_nbytes(matrix: torch.Tensor) -> int:
-    """Bytes of a torch CSR matrix's three arrays."""
-    return sum(t.numel() * t.element_size() for t in (matrix.crow_indices(), matrix.col_indices(), matrix.values()))
 
 
 def block_diagonal_csr(matrices) -> torch.Tensor:
@@ -274,4 +207,4 @@ def block_diagonal_csr(matrices) -> torch.Tensor:
         indices.append(m.col_indices().to(index_dtype) + col_offset)
         nnz_offset += int(m.values().numel())
         col_offset += m.shape[1]
-    return _csr_from(torch.cat(indptr), torch.cat(indices), torch.cat([m.values() for m in matrices]), (rows, cols))
+    return csr_from(torch.cat(indptr), torch.cat(indices), torch.cat([m.values() for m in matrices]), (rows, cols))
