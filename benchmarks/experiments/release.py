@@ -4,8 +4,9 @@ What each model is and how it is trained is data, ``configs/recipes/release.yaml
 bodies a model needs, trains it and ships it: a backbone or a whole correspondence model goes through
 :func:`zernet.training.init_from.export_backbone`, a model of a trainer of its own is copied as that trainer
 wrote it. Beside every shipped ``zernet/pretrained/NAME.pt`` it writes ``NAME.json``: what it is, the configuration, the command,
-the commit and the training history. A run folder that already holds a finished run is shipped as it is, so
-an interrupted release goes on where it stopped.
+the commit and the training history. A model whose run folder already holds a finished run (or whose
+trainer's model file is there) is shipped without training it again, so an interrupted release goes on with
+the models it had not finished.
 
     .venv/bin/python -m benchmarks.experiments.release --list            # the models, in order
     .venv/bin/python -m benchmarks.experiments.release                   # all of them (about seven hours)

@@ -1,8 +1,11 @@
 """The release recipes (configs/recipes/release.yaml) make the models shipped in the package."""
 
+import importlib.util
 import json
+import shlex
 
 from benchmarks.experiments.release import PRETRAINED, release_models, run_config
+from benchmarks.harness import REPO
 from zernet.training.config import parse_config
 
 
@@ -25,3 +28,14 @@ def test_a_model_is_made_after_the_models_it_starts_from():
     order = list(release_models())
     assert order.index("bodies-xyz-hks") < order.index("bodies-match-template")  # the template model's backbone
     assert order.index("bodies-match-template") < order.index("bodies-faust-template")  # reads the template part
+
+
+def test_trainer_commands_name_modules_and_files_that_exist():
+    commands = [recipe["command"] for recipe in release_models().values() if "command" in recipe]
+    assert len(commands) == 2
+    for command in commands:
+        words = shlex.split(command)
+        assert words[:2] == ["python", "-m"] and importlib.util.find_spec(words[2]) is not None, command
+        for word in words[3:]:
+            if word.startswith("configs/"):
+                assert (REPO / word).is_file(), command
