@@ -18,10 +18,14 @@ import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from zernet.io_utils import atomic_write_bytes
+
+if TYPE_CHECKING:
+    from zernet.geometry import Surface
 
 REPO = Path(__file__).resolve().parents[1]
 SPEED_RESULTS = REPO / "benchmarks" / "speed" / "results"
@@ -147,11 +151,12 @@ def write_markdown(path: Path, lines: Sequence[str]) -> Path:
 
 
 # --------------------------------------------------------------------------------------------------------
-# Inputs
+# Inputs (zernet's body and geometry modules are imported inside: they load torch and the body model's code,
+# seconds that a script's --help and the scripts without bodies need not wait)
 # --------------------------------------------------------------------------------------------------------
 
 
-def body_surface(seed: int = 0, area: float | None = BODY_AREA, cache_dir: Path = CACHE) -> tuple:
+def body_surface(seed: int = 0, area: float | None = BODY_AREA, cache_dir: Path = CACHE) -> tuple[Surface, np.ndarray]:
     """One posed generated body of FAUST's topology (6,890 vertices, fingers, armpits, crotch): training body
     0 of ``seed``, scaled to ``area`` (None: as generated); returns (surface, the body part name of each vertex).
     Needs the ``bodies`` extra."""
@@ -191,10 +196,10 @@ def ensure_bodies(
         count,
         seed,
         topology,
-        "varied",
-        n_test,
-        cache_dir,
-        True,
+        poses="varied",
+        n_test=n_test,
+        cache_dir=cache_dir,
+        progress=True,
         forms=forms,
         forms_split=forms_split,
         people=people,
