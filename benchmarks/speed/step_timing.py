@@ -1,5 +1,5 @@
 """Shared by the benchmarks that compare two ways of running the same training steps
-(``bench_prefetch``, ``bench_denormals``): time a pass of ``train_one_epoch``, alternate the variants
+(``bench_prefetch``, ``bench_denormals``, ``bench_paper_layer``): time a pass of ``train_one_epoch``, alternate the variants
 over rounds (so a slow minute of the machine hits both), print the medians and their ratio.
 """
 
