@@ -24,22 +24,20 @@ attribute                   shape, dtype     meaning
 ``zernet_patch{s}_index``   ``(2, P)`` int64 the vertex pairs ``(p, q)`` that share a patch (``q`` in ``p``'s
                                              patch), sorted; ``index`` in the name makes PyG offset both rows
                                              by the vertices before them when it batches, as for ``edge_index``
-``zernet_patch{s}_value``   ``(P, k)`` f32   ``value[i, j] = A[p_i k + j, q_i]``: the operator matrix ``A``
-                                             (:class:`~zernet.operators.PatchOperator`), float32 as the
-                                             operator cache and the layers hold it
+``zernet_patch{s}_value``   ``(P, k)`` f16   ``value[i, j] = A[p_i k + j, q_i]``: the operator matrix ``A``
+                                             (:class:`~zernet.operators.PatchOperator`), in the precision the
+                                             operator cache holds it (``PatchConfig.precision``, float16 by
+                                             default)
 ``zernet_patch{s}_frames``  ``(N, 3, 3)``    the tangent frames (rows e1, e2, normal), float64: what the
                                              direction-preserving model's transport angles are computed from
 =========================== ================ ===================================================================
 
-The pairs and their ``k`` values are the matrix with its ``k`` rows per vertex side by side (a patch fit's rows
-of one vertex read the same vertices), so a ``Data`` holds less than the operator cache's matrix and
-transpose. A batch's pairs are the surfaces' pairs offset by PyG, i.e. the block-diagonal operator
-:meth:`Geometry.concatenate <zernet.operators.Geometry.concatenate>` builds. :class:`PairOperator` builds its
-torch CSR matrix and transpose (in each basis order the layers ask for) from them on the batch's device,
-once per batch: copies of the arrays and one sort of the ``P`` pairs, no sort of the matrix. At FAUST size
-(6,890 vertices, 376 k pairs, k = 21) that took 0.3-0.5 s at one CPU thread on a loaded 2-core machine,
-about 2.5x what zernet's own pipeline spends preparing a cached operator for a step (which, with its
-operators held in memory, it does once per shape, not per step).
+The pairs and their ``k`` values are the operator's own compact form (:mod:`zernet.operators.pairs`),
+the one the operator cache holds, so a ``Data`` holds what a cached operator holds. A batch's pairs are
+the surfaces' pairs offset by PyG, i.e. the block-diagonal operator :meth:`Geometry.concatenate
+<zernet.operators.Geometry.concatenate>` builds. :class:`PairOperator` multiplies by them as
+:class:`~zernet.operators.PatchOperator` does: on the CPU its products read the pairs (the backward's
+order of the pairs is one counting pass per batch), on a GPU it expands them there for each product.
 
 Not covered: ``paper-zernet`` re-solves its fit from the patch samples, which a ``Data`` does not carry (use
 zernet's own data pipeline for it).
@@ -48,7 +46,6 @@ zernet's own data pipeline for it).
 from __future__ import annotations
 
 import os
-import warnings
 
 import numpy as np
 import scipy.sparse as sp
@@ -59,12 +56,21 @@ from torch_geometric.transforms import BaseTransform
 
 from zernet.data.preprocess import as_patch_configs, prepare_record
 from zernet.geometry import Surface
-from zernet.operators import Geometry, basis_orders_of_size, checked_basis_order
-from zernet.operators.directional import patch_pairs
-from zernet.operators.sparse import canonical_device, csr_transpose
+from zernet.operators import Geometry, SparseApply, basis_orders_of_size, checked_basis_order
+from zernet.operators.pairs import PairApply, VertexPairs, expanded_csr, narrow_index_dtype, narrow_indptr
+from zernet.operators.sparse import canonical_device
 from zernet.zernike import n_max_for
 
 __all__ = ["ZernetOperators", "geometry_from_pyg", "PairOperator", "operator_keys"]
+
+
+# The stored precision of a value dtype (:data:`zernet.operators.pairs.PRECISIONS`).
+_PRECISION_OF = {
+    torch.float64: "float64",
+    torch.float32: "float32",
+    torch.float16: "float16",
+    torch.bfloat16: "bfloat16",
+}
 
 
 def operator_keys(scale: int) -> tuple[str, str, str]:
@@ -73,34 +79,19 @@ def operator_keys(scale: int) -> tuple[str, str, str]:
 
 
 # ====================================================================== the operator
-class _PairApply(torch.autograd.Function):
-    """``y = A x`` in the layout of :meth:`PairOperator.apply` (row ``p k + j``) from ``A``'s rows ordered by basis
-    (row ``j N + p``), and ``grad_x = Aᵀ g`` with the stored transpose (as :class:`zernet.operators.SparseApply`)."""
-
-    @staticmethod
-    def forward(ctx, x, by_basis, transpose, k):
-        ctx.transpose = transpose
-        n = x.shape[0]
-        return (by_basis @ x).view(k, n, -1).transpose(0, 1).reshape(n * k, -1)
-
-    @staticmethod
-    def backward(ctx, grad):
-        if not ctx.needs_input_grad[0]:
-            return None, None, None, None
-        return ctx.transpose @ grad.contiguous(), None, None, None
-
-
 class PairOperator:
     """A patch operator stored as vertex pairs and ``k`` values per pair, on any device.
 
     It has the interface layers and :class:`~zernet.operators.Geometry` use (``apply``, ``k``, ``n_max``,
     ``n_vertices``, ``to``, ``concatenate``; ``matrix`` and ``frames`` for the directional operators), like
-    :class:`zernet.nn.reference.MatrixOperator`, but keeps its arrays as torch tensors: a batch on the GPU
-    builds its matrices there.
+    :class:`~zernet.operators.PatchOperator`, whose compact form it holds as tensors
+    (:class:`~zernet.operators.pairs.VertexPairs`): on the CPU its products read the pairs
+    (:class:`~zernet.operators.pairs.PairApply`), elsewhere they are expanded on that device
+    (:func:`~zernet.operators.pairs.expanded_csr`).
 
     Args:
         index: ``(2, P)`` int64 pairs ``(p, q)``, sorted by ``(p, q)``, no repeats (they are sorted if not).
-        value: ``(P, k)`` ``value[i, j] = A[p_i k + j, q_i]``.
+        value: ``(P, k)`` ``value[i, j] = A[p_i k + j, q_i]``, float64, float32, float16 or bfloat16.
         n_vertices: ``N``.
         frames: optional ``(N, 3, 3)`` tangent frames (rows e1, e2, normal).
     """
@@ -114,6 +105,8 @@ class PairOperator:
             raise ValueError(
                 f"PairOperator needs index (2, P) and value (P, k), got {tuple(index.shape)} and {tuple(value.shape)}"
             )
+        if value.dtype not in _PRECISION_OF:
+            raise ValueError(f"PairOperator values must be one of {list(_PRECISION_OF)}, got {value.dtype}")
         index = index.long()
         if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n_vertices):
             raise ValueError(f"PairOperator: pair indices must lie in [0, {n_vertices})")
@@ -129,26 +122,19 @@ class PairOperator:
         self.n_vertices = n_vertices
         self.k = int(value.shape[1])
         self.n_max = n_max_for(self.k)
-        self._tensors: dict[tuple, tuple[Tensor, Tensor]] = {}  # (dtype, device, basis order) -> (A, Aᵀ)
+        self._device_arrays: dict[torch.device, dict[str, Tensor]] = {}  # the pairs' tensors off the CPU
         self._host: dict[str, object] = {}
 
     @classmethod
     def from_operator(cls, operator) -> PairOperator:
-        """The pairs, values (float32) and frames (float64) of a :class:`~zernet.operators.PatchOperator`
-        (or any operator with a CSR ``matrix``, ``k`` and ``frames``)."""
-        matrix = sp.csr_matrix(operator.matrix)
-        if not matrix.has_sorted_indices:
-            matrix = matrix.copy()
-            matrix.sort_indices()
-        k, n = int(operator.k), int(operator.n_vertices)
-        pairs = patch_pairs(matrix, k)
-        rows = np.repeat(np.arange(matrix.shape[0], dtype=np.int64), np.diff(matrix.indptr))
-        entry = np.searchsorted(pairs[:, 0] * n + pairs[:, 1], (rows // k) * n + matrix.indices)
-        value = np.zeros((len(pairs), k), dtype=np.float32)
-        value[entry, rows % k] = matrix.data
+        """The pairs, values (in the precision its cache stores them, ``config.precision``) and frames
+        (float64) of a :class:`~zernet.operators.PatchOperator`."""
+        pairs = operator.pairs.with_precision(operator.config.precision)
+        rows = np.repeat(np.arange(pairs.n_vertices, dtype=np.int64), np.diff(pairs.indptr.astype(np.int64)))
+        index = torch.from_numpy(np.stack([rows, pairs.columns.astype(np.int64)]))
         frames = getattr(operator, "frames", None)
         frames = None if frames is None else torch.tensor(np.asarray(frames, dtype=np.float64))
-        return cls(torch.from_numpy(np.ascontiguousarray(pairs.T)), torch.from_numpy(value), n, frames)
+        return cls(index, pairs.torch_arrays()["values"], pairs.n_vertices, frames)
 
     def __repr__(self) -> str:
         return f"PairOperator(N={self.n_vertices}, k={self.k}, pairs={self.index.shape[1]}, device={self.index.device})"
@@ -158,54 +144,19 @@ class PairOperator:
         """Stored entries of the matrix (``P k``, explicit zeros included)."""
         return int(self.value.numel())
 
-    # ------------------------------------------------------------------ matrices
-    def _torch_matrices(self, dtype: torch.dtype, device, basis_order: tuple | None = None) -> tuple[Tensor, Tensor]:
-        """Torch CSR matrices on ``device``, built on first use and kept: ``A`` with its rows ordered by basis
-        first, ``(N k, N)`` with row ``i N + p`` the coefficient ``basis_order[i]`` of vertex ``p`` (every basis
-        reads the pairs in their stored order: copies of the arrays, no scatter), and ``Aᵀ`` ``(N, N k)`` with
-        the columns of :meth:`zernet.operators.PatchOperator.apply`'s layout, ``p k + i`` (one sort of the
-        ``P`` pairs by column)."""
-        device = canonical_device(device)
-        key = (dtype, device, basis_order)
-        if key in self._tensors:
-            return self._tensors[key]
-        index, value = self.index.to(device), self.value.to(device=device, dtype=dtype)
-        n, k, n_pairs = self.n_vertices, self.k, index.shape[1]
-        bases = torch.arange(k, device=device) if basis_order is None else torch.tensor(basis_order, device=device)
-        index_dtype = torch.int32 if max(n_pairs * k, n * k) < 2**31 - 1 else torch.int64
-        p, q = index[0], index[1]
-        per_basis = torch.zeros(n + 1, dtype=index_dtype, device=device)
-        per_basis[1:] = torch.cumsum(torch.bincount(p, minlength=n), 0)
-        crow = torch.cat(
-            [
-                per_basis[:1],
-                (
-                    per_basis[1:].unsqueeze(0)
-                    + n_pairs * torch.arange(k, dtype=index_dtype, device=device).unsqueeze(1)
-                ).reshape(-1),
-            ]
-        )
-        by_column = torch.argsort(q * n + p)  # Aᵀ: row q holds its pairs by p, each with its k columns in order
-        t_crow = torch.zeros(n + 1, dtype=index_dtype, device=device)
-        t_crow[1:] = torch.cumsum(torch.bincount(q, minlength=n) * k, 0)
-        t_columns = (
-            p[by_column].to(index_dtype).unsqueeze(1) * k
-            + torch.arange(k, dtype=index_dtype, device=device).unsqueeze(0)
-        ).reshape(-1)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-            by_basis = torch.sparse_csr_tensor(
-                crow, q.to(index_dtype).repeat(k), value.t()[bases].reshape(-1), size=(n * k, n), check_invariants=False
-            )
-            transpose = torch.sparse_csr_tensor(
-                t_crow,
-                t_columns,
-                value[by_column.unsqueeze(1), bases].reshape(-1),
-                size=(n, n * k),
-                check_invariants=False,
-            )
-        self._tensors[key] = (by_basis, transpose)
-        return by_basis, transpose
+    # ------------------------------------------------------------------ products
+    def _pairs(self) -> VertexPairs:
+        """The pairs on the host as :class:`~zernet.operators.pairs.VertexPairs`, built once."""
+        if "pairs" not in self._host:
+            index = self.index.cpu().numpy()
+            indptr = np.zeros(self.n_vertices + 1, dtype=np.int64)
+            np.cumsum(np.bincount(index[0], minlength=self.n_vertices), out=indptr[1:])
+            value = self.value.detach().cpu()
+            precision = _PRECISION_OF[value.dtype]
+            values = value.view(torch.int16).numpy().view(np.uint16) if precision == "bfloat16" else value.numpy()
+            columns = index[1].astype(narrow_index_dtype(max(self.n_vertices - 1, 0)))
+            self._host["pairs"] = VertexPairs(narrow_indptr(indptr), columns, np.ascontiguousarray(values), precision)
+        return self._host["pairs"]
 
     def apply(self, x: Tensor, basis_order: tuple | None = None) -> Tensor:
         """``x`` ``(N,)`` or ``(N, *C)`` -> Zernike coefficients ``(N, k)`` or ``(N, k, *C)``, in ``x``'s dtype and
@@ -214,22 +165,33 @@ class PairOperator:
             raise ValueError(f"features have {x.shape[0]} rows but the operator has {self.n_vertices} vertices")
         trailing = x.shape[1:]
         flat = x.reshape(self.n_vertices, -1)
-        by_basis, transpose = self._torch_matrices(x.dtype, x.device, checked_basis_order(basis_order, self.k))
-        out = _PairApply.apply(flat.contiguous(), by_basis, transpose, self.k)
+        order = checked_basis_order(basis_order, self.k) or tuple(range(self.k))
+        if x.device.type == "cpu":
+            compute = x.dtype if x.dtype in (torch.float32, torch.float64) else torch.float32
+            order_array = np.asarray(order, dtype=np.int64)
+            out = PairApply.apply(flat.to(compute).contiguous(), [self._pairs()], order_array).to(x.dtype)
+        else:
+            device = canonical_device(x.device)
+            if device not in self._device_arrays:
+                self._device_arrays[device] = {n: t.to(device) for n, t in self._pairs().torch_arrays().items()}
+            matrix, transpose = expanded_csr(self._device_arrays[device], self.k, self.n_vertices, x.dtype, order)
+            out = SparseApply.apply(flat.contiguous(), matrix, transpose)
         return out.reshape((self.n_vertices, self.k) + tuple(trailing))
 
     __call__ = apply
 
     def to(self, device, basis_orders=()) -> PairOperator:
-        """Move the tensors to ``device`` and build the float32 matrices of ``basis_orders`` there (as
-        :meth:`zernet.operators.PatchOperator.to`); returns ``self``."""
+        """Move the tensors to ``device`` and prepare the pairs there (as :meth:`zernet.operators.PatchOperator.to`;
+        a basis order needs nothing prepared); returns ``self``."""
         device = canonical_device(device)
+        basis_orders_of_size(basis_orders, self.k)  # checked
         if self.index.device != device:
             self.index, self.value = self.index.to(device), self.value.to(device)
             self.frames_tensor = None if self.frames_tensor is None else self.frames_tensor.to(device)
-            self._tensors = {key: m for key, m in self._tensors.items() if key[1] == device}
-        for order in basis_orders_of_size(basis_orders, self.k):
-            self._torch_matrices(torch.float32, device, order)
+        if device.type == "cpu":
+            self._pairs().transposed()
+        elif device not in self._device_arrays:
+            self._device_arrays = {device: {n: t.to(device) for n, t in self._pairs().torch_arrays().items()}}
         return self
 
     @staticmethod
@@ -252,16 +214,9 @@ class PairOperator:
     # ------------------------------------------------------------------ host views (directional operators)
     @property
     def matrix(self) -> sp.csr_matrix:
-        """``A`` ``(N k, N)`` (row ``p k + j``) as a scipy CSR matrix, sorted indices, in the values' dtype; built
-        on the host once."""
-        if "matrix" not in self._host:
-            t = self._torch_matrices(self.value.dtype, "cpu")[1]
-            arrays = (t.crow_indices().numpy(), t.col_indices().numpy(), t.values().numpy())
-            indptr, indices, data = csr_transpose(*arrays, t.shape[1])
-            matrix = sp.csr_matrix((data, indices, indptr), shape=tuple(t.shape[::-1]))
-            matrix.has_sorted_indices = True
-            self._host["matrix"] = matrix
-        return self._host["matrix"]
+        """``A`` ``(N k, N)`` (row ``p k + j``) as a scipy CSR matrix, sorted indices, float32 (float64 values
+        stay float64); built from the pairs on every access."""
+        return self._pairs().to_csr()
 
     @property
     def frames(self) -> np.ndarray | None:

@@ -16,6 +16,12 @@ r > 0.1 r0, after each centre's constant offset). The build time is the whole
 :func:`~zernet.operators.build_patch_operator` (sampling, polar coordinates, fit, assembly), best of
 ``repeats``. The apply time is measured on the default operator of the body.
 
+Cache formats (``--formats`` runs only these rows, at ``--threads`` threads, 2 by default): the body with the
+shipped FAUST patch settings (``configs/faust_single_scale.yaml``) stored as cache format 4 (the float32 CSR
+matrix and its transpose, rebuilt here from the expanded matrix) and as format 5 (vertex pairs,
+:mod:`zernet.operators.pairs`) in each precision: bytes on disk and held for a step, build time, one
+convolution layer's forward+backward (64 -> 128 channels) and its output's difference from format 4's.
+
 The procedural :func:`mannequin` (capsules, no limb-torso junctions; it cannot show the far-side failure
 of folds) is kept as the stand-in operator of ``bench_layers --real``.
 
@@ -24,22 +30,36 @@ Usage::
     .venv/bin/python -m benchmarks.speed.bench_operator                 # fast and front
     .venv/bin/python -m benchmarks.speed.bench_operator --backends fast front accurate --centres 50
     .venv/bin/python -m benchmarks.speed.bench_operator --quick         # fewer centres and repeats
+    .venv/bin/python -m benchmarks.speed.bench_operator --formats       # only the cache formats
 """
 
 from __future__ import annotations
 
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 
-from benchmarks.harness import BODY_AREA, SPEED_RESULTS, add_out, arguments, body_surface, result_file, write_json
+from benchmarks.harness import (
+    BODY_AREA,
+    REPO,
+    SPEED_RESULTS,
+    add_out,
+    add_threads,
+    arguments,
+    body_surface,
+    result_file,
+    write_json,
+)
 from benchmarks.speed.bench_geodesics import exact_reference, score
 from zernet.geometry import Surface, compute_polar, load_surface, normalize_area, sample_surface, tangent_frames
 from zernet.operators import PatchConfig, build_patch_operator
 
 ANEURYSMS = Path("data/aneurysm")  # your copy of the aneurysm data set
+FAUST_RECIPE = REPO / "configs" / "faust_single_scale.yaml"
 
 
 # ====================================================================== the procedural body
@@ -178,6 +198,123 @@ def bench_apply(surface: Surface, config: PatchConfig, d: int, repeats: int) -> 
     }
 
 
+# ====================================================================== cache formats (issue 50)
+def faust_patch_config(precision: str) -> PatchConfig:
+    """The shipped FAUST recipe's patch settings (``configs/faust_single_scale.yaml``) with ``precision``."""
+    scale = yaml.safe_load(FAUST_RECIPE.read_text())["patch"]["scales"][0]
+    return PatchConfig(**{**scale, "precision": precision})
+
+
+def _layer_time(conv, operator, x, repeats: int) -> float:
+    """Best forward+backward time of one convolution layer (gradients to its input too)."""
+
+    def step():
+        conv.zero_grad()
+        x.grad = None
+        conv(x, operator).square().mean().backward()
+
+    step()  # compiles the kernels, builds what is built once
+    return _best_time(step, repeats)[0]
+
+
+def bench_formats(surface: Surface, precisions, width: int, repeats: int) -> dict:
+    """Format 4 (the float32 CSR matrix and its stored transpose, multiplied by torch) against format 5 (vertex
+    pairs, :mod:`zernet.operators.pairs`) in each precision, on one surface with the shipped FAUST settings:
+    bytes per shape on disk and held in memory, build time, one convolution layer's forward+backward
+    (``width`` -> ``2 width`` channels) and its largest output difference from format 4's, relative to the
+    largest output. Format 4 is rebuilt from the expanded matrix: the file it wrote (its arrays packed as
+    it packed them) and the tensors its layers held (:class:`zernet.nn.reference.MatrixOperator`, the same
+    torch CSR products with a stored transpose)."""
+    from zernet.nn import ZernikeConv
+    from zernet.nn.reference import MatrixOperator
+    from zernet.operators.cache import pack_arrays, sparse_to_arrays
+
+    torch.manual_seed(0)
+    conv = ZernikeConv(width, 2 * width)
+    order = conv.operator_basis_order()
+    x = torch.randn(surface.n_vertices, width, requires_grad=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as folder:
+        started = time.perf_counter()
+        fitted = build_patch_operator(surface, faust_patch_config("float32"))  # the fit, no cache
+        fit_s = time.perf_counter() - started
+        matrix = fitted.matrix.astype(np.float32)  # (not timed: format 4's fit wrote this matrix directly)
+        started = time.perf_counter()
+        transpose = matrix.T.tocsr()
+        transpose.sort_indices()
+        arrays = {
+            "frames": fitted.frames,
+            "patch_sample_index": fitted.patch_sample_index,
+            "patch_radius": fitted.patch_radius,
+            "patch_angle": fitted.patch_angle,
+            **sparse_to_arrays("matrix", matrix),
+            **sparse_to_arrays("transpose", transpose),
+            **sparse_to_arrays("interpolation", fitted.interpolation),
+        }
+        old_file = Path(folder) / "format4.zop"
+        old_file.write_bytes(pack_arrays(arrays, "format 4"))
+        old_build_s = fit_s + time.perf_counter() - started
+        old = MatrixOperator(matrix, fitted.k).to("cpu", [order] if order else [])
+        held = old._tensors(torch.float32, torch.device("cpu"), order)
+        old_bytes = sum(
+            t.numel() * t.element_size() for m in held for t in (m.crow_indices(), m.col_indices(), m.values())
+        )
+        with torch.no_grad():
+            reference = conv(x, old)
+        rows.append(
+            {
+                "format": "4: float32 CSR + transpose",
+                "disk_mb": old_file.stat().st_size / 1e6,
+                "memory_mb": old_bytes / 1e6,
+                "build_s": old_build_s,
+                "layer_ms": 1e3 * _layer_time(conv, old, x, repeats),
+                "layer_relative_difference": 0.0,
+            }
+        )
+        del old, held
+        for precision in precisions:
+            started = time.perf_counter()
+            operator = build_patch_operator(surface, faust_patch_config(precision), cache_dir=folder)
+            build_s = time.perf_counter() - started
+            operator.to("cpu", [order] if order else [])
+            with torch.no_grad():
+                out = conv(x, operator)
+            rows.append(
+                {
+                    "format": f"5: pairs, {precision}",
+                    "disk_mb": operator.cache_file.stat().st_size / 1e6,
+                    "memory_mb": operator.prepared_nbytes / 1e6,
+                    "mapped_mb": operator.mapped_nbytes / 1e6,
+                    "build_s": build_s,
+                    "layer_ms": 1e3 * _layer_time(conv, operator, x, repeats),
+                    "layer_relative_difference": float((out - reference).abs().max() / reference.abs().max()),
+                }
+            )
+    return {
+        "vertices": surface.n_vertices,
+        "pairs": int(operator.pairs.n_pairs),
+        "nnz_format_4": int(matrix.nnz),
+        "width": width,
+        "threads": torch.get_num_threads(),
+        "rows": rows,
+    }
+
+
+def print_formats(result: dict) -> None:
+    print(
+        f"cache formats, N={result['vertices']}, {result['pairs']} pairs ({result['nnz_format_4']} non-zeros), "
+        f"conv {result['width']} -> {2 * result['width']}, {result['threads']} threads"
+    )
+    header = f"{'format':<28}{'disk MB':>9}{'memory MB':>10}{'build s':>9}{'layer ms':>10}{'rel. diff':>11}"
+    print(header)
+    print("-" * len(header))
+    for row in result["rows"]:
+        print(
+            f"{row['format']:<28}{row['disk_mb']:>9.1f}{row['memory_mb']:>10.1f}{row['build_s']:>9.2f}"
+            f"{row['layer_ms']:>10.0f}{row['layer_relative_difference']:>11.1e}"
+        )
+
+
 # ====================================================================== main
 def print_table(rows, backends) -> None:
     header = (
@@ -205,12 +342,23 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--jobs", type=int, default=2, help="processes for the accurate backend")
     parser.add_argument("--aneurysms", type=Path, default=ANEURYSMS, help="folder of the aneurysm .mat files")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--formats", action="store_true", help="only the cache formats: format 4 against the vertex pairs"
+    )
+    add_threads(parser, 2)
     add_out(parser, SPEED_RESULTS / "bench_operator")
     args = parser.parse_args(argv)
 
     repeats = 1 if args.quick else 3
     centres = min(args.centres, 30) if args.quick else args.centres
     body, _ = body_surface(args.seed, BODY_AREA)
+    torch.set_num_threads(args.threads)
+    formats = bench_formats(body, ("float32", "float16", "bfloat16"), 64, repeats)
+    print_formats(formats)
+    if args.formats:
+        result = {"quick": args.quick, "formats": formats}
+        write_json(result_file(args.out.with_name(args.out.name + "_formats"), ".json"), result)
+        return result
     body_config = PatchConfig(r0=5.5, n_samples=12000)
     rows = [bench_surface(body, body_config, args.backends, centres, args.jobs, repeats, args.seed)]
     if args.aneurysms.is_dir():
@@ -231,7 +379,7 @@ def main(argv: list[str] | None = None) -> dict:
         f"forward {apply['forward_ms']:.1f} ms, forward+backward {apply['forward_backward_ms']:.1f} ms "
         f"(torch.sparse.mm COO: {apply['torch_sparse_mm_coo_forward_backward_ms']:.1f} ms)"
     )
-    result = {"quick": args.quick, "surfaces": rows, "apply": apply}
+    result = {"quick": args.quick, "surfaces": rows, "apply": apply, "formats": formats}
     write_json(result_file(args.out, ".json"), result)
     return result
 

@@ -57,13 +57,15 @@ def test_held_shapes_are_prepared_once_and_read_without_the_cache(cache_dir, str
     first = store[indices[0]]
     assert first is store[indices[0]]  # the same record, its tensors prepared
     op = first.geometry.operators[0]
-    assert any(order is not None for _, _, order in op._tensors)
-    # A step of two held shapes stacks their prepared tensors: the batch joins no host arrays.
+    assert op.pairs._transposed is not None  # the backward's order, built once when the shape was held
+    assert 0 < store.mapped_bytes < store.held_bytes  # the pairs are the mapped file's pages
+    assert "mapped from the operator cache" in store.describe()
+    # A step of two held shapes reads their own pairs: the batch joins no host arrays.
     batch = PatchOperator.concatenate([store[i].geometry.operators[0] for i in indices[:2]])
     x = torch.randn(batch.n_vertices, 3)
     expected = torch.cat([store[i].geometry.operators[0].apply(x[: op.n_vertices]) for i in indices[:1]])
     assert torch.equal(batch.apply(x)[: op.n_vertices], expected)
-    assert "matrix" not in batch.__dict__
+    assert "frames" not in batch.__dict__ and batch._padded is None
 
 
 def test_auto_chooses_by_size_and_free_memory():
@@ -100,10 +102,10 @@ def test_a_step_copy_shares_the_host_arrays_and_leaves_the_held_geometry_alone(c
     dataset = build_dataset(config, progress=False, workers=0)
     record = dataset[dataset.splits["train"][0]]
     held = record.geometry.with_directional(1).to("cpu", [tuple(range(10))[::-1]])
-    before = {key: tuple(matrices) for key, matrices in held.operators[0]._tensors.items()}
+    before = dict(held.operators[0]._devices)
     copy = held.copy_to("cpu")
     assert copy.operators[0] is not held.operators[0] and copy.directional[0].operator is copy.operators[0]
-    assert copy.operators[0].matrix is held.operators[0].matrix  # host arrays shared, not copied
-    assert {key: tuple(matrices) for key, matrices in held.operators[0]._tensors.items()} == before
+    assert copy.operators[0].pairs is held.operators[0].pairs  # host arrays shared, not copied
+    assert held.operators[0]._devices == before
     x = torch.randn(held.n_vertices, 4)
     assert torch.equal(copy.operators[0].apply(x), held.operators[0].apply(x))

@@ -378,7 +378,7 @@ class PatchOperator:
         copy = PatchOperator.__new__(PatchOperator)
         copy.__dict__.update(self.__dict__)
         copy._parts = [part.copy_to(device, non_blocking) for part in self._parts]
-        if not self._parts:
+        if not self._parts and device.type != "cpu":  # on the CPU the products read the shared pairs
             source = self._devices.get(torch.device("cpu")) or self.pairs.torch_arrays()
             copy._devices = {device: {n: t.to(device, non_blocking=non_blocking) for n, t in source.items()}}
         return copy
@@ -399,6 +399,15 @@ class PatchOperator:
         if self._parts:
             return sum(part.prepared_nbytes for part in self._parts)
         return self.pairs.nbytes + sum(VertexPairs.torch_nbytes(t) for t in self._devices.values())
+
+    @property
+    def mapped_nbytes(self) -> int:
+        """Bytes of its pairs that are pages of a memory-mapped cache file (read-only views), which the
+        system can drop under memory pressure and read again."""
+        if self._parts:
+            return sum(part.mapped_nbytes for part in self._parts)
+        held = (self.pairs.indptr, self.pairs.columns, self.pairs.values)
+        return int(sum(array.nbytes for array in held if not array.flags.writeable))
 
     def __getstate__(self):
         state = dict(self.__dict__)
