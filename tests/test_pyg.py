@@ -62,14 +62,15 @@ def test_transform_operators_equal_build_patch_operator(tmp_path):
         assert torch.equal(operator.apply(x, basis_order=order), reference.apply(x, basis_order=order))
     np.testing.assert_array_equal(data.x.numpy(), compute_features(_as_read(surface), "xyz"))
 
-    # no cache: the float64 fit, stored in float32; with an area: the scaled surface's operator
+    # no cache: the float64 fit, stored in the cache's precision; with an area: the scaled surface's operator
     plain = geometry_from_pyg(ZernetOperators(CONFIGS[0])(_data(surface))).operators[0]
-    _same_matrix(plain.matrix, build_patch_operator(_as_read(surface), CONFIGS[0]).matrix.astype(np.float32))
+    assert plain.value.dtype == torch.float16  # PatchConfig.precision
+    _same_matrix(plain.matrix, build_patch_operator(_as_read(surface), CONFIGS[0]).as_cached().matrix)
     scaled = ZernetOperators(CONFIGS[0], area=20.0, features="xyz+normals")(_data(surface))
     normalised, _ = normalize_area(_as_read(surface), 20.0)
     _same_matrix(
         geometry_from_pyg(scaled).operators[0].matrix,
-        build_patch_operator(normalised, CONFIGS[0]).matrix.astype(np.float32),
+        build_patch_operator(normalised, CONFIGS[0]).as_cached().matrix,
     )
     assert scaled.x.shape == (surface.n_vertices, 6) and torch.equal(scaled.pos, _data(surface).pos)
 
@@ -86,9 +87,10 @@ def test_point_cloud_and_pair_operator_round_trip(tmp_path):
     pairs = PairOperator.from_operator(reference)
     shuffle = torch.randperm(pairs.index.shape[1], generator=torch.Generator().manual_seed(0))
     shuffled = PairOperator(pairs.index[:, shuffle], pairs.value[shuffle], pairs.n_vertices, pairs.frames_tensor)
-    _same_matrix(shuffled.matrix, reference.matrix.astype(np.float32))
+    cached = reference.as_cached()  # the values in the cache's precision, as the pairs hold them
+    _same_matrix(shuffled.matrix, cached.matrix)
     both = PairOperator.concatenate([pairs, shuffled])
-    _same_matrix(both.matrix, PatchOperator.concatenate([reference, reference]).matrix.astype(np.float32))
+    _same_matrix(both.matrix, PatchOperator.concatenate([cached, cached]).matrix)
     with pytest.raises(AttributeError, match="patch samples"):
         _ = pairs.patch_sample_index
 
