@@ -30,6 +30,8 @@ needs_bodies = pytest.mark.skipif(
 #: Bound on the shipped template model's mean Euclidean error (x100 / sqrt(target area)) on the two coarse-615
 #: pairs below, whole and with the target turned: measured 0.87 and 0.85 (the same turned).
 ERROR_BOUND = 1.5
+#: The same for the front half of a body matched into another whole body (same unit): measured 2.45.
+ONE_SIDED_ERROR_BOUND = 4.0
 
 
 def _ellipsoid_points(rng) -> np.ndarray:
@@ -121,6 +123,8 @@ def test_shipped_template_model_matches_held_out_bodies_in_any_pose(held_out_bod
 
 @needs_bodies
 def test_a_one_sided_scan_is_matched_into_the_whole_body(held_out_bodies, one_torch_thread):
+    from zernet.matching.bodies import ground_truth_map
+
     forms, body_vertices, faces = held_out_bodies
     source = forms[0].surface
     # The half facing +z (the front), as a camera in front of the body would see it.
@@ -130,11 +134,12 @@ def test_a_one_sided_scan_is_matched_into_the_whole_body(held_out_bodies, one_to
     renumber[kept] = np.arange(len(kept))
     front = Surface(source.vertices[kept], renumber[source.faces[inside]], name="front")
     result, _, _ = match_surfaces(front, forms[1].surface, same_scale=True)
-    whole, _, _ = match_surfaces(source, forms[1].surface)
-    # The front's vertices go where the same vertices of the whole body go, on the whole.
+    # The front's vertices go where the ground truth sends them (measured 2.45; the whole body's match gives
+    # 0.78 on the same vertices; pairs whose limbs go to the wrong limb score 10 to 19, issue 51).
+    truth = ground_truth_map(forms[0], forms[1], body_vertices[forms[1].body], faces)[kept]
     target = forms[1].surface.vertices
-    spread = np.linalg.norm(target[result.vertex_map] - target[whole.vertex_map[kept]], axis=1)
-    assert spread.mean() < 0.05 * np.sqrt(forms[1].surface.area), spread.mean()
+    error = 100 * np.linalg.norm(target[result.vertex_map] - target[truth], axis=1).mean()
+    assert error / np.sqrt(forms[1].surface.area) < ONE_SIDED_ERROR_BOUND
 
 
 def _tiny_checkpoint(n_classes: int) -> dict:
