@@ -94,3 +94,14 @@ def test_narrowest_index_types():
     assert narrow_index_dtype(2**33) == np.int64
     with pytest.raises(ValueError, match="precision"):
         VertexPairs(np.zeros(2, np.int32), np.zeros(0, np.uint16), np.zeros((0, 3)), "float8")
+
+
+def test_pickled_pairs_carry_their_fields_only():
+    import pickle
+
+    pairs = VertexPairs.from_csr(random_operator_matrix(), 4).with_precision("bfloat16")
+    pairs.transposed()
+    back = pickle.loads(pickle.dumps(pairs))
+    assert back._transposed is None and back.precision == "bfloat16"
+    np.testing.assert_array_equal(back.float_values(), pairs.float_values())
+    assert len(pickle.dumps(pairs)) < 1.2 * (pairs.values.nbytes + pairs.columns.nbytes + pairs.indptr.nbytes)

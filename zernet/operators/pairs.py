@@ -109,6 +109,14 @@ class VertexPairs:
         # What the kernels read: half precisions as their bit patterns, decoded through the table.
         self._kernel_values = self.values if self._table is None else self.values.view(np.uint16)
 
+    def __getstate__(self) -> dict:
+        # Pickled (to and from worker processes) as the four fields: what is derived from them is rebuilt.
+        return {name: getattr(self, name) for name in ("indptr", "columns", "values", "precision")}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.__post_init__()
+
     @property
     def n_vertices(self) -> int:
         return int(self.indptr.shape[0] - 1)
