@@ -92,9 +92,9 @@ def test_evaluate_and_predict_agree_with_training(finished_run, cache_dir):
     np.testing.assert_allclose(probabilities.sum(axis=1), 1.0, rtol=1e-5)
 
 
-def test_batches_hold_the_operator_matrices_the_model_reads(finished_run):
-    # Batches are built on the read-ahead thread; the reordered operator matrices the harmonic
-    # convolutions read must be built there too, so the forward pass builds none.
+def test_batches_prepare_the_operators_the_model_reads(finished_run):
+    # Batches are built on the read-ahead thread; what the convolutions' products read (on the CPU the pairs'
+    # transposed order, read by the backward) must be built there too, so a training step builds none.
     run_dir, _ = finished_run
     checkpoint = load_checkpoint(run_dir / "best.pt")
     model = build_model_from_spec(checkpoint["model_spec"])
@@ -104,11 +104,9 @@ def test_batches_hold_the_operator_matrices_the_model_reads(finished_run):
     dataset = build_dataset(checkpoint["config"], progress=False)
     batch = Batch([dataset[0]], torch.device("cpu"), None, checkpoint.get("feature_stats"), None, orders)
     operator = batch.geometry.operators[0]
-    prepared = set(operator._tensors)
-    assert (torch.float32, torch.device("cpu"), orders[0]) in prepared
-    with torch.no_grad():
-        model(batch.features, batch.geometry)
-    assert set(operator._tensors) == prepared
+    prepared = operator.prepared_nbytes
+    model(batch.features, batch.geometry).sum().backward()
+    assert operator.prepared_nbytes == prepared
 
 
 def test_ensemble_averages_the_members_probabilities(finished_run, cache_dir, tmp_path):
