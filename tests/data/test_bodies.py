@@ -90,14 +90,15 @@ def _mirror_partner(vertices: np.ndarray) -> tuple[np.ndarray, float]:
 
 def test_a_mirror_symmetric_pose_gives_a_mirror_symmetric_body_with_mirrored_labels(cache):
     """Same angles on both sides (and none on the midline): the body is its own mirror image, and each
-    vertex's mirror partner has the same part on the other side — the pose code turns left and right alike."""
+    vertex's mirror partner has the same part on the other side — the pose code turns left and right alike
+    (the twist of the upper arm included)."""
     generator = BodyGenerator(COARSE, "varied", seed=0, cache_dir=cache)
     topology = generator.topology()
     symmetric = {}
-    for group, bone, _, _, low, high in JOINTS:
-        if "{side}" in bone:
-            angle = low + 0.7 * (high - low)
-            symmetric.update({f"{group}|{bone.format(side=side)}": angle for side in ("L", "R")})
+    for joint in JOINTS:  # the wide mode's own joints (no varied range) turned by 30 degrees
+        if joint.sides() == ("L", "R"):
+            low, high = joint.varied or (0.0, 30.0 / 0.7)
+            symmetric.update({joint.key(side): low + 0.7 * (high - low) for side in ("L", "R")})
     phenotype, _ = generator.draws(0)
     posed = topology.place(generator.pose_model(phenotype, symmetric))  # anny's frame: left is +x
     rest = topology.place(generator.pose_model(phenotype, {}))

@@ -2,8 +2,9 @@
 
 Body ``i`` of split ``s`` comes from its own random stream ``numpy.random.SeedSequence([seed, s, i])``
 (s = 0 train, 1 test). With ``people``, bodies share phenotypes FAUST's way (a few people in several poses
-each): the people's phenotypes come from the stream ``SeedSequence([seed, 2])`` (:func:`spread_phenotypes`)
-and body ``number`` is person ``number // (count // people)``; poses stay each body's own. The topology and every body are cached under ``<cache_dir>/bodies/`` (keys in
+each): the people's phenotypes come from the stream ``SeedSequence([seed, 2])`` (:func:`spread_phenotypes`,
+over the pose mode's phenotype ranges) and body ``number`` is person ``number // (count // people)``; poses
+stay each body's own. The topology and every body are cached under ``<cache_dir>/bodies/`` (keys in
 :meth:`BodyGenerator.body_key`); the anny model is built only on a cache miss.
 """
 
@@ -21,7 +22,14 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from zernet.data.bodies.pose import POSE_MODES, bone_rotations, draw_phenotype, draw_pose, spread_phenotypes
+from zernet.data.bodies.pose import (
+    POSE_MODES,
+    bone_rotations,
+    draw_phenotype,
+    draw_pose,
+    phenotype_ranges,
+    spread_phenotypes,
+)
 from zernet.data.bodies.topology import TOPOLOGIES, TOPOLOGY_ARRAYS, BodyTopology, build_topology, import_anny
 from zernet.data.dataset import DatasetError
 from zernet.geometry import Surface
@@ -40,8 +48,9 @@ __all__ = [
     "npz_bytes",
 ]
 
-#: Bumped whenever a change alters generated bodies, so cached bodies of older versions are not reused.
-GENERATOR_VERSION = 1
+#: Bumped whenever a change alters generated bodies, so cached bodies of older versions are not reused
+#: (2: the mouth and eye sockets closed, :data:`zernet.data.bodies.topology.CAVITIES`).
+GENERATOR_VERSION = 2
 #: Split name -> the second element of a body's SeedSequence.
 SPLIT_CODES = {"train": 0, "test": 1}
 # Second element of the SeedSequence of the people's phenotypes (``people=``): a stream no body draws from.
@@ -143,7 +152,7 @@ class BodyGenerator:
         if split not in SPLIT_CODES:
             raise DatasetError(f"body split must be 'train' or 'test', got {split!r}")
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, SPLIT_CODES[split], int(index)]))
-        return draw_phenotype(rng), draw_pose(rng, POSE_MODES[self.poses])
+        return draw_phenotype(rng, phenotype_ranges(self.poses)), draw_pose(rng, self.poses)
 
     def body_key(self, index: int, split: str = "train", phenotype: dict[str, float] | None = None) -> str:
         """What body ``index`` of ``split`` depends on: topology, poses, seed, split, index, versions, and a
@@ -234,7 +243,8 @@ def generate_bodies(
     generator.topology()  # builds the model if needed: a missing extra is reported before any progress bar
     phenotypes = None
     if people is not None:
-        phenotypes = spread_phenotypes(np.random.default_rng(np.random.SeedSequence([seed, _PEOPLE_STREAM])), people)
+        rng = np.random.default_rng(np.random.SeedSequence([seed, _PEOPLE_STREAM]))
+        phenotypes = spread_phenotypes(rng, people, phenotype_ranges(poses))
     bodies = []
     for number in tqdm(range(count), desc=f"bodies ({topology})", unit="body", disable=not progress):
         split, index = split_of(number, count, n_test)

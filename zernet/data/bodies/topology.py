@@ -1,9 +1,10 @@
 """The shared connectivity of generated bodies (:class:`BodyTopology`) and its per-vertex part labels.
 
 A topology is built once per name from an anny model (see :mod:`zernet.data.bodies` for the names and the
-part table): the largest connected component of anny's template (interior parts removed), optionally
-decimated to FAUST's size with every kept vertex expressed in barycentric coordinates of a template
-triangle. Part and side labels come from the model's skinning weights, interpolated like positions.
+part table): anny's template with the pockets no scan has (the inside of the mouth, the eye sockets:
+:data:`CAVITIES`) cut out and their openings closed, its largest connected component (the eyeballs and
+tongue, separate parts, removed), optionally decimated to FAUST's size with every kept vertex expressed in
+barycentric coordinates of a template triangle. Part and side labels come from the model's skinning weights, interpolated like positions.
 
 This module is the only place ``anny`` is imported (:func:`import_anny`), lazily; ``fast_simplification``
 is imported only for the ``faust`` topology. Both belong to the ``bodies`` extra.
@@ -26,11 +27,15 @@ __all__ = [
     "FAUST_FACES",
     "MISSING_EXTRA_MESSAGE",
     "TOPOLOGY_ARRAYS",
+    "CAVITIES",
     "BodyTopology",
     "import_anny",
     "part_of_bone",
     "side_of_bone",
     "largest_component",
+    "cavity_faces",
+    "boundary_loops",
+    "close_openings",
     "closest_barycentric",
     "decimate_to_faust",
     "labels_from_weights",
@@ -47,6 +52,11 @@ TOPOLOGIES = {
 }
 FAUST_FACES = 13776  # 6890 vertices on a closed genus-0 surface
 MISSING_EXTRA_MESSAGE = "human bodies need the optional dependency anny: pip install 'zernet[bodies]'"
+#: Regions of anny's full template (its texture segmentation) that no scan has: the inside of the mouth
+#: (behind the lips, 4 cm deep) and the eye sockets behind the eyeballs (2.5 cm deep). Each is a pocket
+#: opening at the lips or the eyelids; :func:`build_topology` cuts them out and closes the openings.
+#: anny's collapsed (coarse) topologies carry no segmentation and stay as shipped.
+CAVITIES = ("mouth_cavity", "eye_cavity.L", "eye_cavity.R")
 #: The arrays of a topology as stored in its cache file, in the constructor's order after the name.
 TOPOLOGY_ARRAYS = ("corners", "weights", "faces", "parts", "sides")
 
@@ -132,6 +142,69 @@ def largest_component(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, n
     return kept, renumber[kept_faces]
 
 
+def cavity_faces(model) -> np.ndarray:
+    """(F,) True for the faces of ``model.get_triangular_faces()`` in :data:`CAVITIES` (anny's full template)."""
+    import_anny()
+    from anny.face_segmentation import get_face_segmentation_mask
+
+    if len(model.faces) != len(model.get_triangular_faces()):
+        raise ValueError("cavity faces are read on anny's triangle template, whose faces are its triangles")
+    return np.asarray(get_face_segmentation_mask(model, list(CAVITIES)), dtype=bool)
+
+
+def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
+    """The holes of an oriented triangle mesh: each a loop of vertices in the order of its faces' edges."""
+    half_edges = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    present = set(map(tuple, half_edges.tolist()))
+    following = {a: b for a, b in half_edges.tolist() if (b, a) not in present}
+    loops = []
+    while following:
+        start = next(iter(following))
+        loop = [start]
+        vertex = following.pop(start)
+        while vertex != start:
+            loop.append(vertex)
+            vertex = following.pop(vertex)
+        loops.append(np.asarray(loop, dtype=np.int64))
+    return loops
+
+
+def _zip_loop(loop: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """Triangles closing one hole like a zip: the loop is cut at its two ends along its longest direction
+    (the corners of the mouth, of an eyelid) and the two sides are joined in the order they run along it.
+    Each triangle is oriented against the loop, so the closed surface keeps one orientation."""
+    points = vertices[loop]
+    centred = points - points.mean(0)
+    along = centred @ np.linalg.svd(centred, full_matrices=False)[2][0]
+    loop, along = np.roll(loop, -int(along.argmin())), np.roll(along, -int(along.argmin()))
+    n, end = len(loop), int(along.argmax())
+    if end in (1, n - 1):  # the two ends are neighbours (a tiny hole): a fan from one of them
+        triangles = [(0, k, k + 1) for k in range(1, n - 1)]
+    else:
+        first = list(range(0, end + 1))  # loop positions from one end to the other along one side
+        second = [0, *range(n - 1, end, -1)]  # and along the other side, up to the other end's neighbour
+        triangles = [(0, first[1], second[1])]
+        i, j = 1, 1
+        while i < len(first) - 1 or j < len(second) - 1:
+            if j == len(second) - 1 or (i < len(first) - 1 and along[first[i + 1]] <= along[second[j + 1]]):
+                triangles.append((first[i], first[i + 1], second[j]))
+                i += 1
+            else:
+                triangles.append((first[i], second[j], second[j + 1]))
+                j += 1
+    # Loop positions in increasing order follow the loop; reversed, they oppose it.
+    return np.array([loop[sorted(triangle, reverse=True)] for triangle in triangles], dtype=np.int64)
+
+
+def close_openings(vertices: np.ndarray, faces: np.ndarray, removed: np.ndarray) -> np.ndarray:
+    """The faces with ``removed`` (F,) cut out and every hole this leaves closed (:func:`_zip_loop`); the
+    vertices only the removed faces used are left unreferenced (no new vertex)."""
+    kept = faces[~removed]
+    holes_before = {tuple(sorted(loop.tolist())) for loop in boundary_loops(faces)}
+    new_holes = [loop for loop in boundary_loops(kept) if tuple(sorted(loop.tolist())) not in holes_before]
+    return np.concatenate([kept, *(_zip_loop(loop, vertices) for loop in new_holes)])
+
+
 def closest_barycentric(
     vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, neighbours: int = 8
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -194,6 +267,8 @@ def build_topology(name: str, model) -> BodyTopology:
     """The topology ``name`` of :data:`TOPOLOGIES`, built on ``model`` (an anny model of its base)."""
     template = model.template_vertices.detach().cpu().numpy().astype(np.float64)
     all_faces = model.get_triangular_faces().detach().cpu().numpy().astype(np.int64)
+    if TOPOLOGIES[name] == "anny":  # the full template: its mouth and eye sockets closed
+        all_faces = close_openings(template, all_faces, cavity_faces(model))
     kept, faces = largest_component(all_faces, len(template))
     if name == "faust":
         local_corners, weights, faces = decimate_to_faust(template[kept], faces)
