@@ -67,6 +67,12 @@ def add_command(sub) -> None:
         "of each to the model's area, so that a partial SOURCE (one side of a body) is matched as a part of "
         "TARGET",
     )
+    parser.add_argument(
+        "--no-repair",
+        action="store_true",
+        help="keep the template model's map as it is: do not map again the vertices whose match does not "
+        "come back (limbs read as another part; docs/MATCHING.md)",
+    )
     parser.add_argument("--no-picture", action="store_true", help="skip PREFIX.png")
     parser.set_defaults(handler=run)
 
@@ -101,7 +107,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--descriptors picks the shipped descriptor model; with --run, give one model only")
     model = load_matching_model()[0] if args.descriptors else load_matcher(args.run)
     source, target = read_surface(args.source), read_surface(args.target)
-    result, _, _ = match_surfaces(source, target, model, cache_dir=args.cache_dir, same_scale=args.same_scale)
+    result, _, _ = match_surfaces(
+        source, target, model, cache_dir=args.cache_dir, same_scale=args.same_scale, repair=not args.no_repair
+    )
     prefix = args.out
     prefix.parent.mkdir(parents=True, exist_ok=True)
     written = [prefix.with_name(prefix.name + suffix) for suffix in (".npy", ".txt", "_fmap.npy", "_confidence.npy")]

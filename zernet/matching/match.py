@@ -1,5 +1,7 @@
 """Matching two surfaces: descriptors -> functional map -> point map -> ZoomOut -> confidence, or through a
-template model (:mod:`zernet.matching.template`, the default for :func:`match_surfaces`: human bodies).
+template model (:mod:`zernet.matching.template`, the default for :func:`match_surfaces`: human bodies),
+whose vertices that do not survive the round trip are then mapped again by their geodesic distances to
+those that do (:mod:`zernet.matching.consistency`).
 
 A model whose inputs depend on the pose (xyz) and whose spec says ``align_target`` sees the target turned
 into the source's frame: the 4 rotations that carry the target's principal axes onto the source's
@@ -27,6 +29,7 @@ from scipy.spatial import cKDTree
 
 from zernet.geometry import FixedScale, Surface, read_surface, repair_surface
 from zernet.inference.model_file import read_model_file
+from zernet.matching.consistency import repair_map
 from zernet.matching.fmap import cycle_confidence, functional_map, nearest_rows, pointmap_from_fmap, zoomout
 from zernet.matching.model import DescriptorModel, load_matching_model
 from zernet.matching.shapes import MatchShape, prepare_shape, rotating_columns
@@ -245,6 +248,7 @@ def match_surfaces(
     cache_dir: str | os.PathLike | None = None,
     zoomout_end: int | None = None,
     same_scale: bool = False,
+    repair: bool = True,
 ) -> tuple[MatchResult, MatchShape | TemplateShape, MatchShape | TemplateShape]:
     """Match two surfaces or files, answering per input vertex.
 
@@ -275,7 +279,7 @@ def match_surfaces(
     surfaces = [repaired_source.surface, repaired_target.surface]
     area = shared_scale(model_area, surfaces) if same_scale else model_area
     if isinstance(model, TemplateModel):
-        result, prepared = _match_through_template(model, surfaces, area, cache_dir)
+        result, prepared = _match_through_template(model, surfaces, area, cache_dir, repair)
         return _per_input_vertex(result, prepared, repaired_source, repaired_target), *prepared
     spec = model.spec
     prepared = [
@@ -302,15 +306,24 @@ TEMPLATE_FMAP_SIZE = 80
 
 
 def _match_through_template(
-    model: TemplateModel, surfaces: list[Surface], area, cache_dir
+    model: TemplateModel, surfaces: list[Surface], area, cache_dir, repair: bool = True
 ) -> tuple[MatchResult, list[TemplateShape]]:
-    """Match two repaired surfaces through the template model (:mod:`zernet.matching.template`); the result's
+    """Match two repaired surfaces through the template model (:mod:`zernet.matching.template`), then, with
+    ``repair``, map again each direction's vertices that do not come back (:func:`repair_map`); the result's
     functional map is the point map's, on the first 80 eigenfunctions of each surface."""
     start = time.perf_counter()
     prepared = [template_shape(model, surface, area, cache_dir) for surface in surfaces]
     seconds = {"template positions": time.perf_counter() - start}
     scale = CONFIDENCE_SCALE * np.sqrt(prepared[0].surface.area)
     vertex_map, reverse_map, confidence, seconds["point maps"] = match_template_shapes(*prepared, scale)
+    if repair:
+        start = time.perf_counter()
+        source, target = prepared[0].surface, prepared[1].surface
+        reverse_confidence = cycle_confidence(reverse_map, vertex_map, target.vertices, scale)
+        vertex_map, _ = repair_map(source, target, vertex_map, confidence)
+        reverse_map, _ = repair_map(target, source, reverse_map, reverse_confidence)
+        confidence = cycle_confidence(vertex_map, reverse_map, source.vertices, scale)
+        seconds["repair"] = time.perf_counter() - start
     start = time.perf_counter()
     bases = [
         laplacian_eigenbasis(
