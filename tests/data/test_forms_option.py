@@ -54,6 +54,11 @@ def test_a_cloud_point_takes_the_nearest_corner_of_the_triangle_it_was_drawn_in(
     assert distance.max() < 1e-9
     expected = faces[face_index, np.argmax(barycentric, axis=1)]
     np.testing.assert_array_equal(carried, expected)
+    # Points near in space are near in the order (a step's sparse products read memory in sequence):
+    # consecutive points are far closer than in a shuffled order.
+    step = np.linalg.norm(np.diff(cloud.vertices, axis=0), axis=1)
+    shuffled = np.linalg.norm(np.diff(np.random.default_rng(0).permutation(cloud.vertices), axis=0), axis=1)
+    assert np.median(step) < np.median(shuffled) / 4
 
 
 def test_a_one_sided_scan_keeps_each_vertex_with_its_own_target():
