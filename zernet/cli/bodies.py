@@ -33,7 +33,8 @@ def add_command(sub) -> None:
         "--poses",
         choices=sorted(POSE_MODES),
         default="varied",
-        help="rest, mild or varied joint rotations (default varied)",
+        help="rest, mild, varied or wide joint rotations (wide: arms overhead, crossed, squats, one-leg "
+        "stands, and weight and muscle over the whole range; docs/BODIES.md) (default varied)",
     )
     parser.add_argument(
         "--cache-dir",

@@ -13,14 +13,19 @@ Topologies (``topology=``)
                               to FAUST's count (6,890 vertices, 13,776 faces); every kept vertex is
                               a point of the full template in barycentric coordinates of one of its
                               triangles, carried through every posed body
-    ``full``        13,348    anny's template without its interior parts (eyes, tongue)
+    ``full``        12,408    anny's template without its interior parts (eyes, tongue) and with its
+                              mouth and eye sockets closed (below)
     ``coarse-1229`` 1,229     anny's shipped ``notoes_collapse10pc`` topology
     ``coarse-615``  615       anny's shipped ``notoes_collapse5pc`` topology
     ``coarse-369``  369       anny's shipped ``notoes_collapse3pc`` topology
     ==============  ========  =================================================================
 
-Interior components are removed by keeping the largest connected component of the template; the kept
-vertices are renumbered in their template order, the same way for every body.
+Surfaces no scan has are removed from the full template (``faust`` and ``full``): the inside of the mouth
+(a pocket 4 cm deep behind the lips) and the eye sockets behind the eyeballs, anny's texture regions
+``mouth_cavity`` and ``eye_cavity.L/R``, are cut out and their openings (the lips, the eyelids) closed by
+triangles between their two sides, with no new vertex; then interior components (eyeballs, tongue) are
+removed by keeping the largest connected component. The kept vertices are renumbered in their template
+order, the same way for every body. anny's coarse topologies carry no such regions and stay as shipped.
 
 Parts (labels 0-7, in :data:`zernet.data.segmentation.HUMAN_PART_NAMES` order, left and right merged):
 a vertex's part is the part whose bones carry the largest sum of its skinning weights.
@@ -39,10 +44,14 @@ a vertex's part is the part whose bones carry the largest sum of its skinning we
     ==========  =============================================================================
 
 Phenotypes, drawn uniformly: gender 0-1 (male-female), age 0.5-0.95 (adults; anny's 2/3 is "young",
-1 "old"), muscle 0.1-0.9, weight 0.1-0.9, height 0.1-0.9, proportions 0.2-0.8.
+1 "old"), muscle 0.1-0.9, weight 0.1-0.9, height 0.1-0.9, proportions 0.2-0.8; with poses ``wide``, muscle
+and weight 0-1 (the model's limits: the thinnest, heaviest and most muscular bodies).
 
 Poses (``poses=``): ``rest`` (anny's A-pose), ``varied`` (each joint rotation drawn uniformly in the
-ranges below, left and right independently), ``mild`` (the same ranges halved). Directions are in
+ranges below, left and right independently), ``mild`` (the same ranges halved), ``wide`` (the poses
+people take in scans: each arm a style, overhead, crossed, behind the back, forward or down, the legs a
+style, standing, stepping, bent (squats, sitting) or one-leg, each style with its own ranges;
+:mod:`zernet.data.bodies.pose` and ``docs/BODIES.md`` hold them). Directions are in
 anny's frame: forward is -y, up is +z, the body's left is +x (written bodies are then turned to FAUST's
 frame: y up, facing +z). A rotation "toward D" turns the bone so that its
 far end moves toward direction D; the ranges keep limbs off the body for every phenotype above.
