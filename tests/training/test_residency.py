@@ -86,6 +86,15 @@ def test_auto_chooses_by_size_and_free_memory():
         choose_residency("gpu", gb, 10, cpu)
 
 
+def test_auto_holds_a_faust_size_training_set_on_a_24_gb_machine():
+    # Measured (benchmarks/speed/bench_operator.py --formats, a 6,890-vertex body, the shipped FAUST patch
+    # settings): 24.1 MB held per shape as float16 vertex pairs, 162.3 MB as format 4's float32 CSR matrix and
+    # transpose. FAUST's 72 training and 8 validation scans, with 12 GB available of 24 GB:
+    cpu, available = torch.device("cpu"), {"host": 12 * 10**9}
+    assert choose_residency("auto", int(24.1e6), 80, cpu, available)[0] == "host"  # 1.9 GB
+    assert choose_residency("auto", int(162.3e6), 80, cpu, available)[0] == "stream"  # 13 GB: what format 4 did
+
+
 def test_residency_is_checked_and_may_change_on_resume(tmp_path, cache_dir):
     from zernet.training import ConfigError
     from zernet.training.loop import RESUME_CHANGEABLE
