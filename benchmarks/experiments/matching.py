@@ -30,6 +30,25 @@ on the same pairs as generated, where source and target share the template's top
 
 ``--split validation`` pairs bodies 400, 401, ... of the train stream instead (never trained on by either
 shipped model): the pairs a model is chosen on, so the test pairs stay unseen by every choice.
+
+``--real DIR`` also scores **real people**, written apart (``STEM_real.json``, ``STEM_real.md``): the FAUST
+training registrations in ``DIR`` (``tr_reg_000.ply`` ... ``tr_reg_079.ply``: people 0-7 only, scan =
+10 x person + pose; people 8 and 9 are never read), ``--real-pairs`` pairs of two different people, each scan
+made into forms by the project's own tools (:mod:`zernet.data.bodies.forms`; cached under
+``--cache-dir``/matching/real-forms, nothing of the data in the repository):
+
+- ``remeshed``: both scans remeshed isotropically on their own (about 5,000 vertices);
+- ``anisotropic``: both remeshed after stretching the scan 3x across the shoulders (x), then shrunk back:
+  triangles three times longer up-down and front-back than across, about 5,000 vertices;
+- ``decimated``: both halved by quadric decimation, left as the simplifier returns them;
+- ``cloud``: the source a noisy half-density point cloud, the target remeshed;
+- ``partial``: the source a one-sided scan, the target remeshed whole (``--same-scale``).
+
+The ground truth of a form's vertex is the point of its registration it came from (closest point); the
+registrations share one vertex order, so that point on the target's registration, and its nearest target
+vertex, is the true image. Each pair is matched by ``zernet match``'s default (the template model and the
+repair of :mod:`zernet.matching.consistency`) and with ``repair=False``, so the repair's part is measured.
+Use ``--pairs 0`` for the real pairs alone.
 """
 
 from __future__ import annotations
@@ -50,8 +69,15 @@ from benchmarks.harness import (
     write_json,
     write_markdown,
 )
-from zernet.geometry import Surface
-from zernet.matching.bodies import body_forms, ground_truth_map
+from zernet.data.bodies.forms import (
+    closest_points,
+    decimated_form,
+    noisy_cloud_form,
+    partial_form,
+    remeshed_form,
+)
+from zernet.geometry import Surface, read_surface
+from zernet.matching.bodies import LocatedForm, body_forms, ground_truth_map
 from zernet.matching.fmap import zoomout
 from zernet.matching.match import match_shapes, match_surfaces, nearest_vertex_map, shared_scale
 from zernet.matching.model import load_matching_model
@@ -72,6 +98,29 @@ METHODS = {
 }
 #: ZoomOut alone starts from this many eigenpairs (the rigid map is only trusted at low frequency).
 ZOOMOUT_ALONE_START = 10
+
+#: --real: the FAUST training scans that may be read (people 0-7, scan = 10 x person + pose); people 8 and 9
+#: (scans 80-99) are held out for an independent measurement and never read here.
+REAL_SCANS = range(80)
+#: --real: (source form, target form) of each setting of real pairs.
+REAL_SETTINGS = {
+    "remeshed": ("remeshed", "remeshed"),
+    "anisotropic": ("anisotropic", "anisotropic"),
+    "decimated": ("decimated", "decimated"),
+    "cloud": ("cloud-noisy", "remeshed"),
+    "partial": ("partial", "remeshed"),
+}
+#: The forms of real scans, in the order their random streams are numbered.
+REAL_FORM_NAMES = ("remeshed", "anisotropic", "decimated", "cloud-noisy", "partial")
+#: Remeshed forms of a 6,890-vertex registration land near 5,000 vertices with these target ratios.
+REAL_REMESH_RATIO = (0.62, 0.75)
+#: The anisotropic form: stretch across the shoulders (x) before the isotropic remesh, and target ratio.
+ANISOTROPIC_STRETCH = np.array([3.0, 1.0, 1.0])
+ANISOTROPIC_REMESH_RATIO = (0.45, 0.55)
+#: Bumped when a change alters the cached real forms.
+REAL_FORMS_VERSION = 1
+#: --real: the columns (the default of zernet match, and without its repair).
+REAL_METHODS = ("template model", "template model, no repair")
 
 
 def errors_on_target(
@@ -158,6 +207,140 @@ def classifier_reference(run: str, bodies: dict, faces: np.ndarray, indices) -> 
     }
 
 
+def real_pairs(n: int, seed: int = 0) -> list[tuple[int, int]]:
+    """``n`` (source scan, target scan) pairs of two different people among :data:`REAL_SCANS`, drawn once."""
+    rng = np.random.default_rng(seed)
+    pairs = []
+    while len(pairs) < n:
+        source, target = (int(scan) for scan in rng.choice(REAL_SCANS, 2))
+        if source // 10 != target // 10:
+            pairs.append((source, target))
+    return pairs
+
+
+def registration(directory: Path, scan: int) -> Surface:
+    """FAUST training registration ``scan`` (one of :data:`REAL_SCANS` only)."""
+    if scan not in REAL_SCANS:
+        raise ValueError(f"scan {scan} is a held-out person's (people 8-9); only scans 0-79 are read")
+    return read_surface(directory / f"tr_reg_{scan:03d}.ply")
+
+
+def real_form(directory: Path, scan: int, form: str, cache_dir: Path) -> LocatedForm:
+    """Registration ``scan`` in ``form`` (:data:`REAL_SETTINGS`), located on its registration; cached."""
+    name = f"real_{scan:03d}_{form}"
+    path = cache_dir / "matching" / "real-forms" / f"{name}-v{REAL_FORMS_VERSION}.npz"
+    if not path.is_file():
+        body = registration(directory, scan)
+        vertices, faces = np.asarray(body.vertices, np.float64), np.asarray(body.faces, np.int64)
+        labels = np.zeros(len(vertices), dtype=np.int64)  # no parts: only the ground truth is used
+        rng = np.random.default_rng([scan, REAL_FORM_NAMES.index(form)])  # each scan and form its own stream
+        if form == "remeshed":
+            made = remeshed_form(vertices, faces, labels, rng, vertex_ratio=REAL_REMESH_RATIO)
+            new_vertices, new_faces = made.vertices, made.faces
+        elif form == "anisotropic":
+            stretched = remeshed_form(vertices * ANISOTROPIC_STRETCH, faces, labels, rng, ANISOTROPIC_REMESH_RATIO)
+            new_vertices, new_faces = stretched.vertices / ANISOTROPIC_STRETCH, stretched.faces
+        else:
+            maker = {"decimated": decimated_form, "cloud-noisy": noisy_cloud_form, "partial": partial_form}[form]
+            made = maker(vertices, faces, labels, rng)
+            new_vertices, new_faces = made.vertices, made.faces
+        face_index, barycentric, on_body, _ = closest_points(vertices, faces, new_vertices)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        empty = np.zeros((0, 3), np.int64)
+        np.savez(
+            path,
+            vertices=new_vertices,
+            faces=empty if new_faces is None else new_faces,
+            face_index=face_index,
+            barycentric=barycentric,
+            on_body=on_body,
+        )
+    with np.load(path) as stored:
+        faces = stored["faces"] if stored["faces"].size else None
+        surface = Surface(stored["vertices"], faces, name=name)
+        return LocatedForm(name, form, scan, surface, stored["face_index"], stored["barycentric"], stored["on_body"])
+
+
+def score_real(directory: Path, n_pairs: int, settings: list[str], template_model, cache_dir: Path) -> dict:
+    """Per setting and pair of real people: the mean error of ``zernet match``'s default and of the template
+    map without the repair, the median, the share of points more than 10 away, and the time of the default."""
+    results = {}
+    for setting in settings:
+        source_form_name, target_form_name = REAL_SETTINGS[setting]
+        rows = []
+        for source_scan, target_scan in real_pairs(n_pairs):
+            source = real_form(directory, source_scan, source_form_name, cache_dir)
+            target = real_form(directory, target_scan, target_form_name, cache_dir)
+            target_registration = registration(directory, target_scan)
+            truth = ground_truth_map(source, target, target_registration.vertices, target_registration.faces)
+            row = {
+                "pair": [source_scan, target_scan],
+                "vertices": [source.surface.n_vertices, target.surface.n_vertices],
+            }
+            for name, repair in zip(REAL_METHODS, (True, False)):
+                start = time.perf_counter()
+                result, _, _ = match_surfaces(
+                    source.surface, target.surface, template_model, same_scale=setting == "partial", repair=repair
+                )
+                seconds = time.perf_counter() - start
+                errors, _ = errors_on_target(target.surface, result.vertex_map, truth, 1.0)
+                row[name] = {
+                    "mean_error_x100": float(errors.mean()),
+                    "median_error_x100": float(np.median(errors)),
+                    "share_above_10": float(np.mean(errors > 10)),
+                    "seconds": seconds,
+                    "stage_seconds": result.seconds,
+                }
+            rows.append(row)
+            print(
+                f"real {setting} {source_scan}->{target_scan}: "
+                + ", ".join(f"{name} {row[name]['mean_error_x100']:.2f}" for name in REAL_METHODS),
+                flush=True,
+            )
+        results[setting] = {
+            "pairs": rows,
+            **{
+                name: {
+                    "mean_error_x100": float(np.mean([row[name]["mean_error_x100"] for row in rows])),
+                    "worst_pair_x100": float(np.max([row[name]["mean_error_x100"] for row in rows])),
+                    "mean_seconds": float(np.mean([row[name]["seconds"] for row in rows])),
+                }
+                for name in REAL_METHODS
+            },
+        }
+    return results
+
+
+def real_markdown(results: dict, n_pairs: int) -> list[str]:
+    lines = [
+        f"# Matching real people: FAUST training scans, people 0-7 ({n_pairs} pairs of two different people)",
+        "",
+        "Real scans (not generated bodies; generated pairs: `matching.md`). Mean geodesic error x100 / sqrt(target "
+        "area) over the pairs (worst pair in brackets); `zernet match`'s default (the template model and its "
+        "repair, `zernet.matching.consistency`) and the template map without the repair (`--no-repair`). One "
+        "thread; time per pair of the default, both shapes read from scratch.",
+        "",
+    ]
+    rows = [
+        [
+            setting,
+            *(f"{entry[name]['mean_error_x100']:.2f} ({entry[name]['worst_pair_x100']:.2f})" for name in REAL_METHODS),
+            f"{entry[REAL_METHODS[0]]['mean_seconds']:.1f} s",
+        ]
+        for setting, entry in results.items()
+    ]
+    lines += markdown_table(["real setting", *REAL_METHODS, "time per pair"], rows)
+    lines += ["", "Per pair (source scan -> target scan: default / no repair; scan = 10 x person + pose):", ""]
+    for setting, entry in results.items():
+        pairs = "; ".join(
+            f"{row['pair'][0]}->{row['pair'][1]}: {row[REAL_METHODS[0]]['mean_error_x100']:.2f} / "
+            f"{row[REAL_METHODS[1]]['mean_error_x100']:.2f}"
+            for row in entry["pairs"]
+        )
+        lines.append(f"- {setting}: {pairs}")
+    return lines
+
+
 def main(argv=None) -> int:
     parser = arguments(__doc__)
     parser.add_argument("--topology", default="faust")
@@ -183,10 +366,31 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--methods", default="template,descriptors,zoomout", help="comma-separated subset of " + ",".join(METHODS)
     )
+    parser.add_argument(
+        "--real",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="FAUST training registrations (tr_reg_000.ply ...): also score pairs of real people 0-7",
+    )
+    parser.add_argument("--real-pairs", type=int, default=10, help="pairs of real people per setting")
+    parser.add_argument("--real-settings", default=",".join(REAL_SETTINGS), help="subset of " + ",".join(REAL_SETTINGS))
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     model, provenance = load_matching_model(args.model)
     template_model = load_template_model(args.template)
+    if args.real is not None:
+        real_settings = args.real_settings.split(",")
+        unknown = set(real_settings) - set(REAL_SETTINGS)
+        if unknown:
+            parser.error(f"--real-settings: unknown {sorted(unknown)}; choose from {sorted(REAL_SETTINGS)}")
+        real = score_real(args.real, args.real_pairs, real_settings, template_model, Path(args.cache_dir))
+        write_json(result_file(args.out, "_real.json"), {"pairs": args.real_pairs, "threads": 1, "settings": real})
+        lines = real_markdown(real, args.real_pairs)
+        write_markdown(result_file(args.out, "_real.md"), lines)
+        print("\n".join(lines))
+    if args.pairs == 0:
+        return 0
     settings = args.settings.split(",")
     stream, first = SPLITS[args.split]
     indices = range(first, first + args.pairs + 1)
