@@ -22,6 +22,7 @@ scatters, cheap on a GPU) and multiplied by :class:`zernet.operators.sparse.Spar
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numba
@@ -60,8 +61,10 @@ def narrow_index_dtype(largest: int) -> np.dtype:
     return np.dtype(np.int64)
 
 
+@functools.cache
 def _decode_table(precision: str) -> np.ndarray | None:
-    """float32 value of every 16-bit pattern of a half precision (``None`` for float32 / float64)."""
+    """float32 value of every 16-bit pattern of a half precision (``None`` for float32 / float64); one
+    table per precision, shared by every operator."""
     if precision == "float16":
         return np.arange(2**16, dtype=np.uint16).view(np.float16).astype(np.float32)
     if precision == "bfloat16":  # the upper half of a float32
@@ -77,7 +80,7 @@ def _encode(values: np.ndarray, precision: str) -> np.ndarray:
     return as_float.to(torch.bfloat16).view(torch.int16).numpy().view(np.uint16).copy()
 
 
-@dataclass
+@dataclass(eq=False)
 class VertexPairs:
     """An ``(N k) × N`` patch operator matrix as vertex pairs (module docstring).
 
