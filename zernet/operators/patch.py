@@ -483,19 +483,14 @@ class PatchOperator:
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], meta: dict, name: str = "<arrays>") -> PatchOperator:
-        """Inverse of :meth:`to_arrays` over the same arrays (no copy but the patch radii and angles, read as
-        float64); ``ValueError`` naming ``name`` if they do not fit together."""
+        """Inverse of :meth:`to_arrays` over the same arrays (no copy: the patch radii and angles become float64
+        when the padded patch arrays are asked for); ``ValueError`` naming ``name`` if they do not fit together."""
         try:
             operator = cls.__new__(cls)
             operator._init(
                 VertexPairs(arrays["pair_indptr"], arrays["pair_columns"], arrays["pair_values"], meta["precision"]),
                 arrays["frames"],
-                (
-                    arrays["patch_indptr"],
-                    arrays["patch_samples"],
-                    arrays["patch_r"].astype(np.float64),
-                    arrays["patch_theta"].astype(np.float64),
-                ),
+                (arrays["patch_indptr"], arrays["patch_samples"], arrays["patch_r"], arrays["patch_theta"]),
                 sparse_from_arrays(arrays, "interpolation"),
                 PatchConfig.from_dict(dict(meta["config"])),
                 float(meta["lam"]),
