@@ -150,7 +150,7 @@ def test_load_dataset_with_options_matches_the_keyword_interface(tmp_path):
     with pytest.raises(
         TypeError,
         match=r"unknown option\(s\) bogus for data kind 'faust' \(it takes: area, "
-        r"n_vertices, root, test_indices, train_indices; and the shared options",
+        r"n_vertices, root, test_indices, train_indices, val_indices; and the shared options",
     ):
         load_dataset("faust", options=options, root=tmp_path, bogus=1)
     with pytest.raises(TypeError, match="fixes the task"):
