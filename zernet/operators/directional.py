@@ -106,6 +106,7 @@ class DirectionalOperator:
         if self.pairs.shape[0] != self.angles.shape[0]:
             raise ValueError(f"{self.pairs.shape[0]} pairs but {self.angles.shape[0]} angles")
         self._entry_pair: np.ndarray | None = None
+        self._matrix: sp.csr_matrix | None = None
         self.parts: list[DirectionalOperator] = []  # the surfaces of a batch (set by concatenate)
         self._torch: dict = {}
 
@@ -114,11 +115,14 @@ class DirectionalOperator:
 
     # ------------------------------------------------------------------ matrices
     def _sorted_matrix(self) -> sp.csr_matrix:
-        a = self.operator.matrix.tocsr()
-        if not a.has_sorted_indices:
-            a = a.copy()
-            a.sort_indices()
-        return a
+        """The scalar operator's matrix with sorted indices, read once (a patch operator expands its pairs)."""
+        if self._matrix is None:
+            a = self.operator.matrix.tocsr()
+            if not a.has_sorted_indices:
+                a = a.copy()
+                a.sort_indices()
+            self._matrix = a
+        return self._matrix
 
     def entry_pair(self) -> np.ndarray:
         """Index into :attr:`pairs` of every stored entry of ``A`` (CSR order, sorted indices), computed once."""

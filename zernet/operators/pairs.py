@@ -173,18 +173,18 @@ class VertexPairs:
         return self.values
 
     def to_csr(self) -> scipy.sparse.csr_matrix:
-        """``A`` as a scipy CSR matrix ``(N k, N)`` with sorted indices, float32 or float64 (explicit zeros
-        of the pairs left out)."""
+        """``A`` as a scipy CSR matrix ``(N k, N)`` with sorted indices, float32 (a half precision decoded)
+        or float64; a pair's zero values are kept as explicit zeros (one compiled pass, no scan)."""
         n, k = self.n_vertices, self.k
         indptr = np.zeros(n * k + 1, dtype=np.int64)
         np.cumsum(np.repeat(np.diff(self.indptr.astype(np.int64)), k), out=indptr[1:])
-        values = self.float_values()
-        indices = np.empty(self.n_pairs * k, dtype=np.int32 if n < 2**31 - 1 else np.int64)
-        data = np.empty(self.n_pairs * k, dtype=values.dtype)
-        _expand_rows(self.indptr, self.columns, values, indices, data)
-        matrix = scipy.sparse.csr_matrix((data, indices, indptr), shape=(n * k, n))
+        dtype = np.float64 if self.precision == "float64" else np.float32
+        index_dtype = np.int32 if max(n, self.n_pairs * k) < 2**31 - 1 else np.int64
+        indices = np.empty(self.n_pairs * k, dtype=index_dtype)
+        data = np.empty(self.n_pairs * k, dtype=dtype)
+        _expand_rows(self.indptr, self.columns, self._kernel_values, self._table, indices, data)
+        matrix = scipy.sparse.csr_matrix((data, indices, indptr.astype(index_dtype)), shape=(n * k, n), copy=False)
         matrix.has_sorted_indices = True
-        matrix.eliminate_zeros()
         return matrix
 
     def transposed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -256,15 +256,19 @@ def _merge_rows(indptr, indices, data, k, pair_indptr, columns, values):
 
 
 @numba.njit(cache=True, nogil=True)
-def _expand_rows(indptr, columns, values, indices, data):
-    """The CSR arrays of ``A``: row ``p k + j`` holds ``p``'s pairs with their ``j``-th values."""
+def _expand_rows(indptr, columns, values, table, indices, data):
+    """The CSR arrays of ``A``: row ``p k + j`` holds ``p``'s pairs with their ``j``-th values (decoded
+    through ``table`` for a half precision)."""
     k = values.shape[1]
     dest = 0
     for p in range(indptr.shape[0] - 1):
         for j in range(k):
             for e in range(indptr[p], indptr[p + 1]):
                 indices[dest] = columns[e]
-                data[dest] = values[e, j]
+                if table is None:
+                    data[dest] = values[e, j]
+                else:
+                    data[dest] = table[values[e, j]]
                 dest += 1
 
 
