@@ -6,6 +6,7 @@ functional maps and ZoomOut.
 - :mod:`~zernet.matching.shapes` — a surface made ready for matching (:func:`prepare_shape`).
 - :mod:`~zernet.matching.model` — the descriptor model, its spec and file format, the shipped model.
 - :mod:`~zernet.matching.template` — the template model: a classifier names where on a body each point lies.
+- :mod:`~zernet.matching.consistency` — the repair of a template map: limbs read as another part mapped again.
 - :mod:`~zernet.matching.match` — :func:`match_surfaces`: two surfaces in, a vertex map out.
 - :mod:`~zernet.matching.bodies` — generated bodies in independent forms, with ground-truth maps.
 - :mod:`~zernet.matching.train` — training the descriptor model (``python -m zernet.matching.train``).
