@@ -155,3 +155,27 @@ def test_zernet_match_repairs_only_the_vertices_whose_template_match_does_not_co
 
     # On a generated pair the template map is already right almost everywhere: the repair costs nothing.
     assert error(repaired.vertex_map) < error(kept.vertex_map) + 0.01 * np.sqrt(target.area)
+
+
+@pytest.mark.parametrize("flags, repair", [([], True), (["--no-repair"], False)])
+def test_zernet_match_repairs_by_default_and_not_with_no_repair(tmp_path, monkeypatch, shape, flags, repair):
+    import trimesh
+
+    import zernet.matching.match as match_module
+    from zernet.cli import main
+    from zernet.matching.match import MatchResult
+
+    asked = {}
+
+    def recording_match(source, target, model, cache_dir=None, same_scale=False, repair=True):
+        asked["repair"] = repair
+        n_source, n_target = source.n_vertices, target.n_vertices
+        identity = np.arange(n_source)
+        return MatchResult(identity, np.arange(n_target), np.eye(2), np.ones(n_source)), None, None
+
+    monkeypatch.setattr(match_module, "match_surfaces", recording_match)
+    path = tmp_path / "shape.ply"
+    trimesh.Trimesh(shape.vertices, shape.faces, process=False).export(path)
+    assert main(["match", str(path), str(path), "--out", str(tmp_path / "ab"), "--no-picture", *flags]) == 0
+    assert asked["repair"] is repair
+    np.testing.assert_array_equal(np.load(tmp_path / "ab.npy"), np.arange(shape.n_vertices))
