@@ -7,8 +7,9 @@ uneven density, and cut to a partial scan; ground truth through the position on 
 
 1. trains each model in ``--models`` (a run folder per model under ``--runs``; an existing run with a
    ``best.pt`` is reused) with ``configs/bodies_segmentation.yaml``, changing only the data folders, the
-   model name and the epochs (and, for ``zernet-mixed``, the training set, the scaling and the recipe of
-   ``configs/recipes/scans.yaml``: ``MODELS``);
+   model name and the epochs, with ``data.forms={}`` (the bodies as given); ``zernet-mixed`` trains with the
+   scaling and the recipe of ``configs/recipes/scans.yaml`` instead, forms of its training bodies among them
+   (``MODELS``);
 2. predicts every form of every test body with ``zernet.inference.predict`` (what ``zernet predict`` does:
    repairs, the backend chosen by the kind of surface, the refinement the run chose on validation, one
    value per input vertex), and scores the
@@ -57,6 +58,8 @@ from benchmarks.harness import (
 )
 from zernet.data.bodies import closest_points
 from zernet.data.segmentation import HUMAN_PART_NAMES
+from zernet.data.source import ShapeSource
+from zernet.data.training_forms import load_form
 from zernet.geometry import Surface, read_surface
 from zernet.inference import load_checkpoint
 from zernet.inference.predict import predict
@@ -64,18 +67,36 @@ from zernet.training import load_config
 from zernet.training.config import apply_overrides
 from zernet.viz import render_comparison
 
-#: The mixed recipe: ``base``, ``recipes["zernet-mixed"]`` (--set overrides), ``mixed_form_bodies``.
+#: The mixed recipe: ``base`` and ``recipes["zernet-mixed"]`` (--set overrides).
 BOOK = yaml.safe_load((RECIPES / "scans.yaml").read_text())
 CONFIG = REPO / BOOK["base"]
 FORMS = ("original", "remeshed", "decimated", "cloud", "cloud-noisy", "partial")
 #: zernet and FeaStNet (the same widths and dropout) trained on the original bodies; zernet-mixed: zernet
-#: trained from scratch on the original training bodies plus forms of the first training bodies, at one
-#: fixed scale, with the recipe of configs/recipes/scans.yaml.
+#: trained from scratch on the original training bodies plus forms of them (data.forms), at one fixed scale,
+#: with the recipe of configs/recipes/scans.yaml.
 MODELS = ("zernet", "feastnet", "zernet-mixed")
 #: Models whose predictions are drawn, and the suffix of their pictures' names.
 PICTURES = {"zernet": "", "zernet-mixed": "_mixed"}
 #: Model options only zernet takes.
 ZERNET_ONLY = ("angular_resolution", "pooling")
+
+#: The real-people check (--real): the shipped segmentation configuration trained as shipped (forms of its
+#: training scans) and, the baseline, on the scans alone. FAUST scan XXX shows person XXX // 10: people 0-5
+#: train (the configuration carves its validation scans from them), people 6-7 are scored.
+REAL_CONFIG = REPO / "configs" / "segmentation.yaml"
+REAL_MODELS = {"forms": [], "meshes": ["data.forms={}"]}
+REAL_MODEL_NAMES = {"forms": "shipped (forms)", "meshes": "meshes only"}
+REAL_TRAINED = range(0, 60)
+REAL_SCORED = range(60, 80)
+#: Seed of the scored scans' forms (plus the scan's number).
+REAL_FORM_SEED = 5300
+#: The parts of FAUST's segmentation labels, in the order of their values 1-8 (Maron et al.'s; read off the
+#: scans: 1 lies above the shoulders, 2 at the ends of the arms, 8 at the ends of the legs).
+REAL_PART_NAMES = ("head", "hand", "lower arm", "upper arm", "torso", "upper leg", "lower leg", "foot")
+#: Parts where a cloud's triangulation may join what the surface keeps apart (fingers, the lips).
+EXTREMITIES = (REAL_PART_NAMES.index("head"), REAL_PART_NAMES.index("hand"))
+#: The generated bodies' models shown beside the real people (from scans.json): meshes only, and with forms.
+GENERATED_BESIDE = {"zernet": "meshes only", "zernet-mixed": "mixed recipe (forms)"}
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -91,34 +112,34 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--forms", nargs="+", default=list(FORMS), choices=FORMS)
     parser.add_argument("--epochs", type=int, default=15)
     add_threads(parser, default=1)
-    parser.add_argument("--limit", type=int, default=None, help="only the first N test bodies")
-    add_out(parser, EXPERIMENT_RESULTS / "scans")
     parser.add_argument(
-        "--mixed",
-        nargs="+",
-        default=[],
-        metavar="FORM=N",
-        help="zernet-mixed: take FORM of the first N training bodies (default: mixed_form_bodies of "
-        "configs/recipes/scans.yaml)",
+        "--limit", type=int, default=None, help="only the first N test bodies (--real: scans, people 6 and 7 in turn)"
     )
+    add_out(parser, EXPERIMENT_RESULTS / "scans")
     parser.add_argument(
         "--set",
         nargs="+",
         default=[],
         metavar="KEY=VALUE",
         dest="overrides",
-        help="zernet-mixed: change the recipe's configuration, as 'zernet train --set' does "
+        help="zernet-mixed and the --real runs: change their configuration, as 'zernet train --set' does "
         "(e.g. data.features=xyz+normals+hks model.input_skip=true)",
     )
-    args = parser.parse_args(argv)
-    mixed = dict(BOOK["mixed_form_bodies"])
-    for item in args.mixed:
-        form, _, count = item.partition("=")
-        if form not in mixed or not count.isdigit() or not 0 <= int(count) <= 80:
-            parser.error(f"--mixed {item}: expected FORM=N with FORM one of {', '.join(mixed)} and N in 0-80")
-        mixed[form] = int(count)
-    args.mixed = mixed
-    return args
+    parser.add_argument(
+        "--real",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="instead of generated bodies: the real-people check on FAUST's segmentation scans of people 0-7, "
+        "DIR/meshes/tr_reg_XXX.ply and DIR/labels/tr_reg_XXX.txt (see REAL_MODELS)",
+    )
+    parser.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="--real: the runs' and the scoring's cache (default: RUNS/cache)",
+    )
+    return parser.parse_args(argv)
 
 
 def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
@@ -130,63 +151,27 @@ def ensure_run(model: str, bodies: Path, run_dir: Path, args) -> Path:
     config["data"].update(meshes=str(segmentation / "meshes"), labels=str(segmentation / "labels"))
     config["train"].update(epochs=args.epochs, threads=args.threads)
     config["eval"]["renders"] = 0
+    # The shipped configuration trains on forms of its training bodies; these models train on the bodies alone.
+    config["data"]["forms"] = {}
     if model == "feastnet":
         config["model"] = {key: value for key, value in config["model"].items() if key not in ZERNET_ONLY}
         config["model"]["name"] = "feastnet"
     if model == "zernet-mixed":
-        mixed = mixed_training_folder(bodies, args.mixed)
-        config["data"].update(meshes=str(mixed / "meshes"), labels=str(mixed / "labels"))
         config["patch"]["scale"] = training_scale(bodies, config["patch"].pop("area"))
         config = apply_overrides(config, [*BOOK["recipes"]["zernet-mixed"], *args.overrides])
-    path = run_dir.parent / f"{model}.yaml"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump(config))
-    subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "zernet.cli",
-            "train",
-            str(path),
-            "--run-dir",
-            str(run_dir),
-            "--no-progress",
-            "--workers",
-            str(args.threads),
-        ],
-        check=True,
-    )
+    if start_training(config, run_dir, args.threads).wait() != 0:
+        raise SystemExit(f"training {model} failed: see {run_dir / 'train.log'}")
     return run_dir
 
 
-def mixed_training_folder(bodies: Path, form_bodies: dict[str, int]) -> Path:
-    """A segmentation folder of links: the original training and test bodies, plus each form of
-    ``form_bodies`` (``--mixed``) of that many of the first training bodies (generated if
-    missing)."""
-    forms = ensure_bodies(
-        bodies / "train-forms", 100, 20, 0, forms=",".join(BOOK["mixed_form_bodies"]), forms_split="all"
-    )
-    mixed = bodies / ("mixed-" + "-".join(f"{form}{count}" for form, count in form_bodies.items()))
-    links = [
-        (bodies / "segmentation" / kind / split / f"{path.stem}{suffix}", mixed / kind / split / f"{path.stem}{suffix}")
-        for split in ("train", "test")
-        for path in sorted((bodies / "segmentation" / "meshes" / split).glob("*.ply"))
-        for kind, suffix in (("meshes", ".ply"), ("labels", ".txt"))
-    ]
-    for form, count in form_bodies.items():
-        for path in sorted((forms / "forms" / form / "meshes" / "train").glob("*.ply"))[:count]:
-            for kind, suffix in (("meshes", ".ply"), ("labels", ".txt")):
-                links.append(
-                    (
-                        forms / "forms" / form / kind / "train" / f"{path.stem}{suffix}",
-                        mixed / kind / "train" / f"{path.stem}_{form}{suffix}",
-                    )
-                )
-    for source, link in links:
-        link.parent.mkdir(parents=True, exist_ok=True)
-        if not link.exists():
-            link.symlink_to(source.resolve())
-    return mixed
+def start_training(config: dict, run_dir: Path, threads: int) -> subprocess.Popen:
+    """``zernet train`` of ``config`` into ``run_dir`` started in its own process (its configuration written
+    beside the run folder)."""
+    path = run_dir.parent / f"{run_dir.name}.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(config))
+    command = [sys.executable, "-m", "zernet.cli", "train", str(path), "--run-dir", str(run_dir)]
+    return subprocess.Popen([*command, "--no-progress", "--workers", str(threads)])
 
 
 def form_files(bodies: Path, form: str, stem: str = "*") -> list[tuple[Path, Path]]:
@@ -279,14 +264,12 @@ def percent(fraction: float | None, digits: int = 1) -> str:
 
 
 def markdown(results: dict, args, scale: float) -> list[str]:
-    mixed = args.mixed
     lines = [
         "# Scans as users bring them: segmentation on every form of 20 held-out generated bodies",
         "",
         "zernet and FeaStNet trained on the original (clean, shared-topology) training bodies only; "
-        "zernet-mixed: zernet trained on the original training bodies plus "
-        + ", ".join(f"{form} forms of {count}" for form, count in mixed.items())
-        + " of them, at one fixed scale (`patch.scale`) instead of per-shape area normalisation, with "
+        "zernet-mixed: zernet trained on the original training bodies plus forms of them, at one fixed scale "
+        "(`patch.scale`) instead of per-shape area normalisation, with "
         + ", ".join(f"`{item}`" for item in BOOK["recipes"]["zernet-mixed"])
         + ". Test split: 20 bodies "
         "never seen in training, each in every form (`zernet bodies ... --forms all`). Accuracy pooled over "
@@ -328,6 +311,8 @@ def markdown(results: dict, args, scale: float) -> list[str]:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.real is not None:
+        return real_people(args)
     ensure_bodies(args.bodies, 100, 20, 0, forms="all")
     scale = training_scale(args.bodies, 15000.0)
     results = {}
@@ -352,6 +337,181 @@ def main(argv=None) -> int:
     write_markdown(result_file(args.out, ".md"), lines)
     print("\n".join(lines))
     return 0
+
+
+# The real-people check (--real): the shipped segmentation recipe on real people, in every form.
+
+
+def real_people(args) -> int:
+    """Train both :data:`REAL_MODELS` on people 0-5 (side by side), score them on people 6-7 in every form,
+    write ``<out>_real.json`` and ``<out>_real.md`` beside the generated bodies' figures."""
+    run_dirs = ensure_real_runs(args)
+    cache_dir = args.cache_dir or args.runs / "cache"
+    scored = sorted(REAL_SCORED, key=lambda number: (number % 10, number))[: args.limit]
+    tallies = {model: {form: FormTally() for form in [*args.forms, "vertices"]} for model in REAL_MODELS}
+    for number in scored:
+        for form, (surface, truth) in real_forms(args.real, number, args.forms).items():
+            for model, run_dir in run_dirs.items():
+                tally = tallies[model][form]
+                started = time.perf_counter()
+                try:
+                    prediction = predict(run_dir, surface, cache_dir=cache_dir)
+                except Exception as error:  # a refusal is a result here: count it and say why
+                    tally.refused.append(f"tr_reg_{number:03d}: {type(error).__name__}: {error}")
+                    continue
+                tally.add(prediction, truth, time.perf_counter() - started)
+                print(f"{model:12} tr_reg_{number:03d} {form:12} {100 * tally.per_shape[-1]:6.2f} %", flush=True)
+    results = {model: {form: tally.row() for form, tally in forms.items()} for model, forms in tallies.items()}
+    for model, run_dir in run_dirs.items():
+        for row in results[model].values():
+            row["refine_rings"] = int(load_checkpoint(run_dir / "best.pt").get("refine_rings", 0))
+    stored = result_file(args.out, ".json")
+    generated = json.loads(stored.read_text())["models"] if stored.is_file() else {}
+    write_json(
+        result_file(args.out, "_real.json"),
+        {"models": results, "scored_scans": [f"tr_reg_{number:03d}" for number in scored], "epochs": args.epochs},
+    )
+    lines = real_markdown(results, generated, scored, args)
+    write_markdown(result_file(args.out, "_real.md"), lines)
+    print("\n".join(lines))
+    return 0
+
+
+def ensure_real_runs(args) -> dict[str, Path]:
+    """The run folder of each of :data:`REAL_MODELS`, trained on people 0-5 (both at once, one process
+    each) unless the folder already holds a trained run."""
+    data = args.runs / "real-data"
+    for number in [*REAL_TRAINED, *REAL_SCORED]:
+        split = "train" if number in REAL_TRAINED else "test"
+        for kind, suffix in (("meshes", ".ply"), ("labels", ".txt")):
+            link = data / kind / split / f"tr_reg_{number:03d}{suffix}"
+            link.parent.mkdir(parents=True, exist_ok=True)
+            if not link.exists():
+                link.symlink_to((args.real / kind / link.name).resolve())
+    run_dirs = {model: args.runs / f"real-{model}" for model in REAL_MODELS}
+    started = {}
+    for model, overrides in REAL_MODELS.items():
+        if (run_dirs[model] / "best.pt").is_file():
+            continue
+        config = load_config(REAL_CONFIG)
+        config["data"].update(meshes=str(data / "meshes"), labels=str(data / "labels"))
+        config["train"].update(epochs=args.epochs, threads=args.threads)
+        config["eval"]["renders"] = 0
+        config["cache_dir"] = str(args.cache_dir or args.runs / "cache")
+        config = apply_overrides(config, [*overrides, *args.overrides])
+        started[model] = start_training(config, run_dirs[model], args.threads)
+    failed = [model for model, process in started.items() if process.wait() != 0]
+    if failed:
+        raise SystemExit(f"training {', '.join(failed)} failed: see train.log in {args.runs}")
+    return run_dirs
+
+
+def real_forms(real: Path, number: int, forms) -> dict[str, tuple[Surface, np.ndarray]]:
+    """Scan ``number`` in each of ``forms`` and as its own vertices without the faces (``"vertices"``, the
+    cloud the issue measured): (surface, 0-based label per vertex or point). A form is made as ``data.forms``
+    makes forms of training shapes (:func:`~zernet.data.training_forms.load_form`, the generator of
+    :mod:`zernet.data.bodies.forms`, seeded by the scan's number): each of its vertices or points takes the
+    label of the scan vertex it comes from. Its "cloud" samples the surface uniformly by area (as many points
+    as vertices), so it holds fewer points on the hands and the face than the registration's vertices do."""
+    name = f"tr_reg_{number:03d}"
+    surface = read_surface(real / "meshes" / f"{name}.ply")
+    labels = np.loadtxt(real / "labels" / f"{name}.txt", dtype=np.int64) - 1  # the files count parts from 1
+    source = ShapeSource(name=name, load=lambda: (surface, labels))
+    made = {}
+    for form in forms:
+        made[form] = (surface, labels) if form == "original" else load_form(source, form, REAL_FORM_SEED + number)
+    made["vertices"] = (Surface(surface.vertices, None, name=f"{name} (vertices)"), labels)
+    return made
+
+
+class FormTally:
+    """Pooled counts of one model on one form: right points overall and per true part, per scan, seconds."""
+
+    def __init__(self):
+        self.right = np.zeros(len(REAL_PART_NAMES), dtype=np.int64)
+        self.points = np.zeros(len(REAL_PART_NAMES), dtype=np.int64)
+        self.per_shape: list[float] = []
+        self.seconds: list[float] = []
+        self.refused: list[str] = []
+
+    def add(self, prediction: np.ndarray, truth: np.ndarray, seconds: float) -> None:
+        parts = len(REAL_PART_NAMES)
+        self.right += np.bincount(truth[prediction == truth], minlength=parts)
+        self.points += np.bincount(truth, minlength=parts)
+        self.per_shape.append(float((prediction == truth).mean()))
+        self.seconds.append(seconds)
+
+    def row(self) -> dict:
+        extremities = np.isin(np.arange(len(REAL_PART_NAMES)), EXTREMITIES)
+        return {
+            "accuracy": share(self.right.sum(), self.points.sum()),
+            "accuracy_head_and_hands": share(self.right[extremities].sum(), self.points[extremities].sum()),
+            "accuracy_elsewhere": share(self.right[~extremities].sum(), self.points[~extremities].sum()),
+            "head_and_hands_share": share(self.points[extremities].sum(), self.points.sum()),
+            "accuracy_per_part": {
+                name: share(right, points) for name, right, points in zip(REAL_PART_NAMES, self.right, self.points)
+            },
+            "shapes": len(self.per_shape),
+            "vertices": int(self.points.sum()),
+            "per_shape_min": min(self.per_shape) if self.per_shape else None,
+            "refused": self.refused,
+            "seconds_per_shape_median": float(np.median(self.seconds)) if self.seconds else None,
+        }
+
+
+def share(part: int, whole: int) -> float | None:
+    """``part / whole`` as a float, None for an empty whole."""
+    return float(part / whole) if whole else None
+
+
+def real_markdown(results: dict, generated: dict, scored: list[int], args) -> list[str]:
+    """The lines of ``scans_real.md``: the real people's table, then the generated bodies' (``scans.json``)."""
+    lines = [
+        "# The real-people check: segmentation of real scans in every form",
+        "",
+        f"`configs/segmentation.yaml` as shipped (`data.forms` on) and the same with `data.forms={{}}` (meshes "
+        f"only), trained on FAUST's segmentation scans of people 0-5 (tr_reg_000-059; {args.epochs} epochs, "
+        f"one thread), scored on {len(scored)} scans of people 6-7 (tr_reg_060-079) in every form: the "
+        "registration mesh and forms of it made as `data.forms` makes them (`zernet/data/bodies/forms.py` through "
+        "`zernet.data.training_forms.load_form`: remeshed, decimated, a cloud sampled uniformly by area with as "
+        "many points as vertices, half as many points with 2 mm of noise, one-sided) and the scan's own vertices "
+        "as a cloud (*vertices*: denser on the hands and face than a uniform cloud), each point labelled by the "
+        "scan vertex it comes from, predicted by "
+        "`zernet.inference.predict` as given (area-normalised, the run's refinement). Accuracy pooled over the "
+        "points; *drop*: points below the mesh; *head+hands / rest*: accuracy on the points of those parts "
+        "(where a cloud's triangulation can bridge fingers or close the mouth) and on the others.",
+        "",
+    ]
+    header = ["data", "model", "form", "accuracy", "drop", "worst scan", "head+hands / rest", "refused", "rings"]
+    rows = []
+    for model, forms in results.items():
+        mesh = forms.get("original", {}).get("accuracy")
+        for form, row in forms.items():
+            accuracy = row["accuracy"]
+            drop = "" if None in (accuracy, mesh) or form == "original" else f"{100 * (mesh - accuracy):.1f}"
+            rows.append(
+                [
+                    "real",
+                    REAL_MODEL_NAMES[model],
+                    form,
+                    percent(accuracy, 2),
+                    drop,
+                    percent(row["per_shape_min"]),
+                    f"{percent(row['accuracy_head_and_hands'])} / {percent(row['accuracy_elsewhere'])}",
+                    f"{len(row['refused'])} / {row['shapes'] + len(row['refused'])}",
+                    str(row["refine_rings"]),
+                ]
+            )
+    for model, name in GENERATED_BESIDE.items():
+        forms = generated.get(model, {})
+        mesh = forms.get("original", {}).get("accuracy")
+        for form, row in forms.items():
+            accuracy = row["accuracy"]
+            drop = "" if None in (accuracy, mesh) or form == "original" else f"{100 * (mesh - accuracy):.1f}"
+            refused = f"{len(row['refused'])} / {row['shapes'] + len(row['refused'])}"
+            rows.append(["generated", name, form, percent(accuracy, 2), drop, percent(row["per_shape_min"]), "-"])
+            rows[-1] += [refused, str(row.get("refine_rings", 0))]
+    return lines + markdown_table(header, rows, align="lllrrrrrr")
 
 
 if __name__ == "__main__":
