@@ -156,6 +156,17 @@ def test_zernet_match_repairs_only_the_vertices_whose_template_match_does_not_co
     # On a generated pair the template map is already right almost everywhere: the repair costs nothing.
     assert error(repaired.vertex_map) < error(kept.vertex_map) + 0.01 * np.sqrt(target.area)
 
+    # A part of a body (its front half, in the same units) is left as the template model maps it: distances
+    # along it cannot cross the missing side.
+    front_vertices = np.flatnonzero(source.vertices[:, 2] > np.median(source.vertices[:, 2]))
+    inside = np.isin(source.faces, front_vertices).all(axis=1)
+    renumber = np.full(source.n_vertices, -1)
+    renumber[front_vertices] = np.arange(len(front_vertices))
+    front = Surface(source.vertices[front_vertices], renumber[source.faces[inside]], name="front")
+    part, _, _ = match_surfaces(front, target, same_scale=True)
+    part_kept, _, _ = match_surfaces(front, target, same_scale=True, repair=False)
+    np.testing.assert_array_equal(part.vertex_map, part_kept.vertex_map)
+
 
 @pytest.mark.parametrize("flags, repair", [([], True), (["--no-repair"], False)])
 def test_zernet_match_repairs_by_default_and_not_with_no_repair(tmp_path, monkeypatch, shape, flags, repair):
