@@ -174,7 +174,9 @@ def test_loader_options_defaults_and_checks():
 
 
 def test_shape_cache_paths_are_unchanged():
-    """Cache file names computed before the data package was restructured: existing caches stay valid."""
+    """Cache file names computed before the data package was restructured: existing caches stay valid.
+    (Recomputed once when the patch config gained ``precision``, issue 50: features read from the patch
+    operator, such as the shape descriptors, depend on the precision its cache stores.)"""
     config = [PatchConfig(r0=4.0, n_samples=1000, patch_size=30, n_max=3, backend="fast")]
 
     def source(seed, task, exponent):
@@ -182,10 +184,10 @@ def test_shape_cache_paths_are_unchanged():
         return ShapeSource(f"creature_{seed:03d}", partial(load_creature, seed, 300, True, task), key, exponent)
 
     assert shape_cache_path(Path("c"), source(0, "segmentation", 0.0), 1000.0, config, False) == Path(
-        "c/shapes/creature_000-5cacefd9896c97d341da.npz"
+        "c/shapes/creature_000-0ab9e487ba786f8778d6.npz"
     )
     assert shape_cache_path(Path("c"), source(1, "regression", -0.5), 1000.0, config, False) == Path(
-        "c/shapes/creature_001-5547069ddacd24b03c8e.npz"
+        "c/shapes/creature_001-3b0c434f7663a50813dd.npz"
     )
     assert shape_cache_path(Path("c"), ShapeSource("x", load_creature), 1000.0, config, False) is None
 
