@@ -28,6 +28,7 @@ __all__ = [
     "WIDE_TRUNK_RANGES",
     "ARM_STYLES",
     "LEG_STYLES",
+    "STANDING_LEG",
     "FORWARD",
     "BACK",
     "UP",
@@ -132,7 +133,7 @@ ARM_STYLES = {
         {
             "shoulder raise": (70.0, 130.0),
             "shoulder swing": (-15.0, 40.0),
-            "elbow": (0.0, 130.0),
+            "elbow": (0.0, 110.0),
             "shoulder twist": (-90.0, 20.0),
             "shoulder girdle raise": (5.0, 25.0),
         },
@@ -151,8 +152,8 @@ ARM_STYLES = {
         {
             "shoulder raise": (-15.0, 15.0),
             "shoulder swing": (20.0, 60.0),
-            "elbow": (70.0, 120.0),
-            "shoulder twist": (30.0, 90.0),
+            "elbow": (70.0, 110.0),
+            "shoulder twist": (30.0, 75.0),
         },
     ),
     "behind": (
@@ -160,7 +161,7 @@ ARM_STYLES = {
         {
             "shoulder raise": (-10.0, 20.0),
             "shoulder swing": (-45.0, -20.0),
-            "elbow": (40.0, 100.0),
+            "elbow": (40.0, 90.0),
             "shoulder twist": (20.0, 80.0),
         },
     ),
@@ -171,8 +172,8 @@ ARM_STYLES = {
 LEG_STYLES = {
     "stand": (0.35, {"hip swing": (-10.0, 15.0), "hip spread": (-3.0, 15.0), "knee": (0.0, 20.0)}),
     "step": (0.2, {"hip swing": (-15.0, 50.0), "hip spread": (-3.0, 20.0), "knee": (0.0, 80.0)}),
-    "bent": (0.2, {"hip swing": (50.0, 110.0), "hip spread": (-3.0, 30.0), "knee": (50.0, 130.0)}),
-    "one-leg": (0.25, {"hip swing": (20.0, 100.0), "hip spread": (-3.0, 50.0), "knee": (30.0, 130.0)}),
+    "bent": (0.2, {"hip swing": (50.0, 100.0), "hip spread": (-3.0, 30.0), "knee": (50.0, 120.0)}),
+    "one-leg": (0.25, {"hip swing": (20.0, 100.0), "hip spread": (-3.0, 50.0), "knee": (30.0, 120.0)}),
 }
 #: ``one-leg``: the ranges of the leg stood on.
 STANDING_LEG = LEG_STYLES["stand"][1]
