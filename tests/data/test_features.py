@@ -1,5 +1,8 @@
 """Rotation-invariant shape descriptors computed with the patch operator (zernet.data.features)."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import trimesh
@@ -182,16 +185,33 @@ def test_a_registered_input_part_joins_every_feature_kind_function(monkeypatch):
         features.register_input_part("a+b", 1, _columns)
 
 
-def test_the_template_part_is_registered_by_matching_and_named_when_it_is_not(monkeypatch):
-    import zernet.matching  # noqa: F401  (registers "template")
+def test_the_template_part_is_provided_by_matching_through_its_entry_point():
+    # A fresh interpreter that never imports zernet.matching itself: asking for the part loads its provider.
+    code = (
+        "import sys; from zernet.data.features import feature_channels; "
+        "print(feature_channels('xyz+hks+template', 5), 'zernet.matching.template' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == [str(3 + 16 + 3), "True"]
+
+
+def test_a_broken_or_silent_provider_is_named(monkeypatch):
     from zernet.data import features
     from zernet.data.dataset import DatasetError
 
-    assert features.FEATURE_PARTS["template"].channels([5]) == 3
-    assert feature_channels("xyz+hks+template", 5) == 3 + 16 + 3
-    without = {name: part for name, part in features.FEATURE_PARTS.items() if name != "template"}
-    monkeypatch.setattr(features, "FEATURE_PARTS", without)
-    with pytest.raises(DatasetError, match="'template' of 'xyz\\+template' is not registered.*import zernet.matching"):
-        compute_features(_sphere(), "xyz+template")
+    class Entry:
+        name, value = "colour", "somepackage.colour"
+
+        def __init__(self, load):
+            self.load = load
+
+    def fail():
+        raise ImportError("no module named somepackage")
+
+    for load, message in ((fail, "provider somepackage.colour failed to load"), (lambda: None, "did not register")):
+        monkeypatch.setattr(features.importlib.metadata, "entry_points", lambda group, load=load: [Entry(load)])
+        with pytest.raises(DatasetError, match=message):
+            feature_channels("xyz+colour")
+    monkeypatch.setattr(features.importlib.metadata, "entry_points", lambda group: [])
     with pytest.raises(DatasetError, match="unknown feature kind 'xyz\\+colour'"):
         feature_channels("xyz+colour")

@@ -11,9 +11,6 @@ from __future__ import annotations
 
 import argparse
 
-# Imported for what it registers: the "template" input part (zernet.data.features), which train, evaluate
-# and predict read when a configuration or a checkpoint names it.
-import zernet.matching  # noqa: F401
 from zernet.cli import bodies, demo, evaluate, match, predict, preprocess, train
 from zernet.cli.errors import run_reporting_errors
 from zernet.inference.runtime import keep_freed_memory

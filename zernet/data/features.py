@@ -4,12 +4,14 @@ A feature kind joins registered parts with "+" (e.g. ``"xyz+normals"`` or ``"sha
 :func:`compute_features` puts the parts' channels side by side in that order and :func:`feature_channels`
 says how many there are before any surface is loaded. The parts are a registry, :data:`FEATURE_PARTS`:
 the built-in ones are registered at the end of this module, and a higher layer adds its own with
-:func:`register_input_part` (``template``, which runs a trained model, registers from :mod:`zernet.matching`
-when that is imported; the ``zernet`` command imports it).
+:func:`register_input_part` (``template``, which runs a trained model, registers from
+:mod:`zernet.matching.template`). A feature kind naming a part not registered yet imports the module that
+declares it under the entry-point group :data:`INPUT_PART_ENTRY_POINTS`, so callers need not know who provides it.
 """
 
 from __future__ import annotations
 
+import importlib.metadata
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -24,7 +26,7 @@ from zernet.zernike import harmonic_pairs, index_to_nm, orders
 __all__ = [
     "InputPart",
     "FEATURE_PARTS",
-    "PARTS_REGISTERED_ELSEWHERE",
+    "INPUT_PART_ENTRY_POINTS",
     "register_input_part",
     "MEMBRANE_PRESTRESSES",
     "HKS_EIGENPAIRS",
@@ -67,9 +69,11 @@ class InputPart:
 #: The registered input parts by name (:func:`register_input_part`).
 FEATURE_PARTS: dict[str, InputPart] = {}
 
-#: Parts that a higher layer registers when it is imported, and which: named in the error when a feature
-#: kind asks for one that is not registered yet.
-PARTS_REGISTERED_ELSEWHERE = {"template": "zernet.matching"}
+#: Entry-point group of the modules that register input parts from above this layer (zernet's own
+#: ``template`` part, ``zernet.matching.template``, is declared in pyproject.toml; other packages may add
+#: theirs): a feature kind naming an unregistered part imports the module that provides it, so no caller has
+#: to import it first and nothing here imports a higher layer by name.
+INPUT_PART_ENTRY_POINTS = "zernet.input_parts"
 
 
 def register_input_part(
@@ -118,17 +122,10 @@ def default_features(surface: Surface) -> np.ndarray:
 
 
 def feature_parts(kind: str) -> list[str]:
-    """The registered parts of feature kind ``kind`` ("+"-joined), in order; DatasetError if one is unknown,
-    or not registered yet (then the error says which module registers it)."""
+    """The registered parts of feature kind ``kind`` ("+"-joined), in order, after loading the providers of
+    unregistered ones (:data:`INPUT_PART_ENTRY_POINTS`); DatasetError if one is still unknown."""
     parts = str(kind).split("+")
-    unregistered = [part for part in parts if part in PARTS_REGISTERED_ELSEWHERE and part not in FEATURE_PARTS]
-    if unregistered:
-        part = unregistered[0]
-        module = PARTS_REGISTERED_ELSEWHERE[part]
-        raise DatasetError(
-            f"feature part {part!r} of {kind!r} is not registered: {module} registers it when imported "
-            f"(the zernet command does; in Python, `import {module}` before training, evaluating or predicting)"
-        )
+    _load_provided_parts({part for part in parts if part not in FEATURE_PARTS})
     unknown = [part for part in parts if part not in FEATURE_PARTS]
     if unknown or len(set(parts)) != len(parts):
         raise DatasetError(
@@ -136,6 +133,22 @@ def feature_parts(kind: str) -> list[str]:
             "with '+', e.g. 'xyz+normals' or 'shape+curvature+membrane'"
         )
     return parts
+
+
+def _load_provided_parts(names: set[str]) -> None:
+    """Import the modules that declare (by entry point) the input parts ``names``: importing registers them."""
+    if not names:
+        return
+    for entry in importlib.metadata.entry_points(group=INPUT_PART_ENTRY_POINTS):
+        if entry.name in names:
+            try:
+                entry.load()
+            except Exception as error:  # a broken provider is named, not hidden behind "unknown part"
+                raise DatasetError(
+                    f"input part {entry.name!r}: its provider {entry.value} failed to load: {error}"
+                ) from error
+            if entry.name not in FEATURE_PARTS:
+                raise DatasetError(f"input part {entry.name!r}: {entry.value} loaded but did not register it")
 
 
 def feature_channels(kind: str, n_max=5) -> int:
