@@ -106,8 +106,20 @@ def machine() -> dict:
 
 
 def command() -> str:
-    """The command line that ran this script, as it would be typed from the repository root."""
-    return " ".join(["python", "-m", module_name(Path(sys.argv[0])), *sys.argv[1:]])
+    """The command line that ran this script, as it would be typed from the repository root; a path outside
+    the repository (the user's data, caches, run folders) is shown by its last part only (``.../MPI-FAUST``),
+    so that result files never point outside the repository."""
+    return " ".join(["python", "-m", module_name(Path(sys.argv[0])), *map(_shown, sys.argv[1:])])
+
+
+def _shown(argument: str) -> str:
+    key, equals, value = argument.rpartition("=") if "=" in argument else ("", "", argument)
+    path = Path(value).expanduser()
+    if not path.is_absolute() and not value.startswith("~"):
+        return argument
+    if path.resolve().is_relative_to(REPO):
+        return key + equals + str(path.resolve().relative_to(REPO))
+    return key + equals + ".../" + path.name
 
 
 def module_name(script: Path) -> str:

@@ -117,7 +117,6 @@ def run_recipe(name: str, config: dict, run_dir: Path) -> dict:
     unrefined = metrics.get("unrefined_summary", refined)
     return {
         "recipe": name,
-        "run_dir": str(run_dir),
         "best_epoch": metrics.get("best_epoch"),
         "refine_rings": metrics.get("refine_rings"),
         "refine_spectral": metrics.get("refine_spectral"),

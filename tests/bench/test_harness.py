@@ -85,3 +85,25 @@ def test_body_surface_is_the_first_generated_training_body():
     assert list(parts) == [HUMAN_PART_NAMES[part] for part in body.parts]
     scaled, _ = harness.body_surface(seed=0)
     assert scaled.area == pytest.approx(harness.BODY_AREA)
+
+
+def test_the_command_shows_paths_outside_the_repository_by_their_last_part_only(monkeypatch):
+    monkeypatch.setattr(
+        harness.sys,
+        "argv",
+        [
+            str(harness.REPO / "benchmarks/speed/bench_operator.py"),
+            "--data",
+            "/home/me/MPI-FAUST",
+            "--set",
+            "data.root=/srv/scans",
+            "--out",
+            str(harness.REPO / "benchmarks/speed/results/x"),
+            "--threads",
+            "2",
+        ],
+    )
+    assert harness.command() == (
+        "python -m benchmarks.speed.bench_operator --data .../MPI-FAUST --set data.root=.../scans "
+        "--out benchmarks/speed/results/x --threads 2"
+    )
