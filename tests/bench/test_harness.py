@@ -1,6 +1,7 @@
 """The benchmarks' shared harness: result files and the generated-bodies folder it keeps."""
 
 import json
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -46,14 +47,20 @@ def test_write_markdown_ends_with_the_command_and_commit(tmp_path, monkeypatch):
     assert text == "# scans\n\nbody\n\nMade by `python -m benchmarks.experiments.scans` at commit `abc123`.\n"
 
 
-def test_commit_is_the_repository_head():
-    head = (harness.REPO / ".git" / "HEAD").read_text().strip()
-    if head.startswith("ref: "):
-        ref = harness.REPO / ".git" / head[5:]
-        if not ref.is_file():
-            pytest.skip("packed ref")
-        head = ref.read_text().strip()
-    assert harness.commit().removesuffix("-dirty") == head
+def test_commit_names_the_checkout_head_and_marks_changed_tracked_files(tmp_path):
+    def git(*arguments):
+        return subprocess.run(["git", "-C", str(tmp_path), *arguments], capture_output=True, text=True, check=True)
+
+    git("init", "-q")
+    (tmp_path / "a.txt").write_text("one")
+    git("add", "a.txt")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "first")
+    head = git("rev-parse", "HEAD").stdout.strip()
+    (tmp_path / "untracked.txt").write_text("ignored")
+    assert harness.commit(tmp_path) == head
+    (tmp_path / "a.txt").write_text("two")
+    assert harness.commit(tmp_path) == head + "-dirty"
+    assert harness.commit(tmp_path / "no-repository-here") == "unknown"
 
 
 def test_ensure_bodies_writes_once_per_set_of_parameters(tmp_path, monkeypatch):
