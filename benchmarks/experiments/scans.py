@@ -25,6 +25,15 @@ median over the training bodies, as a user who knows their scanner's units would
 ``zernet predict --scale``).
 
     .venv/bin/python -m benchmarks.experiments.scans --bodies data/scans --runs runs/scans --models zernet feastnet zernet-mixed
+
+With ``--real DIR`` (FAUST's segmentation scans of people 0-7, ``DIR/meshes/tr_reg_XXX.ply`` and
+``DIR/labels/tr_reg_XXX.txt``, kept outside the repository) it checks the shipped recipe on real people
+instead: ``configs/segmentation.yaml`` trained on people 0-5 as shipped (forms of its training scans) and
+with ``data.forms={}`` (the two side by side, one process each), both scored on people 6-7 in every form
+made from their scans plus the scans' own vertices as a cloud, written to ``scans_real.json`` and
+``scans_real.md`` beside the generated bodies' figures of ``scans.json``:
+
+    .venv/bin/python -m benchmarks.experiments.scans --real ~/real/faust_seg --runs ~/runs/scans-real --epochs 6
 """
 
 from __future__ import annotations
