@@ -198,6 +198,7 @@ def test_bodies_command_writes_the_loader_layouts(tmp_path, capsys):
 def test_bad_shape_and_repair_options_are_offered_where_they_apply(capsys):
     for command, option in (
         ("preprocess", "--skip-bad"),
+        ("preprocess", "--no-progress"),
         ("train", "--skip-bad"),
         ("evaluate", "--skip-bad"),
         ("predict", "--backend"),
@@ -224,6 +225,9 @@ def test_advice_in_messages_names_only_options_the_command_has(command):
 def test_preprocess_of_a_feastnet_config_builds_no_operators(tmp_path, capsys):
     config = cli_config(tmp_path / "cache")
     config["model"] = {"name": "feastnet", "widths": [8, 8, 16]}
-    assert main(["preprocess", str(write_config(tmp_path / "feast.yaml", config)), "--workers", "0"]) == 0
-    assert "no patch operators built: model feastnet reads only the mesh edges" in capsys.readouterr().out
+    feast = str(write_config(tmp_path / "feast.yaml", config))
+    assert main(["preprocess", feast, "--workers", "0", "--no-progress"]) == 0
+    output = capsys.readouterr()
+    assert "shape/s" not in output.err  # no progress bar ("preprocess: 50%|... 2.1shape/s")
+    assert "no patch operators built: model feastnet reads only the mesh edges" in output.out
     assert not list((tmp_path / "cache").glob("*.npz")) and list((tmp_path / "cache" / "shapes").glob("*.npz"))

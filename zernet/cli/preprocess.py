@@ -8,7 +8,14 @@ import time
 import warnings
 from pathlib import Path
 
-from zernet.cli.options import add_overrides, add_skip_bad, add_workers, command_parser, overrides_with_skip_bad
+from zernet.cli.options import (
+    add_no_progress,
+    add_overrides,
+    add_skip_bad,
+    add_workers,
+    command_parser,
+    overrides_with_skip_bad,
+)
 from zernet.data import SkippedShapesWarning
 from zernet.training import build_dataset, check_model_config, read_config
 
@@ -29,6 +36,7 @@ def add_command(sub) -> None:
     add_skip_bad(parser)
     parser.add_argument("config", type=Path, help="YAML configuration file (see configs/)")
     add_workers(parser)
+    add_no_progress(parser)
     parser.set_defaults(handler=run)
 
 
@@ -38,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SkippedShapesWarning)  # listed below instead
-        dataset = build_dataset(config, progress=True, workers=args.workers)
+        dataset = build_dataset(config, progress=not args.no_progress, workers=args.workers)
     seconds = time.perf_counter() - started
     print(
         f"preprocessed {dataset.summary() if hasattr(dataset, 'summary') else len(dataset)} "
