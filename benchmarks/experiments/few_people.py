@@ -69,6 +69,13 @@ from zernet.training.config import apply_overrides
 #: ``pretrained_on_other_people`` and ``renumbered`` (see the file's comments).
 BOOK = yaml.safe_load((RECIPES / "few_people.yaml").read_text())
 CONFIG = REPO / BOOK["base"]
+
+
+def base_config() -> dict:
+    """The base run configuration with the catalogue's ``base_overrides``: the recipe the others vary."""
+    return apply_overrides(load_config(CONFIG), BOOK.get("base_overrides", []))
+
+
 N_PEOPLE, N_POSES = 10, 10
 #: People of the third draw on which recipes are compared (the validation split holds the training people).
 N_UNSEEN = 2
@@ -166,7 +173,7 @@ def diversity(root: Path, topology: str, seed: int, cache_dir: Path) -> dict:
 def recipe_config(
     data_root: Path, recipe: str, epochs: int | None, threads: int | None, n_vertices: int, cache_dir: Path
 ) -> dict:
-    config = load_config(CONFIG)
+    config = base_config()
     config["cache_dir"] = str(cache_dir)
     config["data"].update({"root": str(data_root), "n_vertices": n_vertices})
     config["train"].update({"threads": threads, "keep_epochs": True})
@@ -461,13 +468,13 @@ def main() -> None:
         "topology": args.topology,
         "n_vertices": N_VERTICES[args.topology],
         "seed": args.seed,
-        "epochs": args.epochs or load_config(CONFIG)["train"]["epochs"],
+        "epochs": args.epochs or base_config()["train"]["epochs"],
         "pretraining": None
         if not pretrained_recipes
         else {
             "topology": args.pretrain_topology or args.topology,
             "bodies": args.pretrain_count,
-            "epochs": args.pretrain_epochs or load_config(CONFIG)["train"]["epochs"],
+            "epochs": args.pretrain_epochs or base_config()["train"]["epochs"],
         },
         "diversity": diversity(args.data, args.topology, args.seed, args.cache_dir),
         "recipes": [],

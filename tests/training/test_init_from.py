@@ -22,6 +22,7 @@ from zernet.inference import build_model_from_spec, load_checkpoint, model_file,
 from zernet.inference.model_file import pretrained_names
 from zernet.operators import PatchConfig
 from zernet.training import ConfigError, load_config, parse_config, train
+from zernet.training.config import apply_overrides
 from zernet.training.init_from import export_backbone, initialise_from, load_init_source
 
 
@@ -199,11 +200,16 @@ def test_the_shipped_weights_load():
             assert source.weights["output.weight"].shape[0] == len(vertices) and faces.max() == len(vertices) - 1
 
 
-def test_the_faust_config_starts_from_the_shipped_model():
-    """configs/faust_single_scale.yaml names the shipped model for its inputs (xyz + hks + template, input
-    skip), and the model it builds takes every weight from it, its 6,890-way output layer included (carried
-    by the model's vote when the run's template has another vertex order: tested above)."""
-    config = parse_config(load_config(Path(__file__).resolve().parents[2] / "configs" / "faust_single_scale.yaml"))
+def test_the_generated_start_fits_the_faust_config_with_its_inputs():
+    """The shipped generated-body model is a start for configs/faust_single_scale.yaml with its inputs
+    (xyz + hks + template, input skip; the overrides of the real-people benchmark's ``generated-start``):
+    the model takes every weight from it, its 6,890-way output layer included (carried by the model's vote
+    when the run's template has another vertex order: tested above)."""
+    root = Path(__file__).resolve().parents[2]
+    overrides = yaml.safe_load((root / "configs" / "recipes" / "faust_people.yaml").read_text())["recipes"]
+    config = load_config(root / "configs" / "faust_single_scale.yaml")
+    assert config["train"]["init_from"] is None  # the shipped recipe starts from scratch
+    config = parse_config(apply_overrides(config, overrides["generated-start"]))
     assert config.train.init_from == "pretrained:bodies-faust-template"
     degrees = [int(scale["n_max"]) for scale in config.patch.scales]
     in_channels = feature_channels(config.data.options["features"], degrees)
