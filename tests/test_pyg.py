@@ -44,8 +44,13 @@ def _as_read(surface: Surface) -> Surface:
 
 
 def _same_matrix(a, b) -> None:
-    difference = abs(a.tocsr() - b.tocsr())
-    assert a.shape == b.shape and (difference.nnz == 0 or difference.max() == 0)
+    """The same operator: the same entries, values equal up to one float16 rounding step. Reading a cache file
+    fits its patches again, and the BLAS of another thread count can round the last bit of a float64 fit
+    differently, which moves a few float16 values by one step."""
+    a, b = a.tocsr(), b.tocsr()
+    a.sort_indices(), b.sort_indices()
+    assert a.shape == b.shape and np.array_equal(a.indptr, b.indptr) and np.array_equal(a.indices, b.indices)
+    assert np.all(np.abs(a.data - b.data) <= 2.0**-10 * np.abs(b.data) + 1e-7)
 
 
 def test_transform_operators_equal_build_patch_operator(tmp_path):

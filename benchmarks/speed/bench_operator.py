@@ -18,9 +18,10 @@ r > 0.1 r0, after each centre's constant offset). The build time is the whole
 
 Cache formats (``--formats`` runs only these rows, at ``--threads`` threads, 2 by default): the body with the
 shipped FAUST patch settings (``configs/faust_single_scale.yaml``) stored as cache format 4 (the float32 CSR
-matrix and its transpose, rebuilt here from the expanded matrix) and as format 5 (vertex pairs,
-:mod:`zernet.operators.pairs`) in each precision: bytes on disk and held for a step, build time, one
-convolution layer's forward+backward (64 -> 128 channels) and its output's difference from format 4's.
+matrix and its transpose, rebuilt here from the expanded matrix) and as format 6 (the patches' sample
+geometry on disk, fitted again into vertex pairs, :mod:`zernet.operators.pairs`, when read) in each
+precision: bytes on disk and held for a step, build time, read time, one convolution layer's
+forward+backward (64 -> 128 channels) and its output's difference from format 4's.
 
 The procedural :func:`mannequin` (capsules, no limb-torso junctions; it cannot show the far-side failure
 of folds) is kept as the stand-in operator of ``bench_layers --real``.
@@ -56,7 +57,7 @@ from benchmarks.harness import (
 )
 from benchmarks.speed.bench_geodesics import exact_reference, score
 from zernet.geometry import Surface, compute_polar, load_surface, normalize_area, sample_surface, tangent_frames
-from zernet.operators import PatchConfig, build_patch_operator
+from zernet.operators import PatchConfig, PatchOperator, build_patch_operator
 
 ANEURYSMS = Path("data/aneurysm")  # your copy of the aneurysm data set
 FAUST_RECIPE = REPO / "configs" / "faust_single_scale.yaml"
@@ -218,9 +219,10 @@ def _layer_time(conv, operator, x, repeats: int) -> float:
 
 
 def bench_formats(surface: Surface, precisions, width: int, repeats: int) -> dict:
-    """Format 4 (the float32 CSR matrix and its stored transpose, multiplied by torch) against format 5 (vertex
-    pairs, :mod:`zernet.operators.pairs`) in each precision, on one surface with the shipped FAUST settings:
-    bytes per shape on disk and held in memory, build time, one convolution layer's forward+backward
+    """Format 4 (the float32 CSR matrix and its stored transpose, multiplied by torch) against format 6 (the
+    sample geometry in the file, vertex pairs in memory, :mod:`zernet.operators.pairs`) in each precision, on
+    one surface with the shipped FAUST settings: bytes per shape on disk and held in memory, build time, the
+    time to read a cached file (median of three), one convolution layer's forward+backward
     (``width`` -> ``2 width`` channels) and its largest output difference from format 4's, relative to the
     largest output. Format 4 is rebuilt from the expanded matrix: the file it wrote (its arrays packed as
     it packed them) and the tensors its layers held (:class:`zernet.nn.reference.MatrixOperator`, the same
@@ -267,6 +269,7 @@ def bench_formats(surface: Surface, precisions, width: int, repeats: int) -> dic
                 "disk_mb": old_file.stat().st_size / 1e6,
                 "memory_mb": old_bytes / 1e6,
                 "build_s": old_build_s,
+                "read_s": None,
                 "layer_ms": 1e3 * _layer_time(conv, old, x, repeats),
                 "layer_relative_difference": 0.0,
             }
@@ -276,16 +279,21 @@ def bench_formats(surface: Surface, precisions, width: int, repeats: int) -> dic
             started = time.perf_counter()
             operator = build_patch_operator(surface, faust_patch_config(precision), cache_dir=folder)
             build_s = time.perf_counter() - started
+            read_s = []
+            for _ in range(3):
+                started = time.perf_counter()
+                PatchOperator.load(operator.cache_file)
+                read_s.append(time.perf_counter() - started)
             operator.to("cpu", [order] if order else [])
             with torch.no_grad():
                 out = conv(x, operator)
             rows.append(
                 {
-                    "format": f"5: pairs, {precision}",
+                    "format": f"6: geometry, {precision} pairs",
                     "disk_mb": operator.cache_file.stat().st_size / 1e6,
                     "memory_mb": operator.prepared_nbytes / 1e6,
-                    "mapped_mb": operator.mapped_nbytes / 1e6,
                     "build_s": build_s,
+                    "read_s": float(np.median(read_s)),
                     "layer_ms": 1e3 * _layer_time(conv, operator, x, repeats),
                     "layer_relative_difference": float((out - reference).abs().max() / reference.abs().max()),
                 }
@@ -305,13 +313,15 @@ def print_formats(result: dict) -> None:
         f"cache formats, N={result['vertices']}, {result['pairs']} pairs ({result['nnz_format_4']} non-zeros), "
         f"conv {result['width']} -> {2 * result['width']}, {result['threads']} threads"
     )
-    header = f"{'format':<28}{'disk MB':>9}{'memory MB':>10}{'build s':>9}{'layer ms':>10}{'rel. diff':>11}"
+    header = (
+        f"{'format':<28}{'disk MB':>9}{'memory MB':>10}{'build s':>9}{'read s':>8}{'layer ms':>10}{'rel. diff':>11}"
+    )
     print(header)
     print("-" * len(header))
     for row in result["rows"]:
         print(
             f"{row['format']:<28}{row['disk_mb']:>9.1f}{row['memory_mb']:>10.1f}{row['build_s']:>9.2f}"
-            f"{row['layer_ms']:>10.0f}{row['layer_relative_difference']:>11.1e}"
+            f"{'-' if row['read_s'] is None else format(row['read_s'], '.2f'):>8}{row['layer_ms']:>10.0f}{row['layer_relative_difference']:>11.1e}"
         )
 
 

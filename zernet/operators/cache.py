@@ -19,11 +19,13 @@ another format version or for another key; the builder then warns with :class:`C
 Files are written atomically (:func:`zernet.io_utils.atomic_write_bytes`: a reader sees the old file or the
 new one, and a mapped old file stays valid after a rename replaces it).
 
-A patch operator's file holds its matrix as the layers read it: vertex pairs with ``k`` values each
-(:mod:`zernet.operators.pairs`; values in ``PatchConfig.precision``, float16 by default, indices in their
-narrowest types; :meth:`zernet.operators.PatchOperator.to_arrays`), so preparing it for a training step
-is one counting pass for the backward's order, never a decode. With the shipped FAUST settings a
-6,890-vertex body's file is about 28 MB in float16 (format 4, float32 CSR with its transpose: 195 MB;
+A patch operator's file holds what is costly to compute and small to keep: the patches' sample geometry
+(for each vertex its samples with their geodesic polar coordinates, the samples' interpolation from the
+vertices, the tangent frames; float32, indices in their narrowest types;
+:meth:`zernet.operators.PatchOperator.to_arrays`). Reading it fits each patch again and carries the fit to
+the vertices (:func:`zernet.operators.patch.fit_pairs`): with the shipped FAUST settings a 6,890-vertex
+body's file is 5.1 MB and its float16 pairs in memory 19.4 MB, read in about 0.4 s at two threads (format 5,
+the pairs in the file: 23.7 MB; format 4, the float32 CSR matrix and its transpose: 183 MB;
 ``benchmarks/speed/bench_operator.py``). Beside it, ``<key>.transport.zop`` keeps the operator's vertex pairs and transport angles once a
 directional model has asked for them (:func:`zernet.operators.directional.patch_transport`).
 
@@ -74,7 +76,9 @@ __all__ = [
 #: Version 4: raw memory-mapped arrays (:func:`write_arrays`): float32 matrix with its stored transpose.
 #: Version 5: the matrix as vertex pairs (:class:`zernet.operators.pairs.VertexPairs`), values in the
 #: config's ``precision``, no stored transpose, the patch samples as flat lists.
-FORMAT_VERSION = 5
+#: Version 6: the patches' sample geometry only (flat patch lists, interpolation, frames, in float32): the
+#: matrix is fitted again on reading.
+FORMAT_VERSION = 6
 
 #: Version of the checked ``.npz`` payload (:func:`pack_payload`), which other modules use for small files.
 PAYLOAD_VERSION = 3
@@ -116,10 +120,11 @@ def cache_path(cache_dir: str | os.PathLike, key: str) -> Path:
 
 
 def legacy_cache_paths(cache_dir: str | os.PathLike, surface, config, backend: str) -> list[Path]:
-    """Where formats 4 (``.zop``, the CSR matrix and its transpose) and 3 (a checked ``.npz``) kept the same
-    operator; their keys knew no ``precision``."""
+    """Where formats 5 (``.zop``, the vertex pairs), 4 (``.zop``, the CSR matrix and its transpose) and 3 (a
+    checked ``.npz``) kept the same operator; the keys of 4 and 3 knew no ``precision``."""
     old_config = {name: value for name, value in config.to_dict().items() if name != "precision"}
     return [
+        Path(cache_dir) / f"{_key(surface, config.to_dict(), backend, 5)}.zop",
         Path(cache_dir) / f"{_key(surface, old_config, backend, 4)}.zop",
         Path(cache_dir) / f"{_key(surface, old_config, backend, 3)}.npz",
     ]

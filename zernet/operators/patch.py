@@ -36,9 +36,10 @@ float64) whatever the stored precision.
 
 Cache: :func:`build_patch_operator` with ``cache_dir`` keeps one file per (geometry, config); the key and
 the checked file format are in :mod:`zernet.operators.cache`; the key holds the backend actually used and
-its version, so an operator built by an older backend or fit is rebuilt, never reused. A loaded operator's
-arrays are views of the memory-mapped file: holding it costs page cache the kernel can drop and read
-back, and preparing it for a step builds only the backward's order of the pairs (once per operator).
+its version, so an operator built by an older backend or fit is rebuilt, never reused. The file holds the
+patches' sample geometry, not the matrix (5 MB for a 6,890-vertex body with the FAUST settings, against
+19 MB of float16 pairs): reading it fits the patches again (about 0.4 s there at two threads), and preparing
+the operator for a step builds only the backward's order of the pairs (once per operator).
 """
 
 from __future__ import annotations
@@ -243,16 +244,9 @@ class PatchOperator:
             if self._parts:
                 self._padded = _joined_patches(self._parts)
             else:
-                counts = np.diff(self.patch_indptr.astype(np.int64))
-                width = max(int(counts.max(initial=0)), 1)
-                rows = np.repeat(np.arange(self.n_vertices), counts)
-                rank = np.arange(len(rows)) - self.patch_indptr.astype(np.int64)[rows]
-                index = np.full((self.n_vertices, width), -1, dtype=np.int64)
-                r, theta = np.zeros((self.n_vertices, width)), np.zeros((self.n_vertices, width))
-                index[rows, rank] = self.patch_samples
-                r[rows, rank] = self.patch_r
-                theta[rows, rank] = self.patch_theta
-                self._padded = (index, r, theta)
+                self._padded = padded_patches(
+                    self.patch_indptr, self.patch_samples, self.patch_r, self.patch_theta, self.n_vertices
+                )
         return self._padded
 
     @property
@@ -352,7 +346,7 @@ class PatchOperator:
 
     def to(self, device, basis_orders: Sequence[tuple] = ()) -> PatchOperator:
         """Prepare the operator for products on ``device``: on the CPU the pairs' transposed order (built
-        once, the pairs themselves stay where they are: a memory-mapped file's pages); elsewhere the pairs as
+        once, the pairs themselves stay where they are); elsewhere the pairs as
         tensors on that device (those of other devices are dropped).
 
         ``basis_orders`` (the orders the model's layers will ask :meth:`apply` for) cost nothing to prepare:
@@ -399,15 +393,6 @@ class PatchOperator:
         if self._parts:
             return sum(part.prepared_nbytes for part in self._parts)
         return self.pairs.nbytes + sum(VertexPairs.torch_nbytes(t) for t in self._devices.values())
-
-    @property
-    def mapped_nbytes(self) -> int:
-        """Bytes of its pairs that are pages of a memory-mapped cache file (read-only views), which the
-        system can drop under memory pressure and read again."""
-        if self._parts:
-            return sum(part.mapped_nbytes for part in self._parts)
-        held = (self.pairs.indptr, self.pairs.columns, self.pairs.values)
-        return int(sum(array.nbytes for array in held if not array.flags.writeable))
 
     def __getstate__(self):
         state = dict(self.__dict__)
@@ -463,38 +448,36 @@ class PatchOperator:
     # ------------------------------------------------------------------ files
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
         """Everything that defines the operator as ``(arrays, meta)``: named numpy arrays and JSON values
-        (the cache file's content). The pairs with values in ``config.precision``, the patch lists with
-        radii and angles in float32 (float16 for a half precision), indices in their narrowest types."""
-        precision = self.config.precision
-        pairs = self.pairs.with_precision(precision)
-        real = np.float32 if precision == "float32" else np.float16
+        (the cache file's content). Not the matrix: its patches' sample geometry (the flat patch lists with
+        radii and angles in float32), the interpolation (float32) and the frames (float32), from which
+        :meth:`from_arrays` fits the matrix again; indices in their narrowest types."""
+        interpolation = self.interpolation.astype(np.float32)
         arrays = {
-            "pair_indptr": pairs.indptr,
-            "pair_columns": pairs.columns,
-            "pair_values": pairs.values,
-            "frames": self.frames,
+            "frames": np.asarray(self.frames, dtype=np.float32),
             "patch_indptr": self.patch_indptr,
             "patch_samples": self.patch_samples,
-            "patch_r": self.patch_r.astype(real),
-            "patch_theta": self.patch_theta.astype(real),
+            "patch_r": np.asarray(self.patch_r, dtype=np.float32),
+            "patch_theta": np.asarray(self.patch_theta, dtype=np.float32),
         }
-        arrays.update(sparse_to_arrays("interpolation", self.interpolation))
-        return arrays, {"config": self.config.to_dict(), "lam": self.lam, "precision": precision}
+        arrays.update(sparse_to_arrays("interpolation", interpolation))
+        return arrays, {"config": self.config.to_dict(), "lam": self.lam, "precision": self.config.precision}
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], meta: dict, name: str = "<arrays>") -> PatchOperator:
-        """Inverse of :meth:`to_arrays` over the same arrays (no copy: the patch radii and angles become float64
-        when the padded patch arrays are asked for); ``ValueError`` naming ``name`` if they do not fit together."""
+        """Inverse of :meth:`to_arrays` over the same arrays (no copy of them): the patches are fitted again
+        and carried to the vertices (:func:`fit_pairs`, about half a second for a 6,890-vertex body on two
+        threads), the pairs kept in ``meta["precision"]``; ``ValueError`` naming ``name`` if the arrays do not
+        fit together."""
         try:
+            config = PatchConfig.from_dict(dict(meta["config"]))
+            frames = arrays["frames"]
+            patches = (arrays["patch_indptr"], arrays["patch_samples"], arrays["patch_r"], arrays["patch_theta"])
+            interpolation = sparse_from_arrays(arrays, "interpolation")
+            if patches[0].shape != (frames.shape[0] + 1,) or int(patches[0][-1]) != len(patches[1]):
+                raise ValueError("the patch lists do not fit the vertices")
+            pairs, lam = fit_pairs(*padded_patches(*patches, frames.shape[0]), interpolation, config)
             operator = cls.__new__(cls)
-            operator._init(
-                VertexPairs(arrays["pair_indptr"], arrays["pair_columns"], arrays["pair_values"], meta["precision"]),
-                arrays["frames"],
-                (arrays["patch_indptr"], arrays["patch_samples"], arrays["patch_r"], arrays["patch_theta"]),
-                sparse_from_arrays(arrays, "interpolation"),
-                PatchConfig.from_dict(dict(meta["config"])),
-                float(meta["lam"]),
-            )
+            operator._init(pairs.with_precision(meta["precision"]), frames, patches, interpolation, config, lam)
             return operator
         except Exception as error:  # noqa: BLE001
             raise ValueError(f"{name}: inconsistent operator payload ({type(error).__name__}: {error})") from error
@@ -599,7 +582,7 @@ def build_patch_operator(
         print(f"{surface.name}: operator {operator} in {time.perf_counter() - start:.2f} s")
     if path is not None:
         operator.save(path, key=key)
-        operator = PatchOperator.load(path, key=key)  # mapped: its pages are the file's, not a copy
+        operator = PatchOperator.load(path, key=key)  # as the file holds it, whether built now or read
         operator.cache_file = path
     return operator
 
@@ -643,10 +626,9 @@ def assemble_operator(center, sample, radius, angle, frames, interpolation, conf
         :class:`PatchOperator`.
     """
     index, r, theta = select_patches(center, sample, radius, angle, frames.shape[0], config)
-    counts = (index >= 0).sum(axis=1)
-    groups, lam = fit_groups(r, theta, counts, config.n_max, config.ridge)
+    pairs, lam = fit_pairs(index, r, theta, interpolation, config)
     return PatchOperator(
-        pairs=carry_to_vertices(groups, index, interpolation, config.k, config.subtract_center),
+        pairs=pairs,
         frames=frames,
         patch_sample_index=index,
         patch_radius=r,
@@ -655,3 +637,36 @@ def assemble_operator(center, sample, radius, angle, frames, interpolation, conf
         config=config,
         lam=lam,
     )
+
+
+def fit_pairs(index, r, theta, interpolation, config: PatchConfig) -> tuple[VertexPairs, float]:
+    """The matrix of patches given by their samples: each patch fitted (:func:`fit_groups`) and carried to
+    the vertices through the interpolation (:func:`carry_to_vertices`).
+
+    Args:
+        index, r, theta: (N, n) sample ids (-1 for padding), normalised radii and angles, nearest first.
+        interpolation: (M, N) CSR.
+        config: :class:`PatchConfig` (degree, ridge, ``subtract_center``).
+
+    Returns:
+        ``(pairs, lam)``: the float64 :class:`VertexPairs` and the absolute ridge λ used.
+    """
+    counts = (index >= 0).sum(axis=1)
+    groups, lam = fit_groups(r, theta, counts, config.n_max, config.ridge)
+    return carry_to_vertices(groups, index, interpolation, config.k, config.subtract_center), lam
+
+
+def padded_patches(indptr, samples, r, theta, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The flat patch lists (``indptr`` (N+1,), ``samples``, ``r``, ``theta`` (P,)) as ``(index, r, theta)``,
+    each (N, n): int64 sample ids padded with -1, float64 radii and angles padded with 0."""
+    indptr = np.asarray(indptr, dtype=np.int64)
+    counts = np.diff(indptr)
+    width = max(int(counts.max(initial=0)), 1)
+    rows = np.repeat(np.arange(n_vertices), counts)
+    rank = np.arange(len(rows)) - indptr[rows]
+    index = np.full((n_vertices, width), -1, dtype=np.int64)
+    r_padded, theta_padded = np.zeros((n_vertices, width)), np.zeros((n_vertices, width))
+    index[rows, rank] = samples
+    r_padded[rows, rank] = r
+    theta_padded[rows, rank] = theta
+    return index, r_padded, theta_padded

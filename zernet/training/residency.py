@@ -2,9 +2,10 @@
 
 A step reads a record's features, target and geometry; what costs is the geometry's patch operators, which
 the layers read in their compact form (:mod:`zernet.operators.pairs`: vertex pairs with ``k`` values each,
-float16 by default, and the backward's order of the pairs built by :meth:`zernet.operators.PatchOperator.to`;
-about 25 MB for a FAUST-size surface, against 170 MB for the float32 CSR matrix and transpose of cache
-format 4). The levels say where those prepared operators live between steps:
+float16 by default, fitted from the cache file's sample geometry when it is read, and the backward's order of
+the pairs built by :meth:`zernet.operators.PatchOperator.to`; about 21 MB for a FAUST-size surface, against 170 MB
+for the float32 CSR matrix and transpose of cache format 4). The levels say where those prepared operators
+live between steps:
 
 ``device``
     Every training and validation record is read once, when the run starts, and its operators are
@@ -14,13 +15,12 @@ format 4). The levels say where those prepared operators live between steps:
     The same, prepared in host memory (page-locked on CUDA); for each step the read-ahead thread copies the
     next step's operators to the device (asynchronously, on a copy stream of its own) while the current step
     computes. On a CPU the host is the device: ``host`` and ``device`` both hold the prepared operators in
-    memory and copy nothing. There the pairs stay views of the memory-mapped cache files: pages the kernel
-    can drop under memory pressure (another program starting) and read back, not anonymous memory an
-    out-of-memory kill would be the only way to reclaim; only the backward's order (about an eighth of
-    the bytes) is the process's own.
+    memory and copy nothing. ``auto`` takes at most :data:`MEMORY_FRACTION` of the available memory, so a
+    program started beside the run still finds room (FAUST's 80 scans hold 1.7 GB).
 ``stream``
     Records are read from the cache for every step on the read-ahead thread, as data sets too large to
-    hold need (a mapped cache file: preparing is the backward's order of the pairs, one counting pass).
+    hold need (reading a cache file fits its patches again: about 0.4 s for a FAUST-size surface at two
+    threads, while the current step computes).
 ``auto``
     On CUDA ``device`` when the prepared operators of the training and validation shapes fit in
     :data:`MEMORY_FRACTION` of the GPU's free memory, else ``host`` when they fit in that fraction of the
@@ -54,7 +54,6 @@ __all__ = [
     "choose_residency",
     "available_memory",
     "prepared_bytes",
-    "mapped_bytes",
 ]
 
 #: The share of the free device memory (or available RAM) that ``auto`` lets the held operators take; the
@@ -79,11 +78,6 @@ def available_memory(device: torch.device) -> int:
 def prepared_bytes(record) -> int:
     """Bytes of the prepared tensors a record's patch operators hold (:meth:`PatchOperator.to`)."""
     return sum(int(getattr(op, "prepared_nbytes", 0)) for op in record.geometry.operators)
-
-
-def mapped_bytes(record) -> int:
-    """Bytes of a record's prepared operators that are pages of their memory-mapped cache files."""
-    return sum(int(getattr(op, "mapped_nbytes", 0)) for op in record.geometry.operators)
 
 
 def choose_residency(
@@ -122,8 +116,7 @@ class ShapeStore:
 
     Attributes:
         level: the level chosen (never ``auto``); ``reason``: why, with the sizes (for the log).
-        held_bytes: bytes of the prepared operators held; ``mapped_bytes``: how many of them are pages of
-            the memory-mapped cache files; ``seconds``: time taken to read and prepare them.
+        held_bytes: bytes of the prepared operators held; ``seconds``: time taken to read and prepare them.
     """
 
     def __init__(
@@ -162,7 +155,6 @@ class ShapeStore:
             if self.level == "host" and self.device.type == "cuda":
                 self._copy_stream = torch.cuda.Stream(self.device)
         self.held_bytes = sum(prepared_bytes(record) for record in self._held.values())
-        self.mapped_bytes = sum(mapped_bytes(record) for record in self._held.values())
         self.seconds = time.perf_counter() - started
 
     def _prepared(self, record, place: torch.device):
@@ -190,9 +182,8 @@ class ShapeStore:
         """One line for the banner and ``train.log``."""
         held = (
             (
-                f"; holding {len(self._held)} shapes, {self.held_bytes / 1e9:.2f} GB ({self.mapped_bytes / 1e9:.2f} GB "
-                f"of them mapped from the operator cache, pages the system can drop and read again), read and "
-                f"prepared in {self.seconds:.1f} s"
+                f"; holding {len(self._held)} shapes, {self.held_bytes / 1e9:.2f} GB, read and prepared in "
+                f"{self.seconds:.1f} s"
             )
             if self._held
             else ""
