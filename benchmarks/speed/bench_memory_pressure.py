@@ -6,8 +6,9 @@ scan of other people, one epoch, ``data.residency auto``) and, once the run has 
 started its first epoch, a second process that allocates ``--hog-gb`` GB and writes every page of it, then
 holds it until the run ends. Reports whether the run finished, the residency ``auto`` chose and why, the
 memory available before, the run's peak resident memory, and the epoch time; writes
-``benchmarks/speed/results/bench_memory_pressure.json`` (``--out``). The run and its cache live under
-``--runs`` (outside the repository); nothing of FAUST is written into the repository.
+``benchmarks/speed/results/bench_memory_pressure.json`` (``--out``). The run (and its cache, unless
+``--cache-dir``) live under ``--runs`` (outside the repository); nothing of FAUST is written into the
+repository.
 
     .venv/bin/python -m benchmarks.speed.bench_memory_pressure --data ~/data/MPI-FAUST --runs /tmp/pressure
 """
@@ -53,6 +54,7 @@ def main() -> None:
     parser = arguments(__doc__)
     add_data(parser, None, "MPI-FAUST folder (training/registrations/tr_reg_XXX.ply)")
     parser.add_argument("--runs", type=Path, required=True, help="folder for the run and its cache (outside the repo)")
+    parser.add_argument("--cache-dir", type=Path, default=None, help="operator cache (default: RUNS/cache)")
     parser.add_argument("--scans", type=int, default=20, help="training scans (tr_reg_000 on)")
     parser.add_argument("--hog-gb", type=float, default=8.0, help="memory the second program takes")
     add_threads(parser, default=2)
@@ -72,7 +74,7 @@ def main() -> None:
         "eval.renders=0",
         "eval.refine_rings=[0]",
         "eval.refine_spectral=[0]",
-        f"cache_dir={args.runs / 'cache'}",
+        f"cache_dir={args.cache_dir or args.runs / 'cache'}",
     ]
     command = [sys.executable, "-m", "zernet.cli", "train", str(CONFIG), "--run-dir", str(run_dir)]
     command += ["--overwrite", "--no-progress", "--set", *overrides]
