@@ -371,16 +371,28 @@ def real_people(args) -> int:
                 tally.add(prediction, truth, time.perf_counter() - started)
                 print(f"{model:12} tr_reg_{number:03d} {form:12} {100 * tally.per_shape[-1]:6.2f} %", flush=True)
     results = {model: {form: tally.row() for form, tally in forms.items()} for model, forms in tallies.items()}
+    training = {}
     for model, run_dir in run_dirs.items():
+        checkpoint = load_checkpoint(run_dir / "best.pt")
+        training[model] = {
+            "seconds": float(checkpoint["state"]["train_seconds"]),
+            "epochs": int(checkpoint["state"]["epoch"]),
+        }
         for row in results[model].values():
-            row["refine_rings"] = int(load_checkpoint(run_dir / "best.pt").get("refine_rings", 0))
+            row["refine_rings"] = int(checkpoint.get("refine_rings", 0))
     stored = result_file(args.out, ".json")
     generated = json.loads(stored.read_text())["models"] if stored.is_file() else {}
     write_json(
         result_file(args.out, "_real.json"),
-        {"models": results, "scored_scans": [f"tr_reg_{number:03d}" for number in scored], "epochs": args.epochs},
+        {
+            "models": results,
+            "training": training,
+            "overrides": args.overrides,
+            "scored_scans": [f"tr_reg_{number:03d}" for number in scored],
+            "epochs": args.epochs,
+        },
     )
-    lines = real_markdown(results, generated, scored, args)
+    lines = real_markdown(results, generated, scored, args, training)
     write_markdown(result_file(args.out, "_real.md"), lines)
     print("\n".join(lines))
     return 0
@@ -473,14 +485,16 @@ def share(part: int, whole: int) -> float | None:
     return float(part / whole) if whole else None
 
 
-def real_markdown(results: dict, generated: dict, scored: list[int], args) -> list[str]:
-    """The lines of ``scans_real.md``: the real people's table, then the generated bodies' (``scans.json``)."""
+def real_markdown(results: dict, generated: dict, scored: list[int], args, training: dict) -> list[str]:
+    """The lines of ``scans_real.md``: the real people's table, then the generated bodies' (``scans.json``),
+    and each real run's training time."""
     lines = [
         "# The real-people check: segmentation of real scans in every form",
         "",
         f"`configs/segmentation.yaml` as shipped (`data.forms` on) and the same with `data.forms={{}}` (meshes "
-        f"only), trained on FAUST's segmentation scans of people 0-5 (tr_reg_000-059; {args.epochs} epochs, "
-        f"one thread), scored on {len(scored)} scans of people 6-7 (tr_reg_060-079) in every form: the "
+        f"only){' with ' + ', '.join(f'`{item}`' for item in args.overrides) if args.overrides else ''}, trained on "
+        f"FAUST's segmentation scans of people 0-5 (tr_reg_000-059; {args.epochs} epochs, {args.threads} "
+        f"thread(s) each), scored on {len(scored)} scans of people 6-7 (tr_reg_060-079) in every form: the "
         "registration mesh and forms of it made as `data.forms` makes them (`zernet/data/bodies/forms.py` through "
         "`zernet.data.training_forms.load_form`: remeshed, decimated, a cloud sampled uniformly by area with as "
         "many points as vertices, half as many points with 2 mm of noise, one-sided) and the scan's own vertices "
@@ -520,7 +534,11 @@ def real_markdown(results: dict, generated: dict, scored: list[int], args) -> li
             refused = f"{len(row['refused'])} / {row['shapes'] + len(row['refused'])}"
             rows.append(["generated", name, form, percent(accuracy, 2), drop, percent(row["per_shape_min"]), "-"])
             rows[-1] += [refused, str(row.get("refine_rings", 0))]
-    return lines + markdown_table(header, rows, align="lllrrrrrr")
+    times = "; ".join(
+        f"{REAL_MODEL_NAMES[model]} {row['epochs']} epochs in {row['seconds'] / 60:.1f} min"
+        for model, row in training.items()
+    )
+    return [*lines, *markdown_table(header, rows, align="lllrrrrrr"), "", f"Training time (wall clock): {times}."]
 
 
 if __name__ == "__main__":
