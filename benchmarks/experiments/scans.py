@@ -374,10 +374,8 @@ def real_people(args) -> int:
     training = {}
     for model, run_dir in run_dirs.items():
         checkpoint = load_checkpoint(run_dir / "best.pt")
-        training[model] = {
-            "seconds": float(checkpoint["state"]["train_seconds"]),
-            "epochs": int(checkpoint["state"]["epoch"]),
-        }
+        final = load_checkpoint(run_dir / "last.pt")["state"]  # the whole run, not up to its best epoch
+        training[model] = {"seconds": float(final["train_seconds"]), "epochs": int(final["epoch"])}
         for row in results[model].values():
             row["refine_rings"] = int(checkpoint.get("refine_rings", 0))
     stored = result_file(args.out, ".json")
