@@ -111,7 +111,8 @@ def main() -> None:
         "epoch_s": float(epoch.group(1)) if epoch else None,
         "scans": args.scans,
         "threads": args.threads,
-        "log_tail": text.splitlines()[-5:],
+        # The run's last words on its scores (its other lines name folders on this machine).
+        "test_line": next((line for line in text.splitlines() if line.startswith("test metrics")), None),
     }
     write_json(result_file(args.out, ".json"), result)
     print(
