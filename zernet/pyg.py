@@ -174,7 +174,9 @@ class PairOperator:
             device = canonical_device(x.device)
             if device not in self._device_arrays:
                 self._device_arrays[device] = {n: t.to(device) for n, t in self._pairs().torch_arrays().items()}
-            matrix, transpose = expanded_csr(self._device_arrays[device], self.k, self.n_vertices, x.dtype, order)
+            needs_transpose = torch.is_grad_enabled() and flat.requires_grad  # only the backward reads Aᵀ
+            arrays = self._device_arrays[device]
+            matrix, transpose = expanded_csr(arrays, self.k, self.n_vertices, x.dtype, order, needs_transpose)
             out = SparseApply.apply(flat.contiguous(), matrix, transpose)
         return out.reshape((self.n_vertices, self.k) + tuple(trailing))
 
@@ -188,9 +190,7 @@ class PairOperator:
         if self.index.device != device:
             self.index, self.value = self.index.to(device), self.value.to(device)
             self.frames_tensor = None if self.frames_tensor is None else self.frames_tensor.to(device)
-        if device.type == "cpu":
-            self._pairs().transposed()
-        elif device not in self._device_arrays:
+        if device.type != "cpu" and device not in self._device_arrays:
             self._device_arrays = {device: {n: t.to(device) for n, t in self._pairs().torch_arrays().items()}}
         return self
 

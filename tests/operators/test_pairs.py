@@ -76,17 +76,23 @@ def test_stored_precisions_round_to_nearest_and_decode_exactly(precision):
     )
 
 
-def test_transposed_order_lists_each_columns_pairs_by_row():
+def test_the_backward_scatters_on_any_thread_count_to_the_same_transpose():
+    # Each thread scatters into its own buffer: one, two or many work items give the transpose.
     pairs = VertexPairs.from_csr(random_operator_matrix(), 4)
-    t_indptr, t_pairs, t_rows = pairs.transposed()
-    rows = np.repeat(np.arange(pairs.n_vertices), np.diff(pairs.indptr))
-    for q in range(pairs.n_vertices):
-        listed = t_pairs[t_indptr[q] : t_indptr[q + 1]]
-        assert np.all(pairs.columns[listed] == q)
-        assert np.array_equal(t_rows[t_indptr[q] : t_indptr[q + 1]], rows[listed])
-        assert np.all(np.diff(rows[listed]) > 0)
-    assert sorted(t_pairs.tolist()) == list(range(pairs.n_pairs))
-    assert pairs.transposed() is pairs.transposed()  # built once
+    matrix = pairs.to_csr()
+    g = np.random.default_rng(3).standard_normal((pairs.n_vertices, 4, 3))
+    expected = matrix.T @ g.reshape(-1, 3)
+    for threads in (1, 2, 7):
+        torch.set_num_threads(threads)
+        try:
+            np.testing.assert_allclose(
+                pair_product_transposed([pairs, pairs], np.concatenate([g, g]), np.arange(4)),
+                np.concatenate([expected, expected]),
+                atol=1e-12,
+            )
+        finally:
+            torch.set_num_threads(1)
+    assert pairs.nbytes == pairs.indptr.nbytes + pairs.columns.nbytes + pairs.values.nbytes  # nothing else held
 
 
 def test_narrowest_index_types():
@@ -100,8 +106,7 @@ def test_pickled_pairs_carry_their_fields_only():
     import pickle
 
     pairs = VertexPairs.from_csr(random_operator_matrix(), 4).with_precision("bfloat16")
-    pairs.transposed()
     back = pickle.loads(pickle.dumps(pairs))
-    assert back._transposed is None and back.precision == "bfloat16"
+    assert back.precision == "bfloat16"
     np.testing.assert_array_equal(back.float_values(), pairs.float_values())
     assert len(pickle.dumps(pairs)) < 1.2 * (pairs.values.nbytes + pairs.columns.nbytes + pairs.indptr.nbytes)

@@ -183,21 +183,17 @@ def test_gradcheck_and_backward_is_transpose():
     assert np.allclose(grad.numpy(), op.matrix.T @ g.reshape(-1, 2).numpy())
 
 
-def test_a_forward_pass_without_gradients_builds_no_transpose():
-    # Prediction and matching never backpropagate: the backward's order of the pairs is left out, and built
-    # the first time a gradient needs it, for the batch of several surfaces too.
+def test_a_batch_backward_is_the_transpose_and_holds_nothing_more():
+    # The backward scatters from the pairs as stored (no column order is built or kept), for a batch of
+    # several surfaces too.
     op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3))
+    held = op.prepared_nbytes
     batch = PatchOperator.concatenate([op, op])
-    x = torch.randn(2 * op.n_vertices, 2, dtype=torch.float64)
-    with torch.no_grad():
-        values = batch.apply(x)
-    assert op.pairs._transposed is None
-    x.requires_grad_(True)
+    x = torch.randn(2 * op.n_vertices, 2, dtype=torch.float64, requires_grad=True)
     g = torch.randn(2 * op.n_vertices, op.k, 2, dtype=torch.float64)
     (grad,) = torch.autograd.grad(batch.apply(x), x, g)
-    torch.testing.assert_close(values, batch.apply(x).detach())
     assert np.allclose(grad.numpy(), batch.matrix.T @ g.reshape(-1, 2).numpy())
-    assert op.pairs._transposed is not None
+    assert op.prepared_nbytes == held == op.pairs.nbytes
 
 
 def test_apply_in_another_basis_order_is_the_gathered_apply():
@@ -217,17 +213,14 @@ def test_apply_in_another_basis_order_is_the_gathered_apply():
             op.apply(x, basis_order=bad)
 
 
-def test_to_prepares_the_backward_order_once_and_checks_the_basis_orders():
-    # A data pipeline prepares the operator ahead (PatchOperator.to), so the backward finds the pairs' order
-    # by column built; a basis order needs nothing prepared (it picks values), but a bad one is an error.
+def test_to_on_the_cpu_prepares_nothing_and_checks_the_basis_orders():
+    # A data pipeline prepares the operator ahead (PatchOperator.to); on the CPU the products read the pairs
+    # as they are, and a basis order needs nothing prepared (it picks values), but a bad one is an error.
     op = build_patch_operator(bumpy_sphere(1), PatchConfig(r0=2.0, n_samples=600, n_max=3))
     order = tuple(np.random.default_rng(2).permutation(op.k).tolist())
     other_k = tuple(range(op.k + 5))[::-1]  # an order for another n_max (multi-scale models): skipped
     assert op.to("cpu", basis_orders=[order, other_k]) is op
-    built = op.pairs._transposed
-    assert built is not None and op.prepared_nbytes == op.pairs.nbytes
-    op.to("cpu", basis_orders=[order])  # already there: nothing rebuilt
-    assert op.pairs._transposed is built
+    assert op.prepared_nbytes == op.pairs.nbytes
     x = torch.randn(op.n_vertices, 2)
     torch.testing.assert_close(op.apply(x, basis_order=order), op.apply(x)[:, list(order)])
     with pytest.raises(ValueError, match="permutation"):

@@ -57,7 +57,7 @@ def test_held_shapes_are_prepared_once_and_read_without_the_cache(cache_dir, str
     first = store[indices[0]]
     assert first is store[indices[0]]  # the same record, its tensors prepared
     op = first.geometry.operators[0]
-    assert op.pairs._transposed is not None  # the backward's order, built once when the shape was held
+    assert op.prepared_nbytes == op.pairs.nbytes  # on the CPU the pairs alone: the backward reads them as stored
     assert f"holding {len(store._held)} shapes" in store.describe()
     # A step of two held shapes reads their own pairs: the batch joins no host arrays.
     batch = PatchOperator.concatenate([store[i].geometry.operators[0] for i in indices[:2]])

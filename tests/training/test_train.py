@@ -93,8 +93,8 @@ def test_evaluate_and_predict_agree_with_training(finished_run, cache_dir):
 
 
 def test_batches_prepare_the_operators_the_model_reads(finished_run):
-    # Batches are built on the read-ahead thread; what the convolutions' products read (on the CPU the pairs'
-    # transposed order, read by the backward) must be built there too, so a training step builds none.
+    # Batches are built on the read-ahead thread; whatever the convolutions' products read must be prepared
+    # there too, so a training step adds nothing to what an operator holds.
     run_dir, _ = finished_run
     checkpoint = load_checkpoint(run_dir / "best.pt")
     model = build_model_from_spec(checkpoint["model_spec"])

@@ -4,8 +4,9 @@ A patch fit's ``k`` rows of one vertex ``p`` read the same vertices ``q`` (its s
 corners), so the ``(N k) × N`` matrix ``A`` is stored once per vertex pair: the pairs ``(p, q)`` in CSR
 order over ``p`` (:attr:`VertexPairs.indptr`, :attr:`VertexPairs.columns`, ``q`` ascending) and the ``k``
 values of each pair, ``values[e, j] = A[p k + j, q]``. That is ``k`` times fewer indices than the CSR
-matrix, and no stored transpose: the backward's column order is a permutation of the pairs, built once
-per operator in one counting pass (:meth:`VertexPairs.transposed`).
+matrix, and nothing is kept for the transpose: the backward reads the same pairs in the same order and
+scatters into ``q`` (one output buffer per thread, summed), as fast as reading them by column on this
+CPU and without the 2.7 MB column order a FAUST-size body would hold beside its pairs.
 
 Precision (:data:`PRECISIONS`): the values are float64 as the fit computes them, or stored as float32,
 float16 or bfloat16 (numpy has no bfloat16: its bit patterns are kept as uint16). Indices take the
@@ -16,8 +17,8 @@ float64 whatever the storage.
 Products (:func:`pair_product`, :func:`pair_product_transposed`): on the CPU two compiled kernels read
 the compact arrays directly (each pair's ``x[q]`` is read once for its ``k`` outputs), on the run's
 threads over vertex ranges (they release the GIL). On another device (CUDA) the compact tensors are
-expanded there into the CSR matrix and its transpose for each product (:func:`expanded_csr`: a few
-scatters, cheap on a GPU) and multiplied by :class:`zernet.operators.sparse.SparseApply`.
+expanded there into the CSR matrix, and for a backward its transpose, for each product (:func:`expanded_csr`:
+a stable sort and a few scatters, cheap on a GPU) and multiplied by :class:`zernet.operators.sparse.SparseApply`.
 """
 
 from __future__ import annotations
@@ -107,7 +108,6 @@ class VertexPairs:
             )
         if self.values.dtype != _STORAGE[self.precision]:
             raise ValueError(f"{self.precision} values are stored as {np.dtype(_STORAGE[self.precision])}")
-        self._transposed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._table = _decode_table(self.precision)
         # What the kernels read: half precisions as their bit patterns, decoded through the table.
         self._kernel_values = self.values if self._table is None else self.values.view(np.uint16)
@@ -134,9 +134,8 @@ class VertexPairs:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the stored arrays (the transposed order, when built, included)."""
-        held = [self.indptr, self.columns, self.values] + list(self._transposed or ())
-        return int(sum(array.nbytes for array in held))
+        """Bytes of the stored arrays."""
+        return int(sum(array.nbytes for array in (self.indptr, self.columns, self.values)))
 
     # ------------------------------------------------------------------ conversions
     @classmethod
@@ -187,25 +186,10 @@ class VertexPairs:
         matrix.has_sorted_indices = True
         return matrix
 
-    def transposed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(t_indptr, t_pairs, t_rows)``: the pairs by column ``q`` (rows ``p`` ascending within each): the
-        pairs of column ``q`` are ``t_pairs[t_indptr[q] : t_indptr[q + 1]]``, their ``p`` ``t_rows[...]``.
-        Built once (a counting pass) and kept."""
-        if self._transposed is None:
-            n = self.n_vertices
-            t_indptr = np.zeros(n + 1, dtype=np.int64)
-            t_pairs = np.empty(self.n_pairs, dtype=narrow_index_dtype(max(self.n_pairs - 1, 0)))
-            t_rows = np.empty(self.n_pairs, dtype=narrow_index_dtype(max(n - 1, 0)))
-            _transpose_pairs(self.indptr, self.columns, t_indptr, t_pairs, t_rows)
-            self._transposed = (narrow_indptr(t_indptr), t_pairs, t_rows)
-        return self._transposed
-
     def torch_arrays(self) -> dict[str, torch.Tensor]:
         """The arrays as torch tensors (copies, so they own their memory): what a device holds."""
-        t_indptr, t_pairs, t_rows = self.transposed()
-        arrays = {"indptr": self.indptr, "columns": self.columns, "t_indptr": t_indptr, "t_pairs": t_pairs}
+        arrays = {"indptr": self.indptr, "columns": self.columns}
         tensors = {name: torch.from_numpy(_signed(array)) for name, array in arrays.items()}
-        tensors["t_rows"] = torch.from_numpy(_signed(t_rows))
         values = torch.from_numpy(np.array(self.values))
         tensors["values"] = values.view(torch.int16).view(torch.bfloat16) if self.precision == "bfloat16" else values
         return tensors
@@ -272,21 +256,6 @@ def _expand_rows(indptr, columns, values, table, indices, data):
                 dest += 1
 
 
-@numba.njit(cache=True, nogil=True)
-def _transpose_pairs(indptr, columns, t_indptr, t_pairs, t_rows):
-    for e in range(columns.shape[0]):
-        t_indptr[columns[e] + 1] += 1
-    for q in range(t_indptr.shape[0] - 1):
-        t_indptr[q + 1] += t_indptr[q]
-    fill = t_indptr[:-1].copy()
-    for p in range(indptr.shape[0] - 1):  # rows in order: each column's pairs come out by p
-        for e in range(indptr[p], indptr[p + 1]):
-            q = columns[e]
-            t_pairs[fill[q]] = e
-            t_rows[fill[q]] = p
-            fill[q] += 1
-
-
 # ------------------------------------------------------------------------------------------ CPU products
 @numba.njit(cache=True, nogil=True)
 def _product_kernel(indptr, columns, values, table, order, x, out, first, last):
@@ -305,12 +274,12 @@ def _product_kernel(indptr, columns, values, table, order, x, out, first, last):
 
 
 @numba.njit(cache=True, nogil=True)
-def _transposed_kernel(t_indptr, t_pairs, t_rows, values, table, order, grad, out, first, last):
-    """``out[q] += Σ_(p, i) A[p k + order[i], q] grad[p, i]`` for ``q`` in ``first .. last - 1``."""
+def _scatter_kernel(indptr, columns, values, table, order, grad, out, first, last):
+    """``out[q] += Σ_i A[p k + order[i], q] grad[p, i]`` over the pairs ``(p, q)`` of ``p`` in ``first .. last - 1``."""
     k, width = order.shape[0], grad.shape[2]
-    for q in range(first, last):
-        for t in range(t_indptr[q], t_indptr[q + 1]):
-            e, p = t_pairs[t], t_rows[t]
+    for p in range(first, last):
+        for e in range(indptr[p], indptr[p + 1]):
+            q = columns[e]
             for i in range(k):
                 if table is None:
                     v = values[e, order[i]]
@@ -356,22 +325,24 @@ def pair_product(parts: list[VertexPairs], x: np.ndarray, order: np.ndarray) -> 
 
 
 def pair_product_transposed(parts: list[VertexPairs], grad: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """``Aᵀ grad`` for :func:`pair_product`'s operator: ``grad`` (N, k, C), returns (N, C)."""
+    """``Aᵀ grad`` for :func:`pair_product`'s operator: ``grad`` (N, k, C), returns (N, C). Each work item (a
+    range of one part's vertices ``p``, about one per thread) scatters into its own buffer of that part's
+    rows, and the buffers are summed: no two threads write the same memory."""
     out = np.zeros((grad.shape[0], grad.shape[2]), dtype=grad.dtype)
     offsets = np.cumsum([0] + [part.n_vertices for part in parts])[:-1]
-    transposed = [part.transposed() for part in parts]
-    items = _vertex_ranges(parts, offsets, [t[0] for t in transposed], 4 * _threads())
-    by_part = {id(part): t for part, t in zip(parts, transposed)}
+    items = _vertex_ranges(parts, offsets, [part.indptr for part in parts], _threads())
 
     def run(item):
         part, offset, first, last = item
-        t_indptr, t_pairs, t_rows = by_part[id(part)]
         block = slice(offset, offset + part.n_vertices)
-        _transposed_kernel(
-            t_indptr, t_pairs, t_rows, part._kernel_values, part._table, order, grad[block], out[block], first, last
+        buffer = np.zeros((part.n_vertices, grad.shape[2]), dtype=grad.dtype)
+        _scatter_kernel(
+            part.indptr, part.columns, part._kernel_values, part._table, order, grad[block], buffer, first, last
         )
+        return block, buffer
 
-    thread_map(run, items, _threads())
+    for block, buffer in thread_map(run, items, _threads()):
+        out[block] += buffer
     return out
 
 
@@ -392,12 +363,14 @@ class PairApply(torch.autograd.Function):
 
 
 # ------------------------------------------------------------------------------------------ other devices
-def expanded_csr(tensors: dict[str, torch.Tensor], k: int, n_vertices: int, dtype: torch.dtype, order) -> tuple:
+def expanded_csr(
+    tensors: dict[str, torch.Tensor], k: int, n_vertices: int, dtype: torch.dtype, order, transpose: bool = True
+) -> tuple:
     """``(A, Aᵀ)`` as torch CSR tensors on the tensors' device, ``A``'s rows ``p k + i`` the basis
-    ``order[i]`` (:meth:`VertexPairs.torch_arrays` tensors; a few scatters of the ``P k`` values)."""
+    ``order[i]`` (:meth:`VertexPairs.torch_arrays` tensors; a few scatters of the ``P k`` values); ``Aᵀ`` is
+    None unless ``transpose`` (its column order: a stable sort of the pairs by ``q``)."""
     device = tensors["values"].device
     indptr, columns = tensors["indptr"].long(), tensors["columns"].long()
-    t_indptr, t_pairs, t_rows = tensors["t_indptr"].long(), tensors["t_pairs"].long(), tensors["t_rows"].long()
     values = tensors["values"].to(dtype)[:, torch.as_tensor(order, device=device)]  # (P, k) in the asked order
     n, n_pairs = n_vertices, columns.shape[0]
     counts = indptr[1:] - indptr[:-1]
@@ -413,8 +386,15 @@ def expanded_csr(tensors: dict[str, torch.Tensor], k: int, n_vertices: int, dtyp
     a_values[position.reshape(-1)] = values.reshape(-1)
     a_crow = torch.zeros(n * k + 1, dtype=index_dtype, device=device)
     a_crow[1:] = torch.cumsum(counts.repeat_interleave(k), 0)
-    # Aᵀ: row q holds its pairs by p, each with its k columns p k + i in order
+    matrix = csr_from(a_crow, a_columns, a_values, (n * k, n))
+    if not transpose:
+        return matrix, None
+    # Aᵀ: row q holds its pairs by p (stable: the pairs are stored by p), each with its k columns p k + i in order
+    t_pairs = torch.sort(columns, stable=True).indices
+    t_rows = rows_of_pairs[t_pairs]
+    t_indptr = torch.zeros(n + 1, dtype=torch.int64, device=device)
+    t_indptr[1:] = torch.cumsum(torch.bincount(columns, minlength=n), 0)
     t_crow = (k * t_indptr).to(index_dtype)
     t_columns = (t_rows.unsqueeze(1) * k + basis).to(index_dtype).reshape(-1)
     t_values = values[t_pairs].reshape(-1)
-    return (csr_from(a_crow, a_columns, a_values, (n * k, n)), csr_from(t_crow, t_columns, t_values, (n, n * k)))
+    return matrix, csr_from(t_crow, t_columns, t_values, (n, n * k))

@@ -38,8 +38,8 @@ Cache: :func:`build_patch_operator` with ``cache_dir`` keeps one file per (geome
 the checked file format are in :mod:`zernet.operators.cache`; the key holds the backend actually used and
 its version, so an operator built by an older backend or fit is rebuilt, never reused. The file holds the
 patches' sample geometry, not the matrix (5 MB for a 6,890-vertex body with the FAUST settings, against
-19 MB of float16 pairs): reading it fits the patches again (about 0.4 s there at two threads), and preparing
-the operator for a step builds only the backward's order of the pairs (once per operator).
+19 MB of float16 pairs): reading it fits the patches again (about 0.4 s there at two threads); on the CPU
+the forward and the backward read those pairs as they are, so nothing else is built for a step.
 """
 
 from __future__ import annotations
@@ -340,14 +340,13 @@ class PatchOperator:
             tensors = part._devices.get(device)
             if tensors is None:
                 tensors = part._devices[device] = {n: t.to(device) for n, t in part.pairs.torch_arrays().items()}
-            built.append(expanded_csr(tensors, self.k, part.n_vertices, dtype, order))
+            built.append(expanded_csr(tensors, self.k, part.n_vertices, dtype, order, transpose))
         matrix = block_diagonal_csr([b[0] for b in built])
         return matrix, (block_diagonal_csr([b[1] for b in built]) if transpose else None)
 
     def to(self, device, basis_orders: Sequence[tuple] = ()) -> PatchOperator:
-        """Prepare the operator for products on ``device``: on the CPU the pairs' transposed order (built
-        once, the pairs themselves stay where they are); elsewhere the pairs as
-        tensors on that device (those of other devices are dropped).
+        """Prepare the operator for products on ``device``: on the CPU nothing (the products read the pairs
+        where they are); elsewhere the pairs as tensors on that device (those of other devices are dropped).
 
         ``basis_orders`` (the orders the model's layers will ask :meth:`apply` for) cost nothing to prepare:
         a basis order is read from the pairs' values as they are; it is accepted like other operators'.
@@ -358,7 +357,6 @@ class PatchOperator:
             part.to(device, basis_orders)
         if self._parts:
             return self
-        self.pairs.transposed()
         self._devices = {d: t for d, t in self._devices.items() if d == device or d.type == "cpu"}
         if device.type != "cpu" and device not in self._devices:
             self._devices[device] = {name: t.to(device) for name, t in self.pairs.torch_arrays().items()}
@@ -388,8 +386,7 @@ class PatchOperator:
 
     @property
     def prepared_nbytes(self) -> int:
-        """Bytes this operator holds for products: its pairs (with their transposed order) and their
-        copies as tensors (:meth:`to`, :meth:`pin_memory`)."""
+        """Bytes this operator holds for products: its pairs and their copies as tensors (:meth:`to`, :meth:`pin_memory`)."""
         if self._parts:
             return sum(part.prepared_nbytes for part in self._parts)
         return self.pairs.nbytes + sum(VertexPairs.torch_nbytes(t) for t in self._devices.values())

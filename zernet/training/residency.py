@@ -2,8 +2,8 @@
 
 A step reads a record's features, target and geometry; what costs is the geometry's patch operators, which
 the layers read in their compact form (:mod:`zernet.operators.pairs`: vertex pairs with ``k`` values each,
-float16 by default, fitted from the cache file's sample geometry when it is read, and the backward's order of
-the pairs built by :meth:`zernet.operators.PatchOperator.to`; about 21 MB for a FAUST-size surface, against 170 MB
+float16 by default, fitted from the cache file's sample geometry when it is read; the backward reads the same
+pairs; about 20 MB for a FAUST-size surface, against 170 MB
 for the float32 CSR matrix and transpose of cache format 4). The levels say where those prepared operators
 live between steps:
 
