@@ -24,7 +24,7 @@ from zernet.inference.refine import (
 from zernet.operators import PatchConfig
 from zernet.training import evaluate, train
 from zernet.training.config import ConfigError, EvalSection
-from zernet.training.evaluation import evaluate_members, select_refine_rings, summary_line
+from zernet.training.evaluation import evaluate_members, select_refine_rings, select_refinement, summary_line
 
 
 def test_ring_average_is_the_mean_over_the_vertices_within_so_many_edges(tetrahedron_surface, sphere_surface):
@@ -114,6 +114,45 @@ def test_a_true_map_stays_and_a_wrong_vertex_takes_its_neighbourhood_answer(sphe
     wrong[7, far] = 1.0
     np.testing.assert_array_equal(wrong.argmax(1)[7], far)
     np.testing.assert_array_equal(refine_correspondence(wrong, faces, faces, 1).argmax(1), np.arange(n))
+
+
+def _blob_sent_far(surface, centre: int) -> tuple[np.ndarray, list[int]]:
+    """The identity map (one-hot rows) but ``centre`` and its ring, each sent to its own vertex on the far
+    side, at least three edges from the others (so no vertex is near two wrong answers: they never agree).
+    The centre is sure of its wrong answer; its neighbours keep 1 % on their truth (a tie-breaker among the
+    vertices next to it, no more)."""
+    faces, n = surface.faces, surface.n_vertices
+    blob = sorted(_rings_by_search(faces, n, 1)[centre])
+    reach = ring_reach(faces, n, 2).toarray() > 0
+    far, taken = [], np.zeros(n, dtype=bool)
+    for v in np.argsort(surface.vertices @ surface.vertices[centre]):
+        if not taken[v]:
+            far.append(int(v))
+            taken |= reach[v]
+    probabilities = np.eye(n, dtype=np.float32)
+    for i, target in zip(blob, far):
+        probabilities[i] = 0.0
+        probabilities[i, target] = 1.0 if i == centre else 0.99
+        probabilities[i, i] = 0.0 if i == centre else 0.01
+    return probabilities, blob
+
+
+def test_a_second_pass_reaches_a_vertex_whose_whole_ring_is_wrong(sphere_surface):
+    # Every neighbour of the centre is wrong, so one pass over one ring keeps it wrong (nobody agrees with
+    # its truth) while it brings each neighbour back (their other neighbours agree); the second pass then
+    # asks the repaired neighbours.
+    faces, n = sphere_surface.faces, sphere_surface.n_vertices
+    probabilities, blob = _blob_sent_far(sphere_surface, 0)
+    assert len(blob) >= 6 and np.sum(probabilities.argmax(1) != np.arange(n)) == len(blob)
+    once = refine_correspondence(probabilities, faces, faces, 1).argmax(1)
+    assert once[0] != 0 and np.array_equal(np.flatnonzero(once != np.arange(n)), [0])
+    twice = refine_correspondence(probabilities, faces, faces, 1, passes=2)
+    np.testing.assert_array_equal(twice.argmax(1), np.arange(n))
+    step = refine_correspondence(probabilities, faces, faces, 1)
+    np.testing.assert_allclose(twice, refine_correspondence(step, faces, faces, 1), rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(refine_correspondence(probabilities, faces, faces, 0, passes=3), probabilities)
+    with pytest.raises(ValueError, match="passes"):
+        refine_correspondence(probabilities, faces, faces, 1, passes=0)
 
 
 def test_every_neighbour_is_asked_where_an_average_lets_the_sure_ones_outvote(sphere_surface):
@@ -277,6 +316,40 @@ def test_evaluation_scores_the_refined_map_and_keeps_the_unrefined_beside(sphere
         select_refine_rings(members, dataset, [-1], device, progress=False)
 
 
+class _FixedScores(torch.nn.Module):
+    """Predicts the given probabilities (as logits) for every shape."""
+
+    def __init__(self, probabilities: np.ndarray):
+        super().__init__()
+        self.register_buffer("logits", torch.log(torch.from_numpy(probabilities) + 1e-6))
+
+    def forward(self, features, geometry):
+        return self.logits
+
+
+def test_passes_are_chosen_with_the_rings_and_scored(spheres_in_faust_layout):
+    dataset = spheres_in_faust_layout
+    probabilities, blob = _blob_sent_far(icosphere(2), 0)
+    header = {"task": "classification", "correspondence": True, "num_classes": 162}
+    members, device = [(_FixedScores(probabilities), header)], torch.device("cpu")
+    rings, passes, radius, choice = select_refinement(members, dataset, [0, 1], [0.0], device, False, [1, 2, 3])
+    assert (rings, passes, radius) == (1, 2, 0.0) and choice["passes"] == 2
+    assert choice["accuracy"] == {
+        "0x1": pytest.approx(1 - len(blob) / 162),
+        "1x1": pytest.approx(1 - 1 / 162),
+        "1x2": 1.0,
+        "1x3": 1.0,
+    }
+    test = dataset.splits["test"]
+    metrics, _ = evaluate_members(members, dataset, test, device, False, keep=0, refine_rings=1, refine_passes=2)
+    assert metrics["summary"]["accuracy"] == 1.0 and metrics["refine_passes"] == 2
+    assert "refined over 1 rings x 2 passes; unrefined accuracy" in summary_line(metrics)
+    # One candidate of each: nothing is chosen, nothing is read.
+    assert select_refinement(members, dataset, [1], [0.0], device, False, [2]) == (1, 2, 0.0, None)
+    with pytest.raises(ConfigError, match="integers >= 1"):
+        select_refinement(members, dataset, [1], [0.0], device, False, [0])
+
+
 def test_refinement_is_chosen_for_segmentation_ignored_by_regression_and_needs_a_validation_split(
     spheres_in_faust_layout,
 ):
@@ -298,6 +371,10 @@ def test_the_eval_section_takes_a_number_or_candidates():
     assert EvalSection(refine_rings=2).refine_rings == [2]
     assert EvalSection(refine_rings=[0, 1, 2]).refine_rings == [0, 1, 2]
     assert EvalSection().refine_rings == [0]
+    assert EvalSection().refine_passes == [1] and EvalSection(refine_passes=3).refine_passes == [3]
+    for bad in ([], [0], "two"):
+        with pytest.raises(ConfigError, match="eval.refine_passes"):
+            EvalSection(refine_passes=bad)
     for bad in ([], [-1], "two"):
         with pytest.raises(ConfigError, match="eval.refine_rings"):
             EvalSection(refine_rings=bad)
@@ -316,6 +393,8 @@ def test_a_trained_run_stores_its_template_and_choice_and_predict_applies_them(f
     for rings in (1, 2):
         expected = refine_correspondence(raw, surface.faces, surface.faces, rings).argmax(axis=1)
         np.testing.assert_array_equal(predict(tmp_path / "run", surface, refine_rings=rings), expected)
+    expected = refine_correspondence(raw, surface.faces, surface.faces, 1, passes=2).argmax(axis=1)
+    np.testing.assert_array_equal(predict(tmp_path / "run", surface, refine_rings=1, refine_passes=2), expected)
     np.testing.assert_array_equal(
         predict(tmp_path / "run", surface), predict(tmp_path / "run", surface, refine_rings=best["refine_rings"])
     )

@@ -173,7 +173,7 @@ def _members(dataset, template_vertices=True):
 def test_the_radius_is_chosen_on_the_validation_split_only_and_scored_beside_the_rings(ellipsoids):
     members, device = _members(ellipsoids), torch.device("cpu")
     logged = _Logged(ellipsoids)
-    rings, radius, choice = select_refinement(members, logged, [0, 1], [0, 0.2, 0.3], device, progress=False)
+    rings, _, radius, choice = select_refinement(members, logged, [0, 1], [0, 0.2, 0.3], device, progress=False)
     assert set(logged.read) == set(ellipsoids.splits["val"])  # never a test shape
     n, flipped = ellipsoids[0].surface.n_vertices, members[0][0].n_flipped
     assert choice["split"] == "val" and choice["rings"] == rings == 0
@@ -182,7 +182,7 @@ def test_the_radius_is_chosen_on_the_validation_split_only_and_scored_beside_the
     assert radius == choice["spectral"] == 0.3  # a tie: the widest radius
     # A single candidate pair is taken without reading any shape.
     logged.read.clear()
-    assert select_refinement(members, logged, [1], [0.2], device, progress=False) == (1, 0.2, None)
+    assert select_refinement(members, logged, [1], [0.2], device, progress=False) == (1, 1, 0.2, None)
     assert logged.read == []
 
     test = ellipsoids.splits["test"]
@@ -203,13 +203,13 @@ def test_the_radius_is_chosen_on_the_validation_split_only_and_scored_beside_the
 def test_a_checkpoint_without_template_geometry_leaves_the_global_step_off_and_says_so(ellipsoids):
     members, device = _members(ellipsoids, template_vertices=False), torch.device("cpu")
     with pytest.warns(UserWarning, match="no template geometry"):
-        rings, radius, choice = select_refinement(members, ellipsoids, [0, 1], [0, 0.2], device, progress=False)
+        rings, _, radius, choice = select_refinement(members, ellipsoids, [0, 1], [0, 0.2], device, progress=False)
     assert radius == 0.0 and "spectral" not in choice and "no template geometry" in choice["spectral_unavailable"]
     with pytest.raises(ConfigError, match="no template geometry"):
         evaluate_members(members, ellipsoids, [0], device, progress=False, keep=0, refine_spectral=0.2)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # radius 0 alone: nothing to warn about
-        assert select_refinement(members, ellipsoids, [1], [0], device, progress=False) == (1, 0.0, None)
+        assert select_refinement(members, ellipsoids, [1], [0], device, progress=False) == (1, 1, 0.0, None)
 
 
 def test_a_run_stores_its_template_geometry_and_radius_and_predict_applies_them(ellipsoid_faust_root, tmp_path):

@@ -50,6 +50,15 @@ def add_command(sub) -> None:
         "(default: the run's eval.refine_rings)",
     )
     parser.add_argument(
+        "--refine-passes",
+        type=int,
+        nargs="+",
+        default=None,
+        metavar="P",
+        help="correspondence: repeat the refinement by rings P times, each pass refining the last one's scores; "
+        "several: chosen with the rings on the validation split (default: the run's eval.refine_passes)",
+    )
+    parser.add_argument(
         "--refine-spectral",
         type=float,
         nargs="+",
@@ -75,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
         on_error="skip" if args.skip_bad else "raise",
         refine_rings=args.refine_rings,
         refine_spectral=args.refine_spectral,
+        refine_passes=args.refine_passes,
     )
     what = f"ensemble of {len(args.run_dir)}, " if len(args.run_dir) > 1 else ""
     skipped = f"; {len(metrics['skipped'])} shapes skipped" if metrics.get("skipped") else ""

@@ -65,6 +65,13 @@ def add_command(sub) -> None:
         "validation split; 0: off)",
     )
     parser.add_argument(
+        "--refine-passes",
+        type=int,
+        default=None,
+        metavar="P",
+        help="correspondence: repeat the refinement by rings P times (default: what the run chose)",
+    )
+    parser.add_argument(
         "--refine-spectral",
         type=float,
         default=None,
@@ -90,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         device=args.device,
         refine_rings=args.refine_rings,
         refine_spectral=args.refine_spectral,
+        refine_passes=args.refine_passes,
         backend=args.backend,
         scale=args.scale,
     )

@@ -73,6 +73,7 @@ def predict(
     backend: str | None = None,
     scale: float | None = None,
     refine_spectral: float | None = None,
+    refine_passes: int | None = None,
 ):
     """Per-vertex predictions of a trained model on a new surface: a mesh or a point cloud, whatever the
     training shapes were.
@@ -94,6 +95,8 @@ def predict(
             fraction of the template's geodesic diameter) of a spectral map read from it
             (:mod:`zernet.inference.spectral_refine`; it repairs flipped regions); 0: off; None: what the run
             chose on its validation split. The probabilities returned stay the ring-refined ones.
+        refine_passes: correspondence: how many times the refinement by rings is repeated; None: what the run
+            chose on its validation split (1 for runs that chose none).
         backend: polar-coordinate backend for this surface (``"front"``, ``"fast"``, ``"accurate"``); None:
             the run's own (every backend reads meshes and clouds alike).
         scale: None (default): scale the surface as the training shapes were (to the training area, or by
@@ -137,8 +140,9 @@ def predict(
     pred, probs = predict_record([(model, checkpoint)], record, device)
     rings = checkpoint.get("refine_rings", 0) if refine_rings is None else refine_rings
     radius = checkpoint.get("refine_spectral", 0.0) if refine_spectral is None else refine_spectral
+    passes = checkpoint.get("refine_passes", 1) if refine_passes is None else refine_passes
     if rings:
-        probs = _refined_probabilities(checkpoint, record, probs, rings)
+        probs = _refined_probabilities(checkpoint, record, probs, rings, passes)
         pred = probs.argmax(axis=1)
     if radius:
         pred = _globally_refined(checkpoint, record, probs, radius, device)
@@ -155,9 +159,9 @@ def predict(
     return pred
 
 
-def _refined_probabilities(checkpoint: dict, record, probabilities: np.ndarray, rings: int) -> np.ndarray:
-    """Refinement of a new surface's probabilities: a correspondence against the template the run stored, a
-    segmentation on the surface alone."""
+def _refined_probabilities(checkpoint: dict, record, probabilities: np.ndarray, rings: int, passes: int) -> np.ndarray:
+    """Refinement of a new surface's probabilities: a correspondence against the template the run stored
+    (``passes`` times), a segmentation on the surface alone (once)."""
     if checkpoint["task"] != "classification":
         raise ValueError("refine_rings applies to classification models only; this one predicts values")
     if not checkpoint.get("correspondence"):  # segmentation: the shape's own rings, where the network is unsure
@@ -173,7 +177,7 @@ def _refined_probabilities(checkpoint: dict, record, probabilities: np.ndarray, 
         )
     if record.surface.faces is None:
         raise ValueError(f"{record.name}: refining a correspondence needs a triangle mesh, not a point cloud")
-    return refine_correspondence(probabilities, record.surface.faces, np.asarray(template), rings)
+    return refine_correspondence(probabilities, record.surface.faces, np.asarray(template), rings, passes)
 
 
 def _globally_refined(checkpoint: dict, record, probabilities: np.ndarray, radius: float, device) -> np.ndarray:

@@ -422,6 +422,9 @@ class EvalSection(_Section):
     # network is unsure of.
     # A number, or candidates of which the best on the validation split is used.
     refine_rings: list[int] = _rule((0,), "int_list")
+    # Correspondence: how many times the refinement by rings is repeated, each pass refining the last one's
+    # scores, so agreement travels beyond one ring radius. Candidates are chosen with the rings on validation.
+    refine_passes: list[int] = _rule((1,), "int_list")
     # Correspondence, after the rings: the global refinement (zernet.inference.spectral_refine), the prediction
     # kept within this radius (a fraction of the template's geodesic diameter) of a spectral map read from it;
     # 0 turns it off. A number, or candidates of which the best on the validation split (after the rings) is used.
@@ -430,14 +433,21 @@ class EvalSection(_Section):
     def __post_init__(self) -> None:
         if _is_int(self.refine_rings):
             object.__setattr__(self, "refine_rings", [self.refine_rings])
+        if _is_int(self.refine_passes):
+            object.__setattr__(self, "refine_passes", [self.refine_passes])
         if _is_number(self.refine_spectral):
             object.__setattr__(self, "refine_spectral", [self.refine_spectral])
         super().__post_init__()
         object.__setattr__(self, "refine_rings", list(self.refine_rings))  # a plain list in YAML and JSON
+        object.__setattr__(self, "refine_passes", list(self.refine_passes))
         object.__setattr__(self, "refine_spectral", [float(v) for v in self.refine_spectral])
         if not self.refine_rings or min(self.refine_rings) < 0:
             raise ConfigError(
                 f"eval.refine_rings must be a non-empty list of integers >= 0, got {list(self.refine_rings)!r}"
+            )
+        if not self.refine_passes or min(self.refine_passes) < 1:
+            raise ConfigError(
+                f"eval.refine_passes must be a non-empty list of integers >= 1, got {list(self.refine_passes)!r}"
             )
         if not self.refine_spectral or not all(0 <= v <= 1 for v in self.refine_spectral):
             raise ConfigError(

@@ -50,11 +50,11 @@ def _kind(checkpoint: dict) -> str:
     return "correspondence" if checkpoint.get("correspondence", False) else "segmentation"
 
 
-def _ring_scores(probabilities: torch.Tensor, record, rings: int, kind: str) -> torch.Tensor:
+def _ring_scores(probabilities: torch.Tensor, record, rings: int, kind: str, passes: int = 1) -> torch.Tensor:
     """The probabilities refined over ``rings`` rings, where they are (the run's device). Correspondence by
-    vertex index (refined by the neighbours' agreement): every shape has the template's connectivity, so the
-    record's faces serve for both the shape and the template. Segmentation: only the unsure vertices are
-    averaged, over the shape's rings (a point cloud's: its triangulation's)."""
+    vertex index (refined by the neighbours' agreement, ``passes`` times): every shape has the template's
+    connectivity, so the record's faces serve for both the shape and the template. Segmentation: only the
+    unsure vertices are averaged, over the shape's rings (a point cloud's: its triangulation's), once."""
     if not rings:
         return probabilities
     faces = record.surface.faces
@@ -64,11 +64,11 @@ def _ring_scores(probabilities: torch.Tensor, record, rings: int, kind: str) -> 
         return refine_segmentation(probabilities, faces, rings)
     if faces is None:
         raise ValueError(f"shape {record.name}: refining a correspondence needs a triangle mesh")
-    return refine_correspondence(probabilities, faces, faces, rings)
+    return refine_correspondence(probabilities, faces, faces, rings, passes)
 
 
 def _refined(probabilities: torch.Tensor, record, rings: int, kind: str) -> np.ndarray:
-    """The prediction refined over ``rings`` rings (:func:`_ring_scores`)."""
+    """The prediction refined over ``rings`` rings (:func:`_ring_scores`, one pass)."""
     return _ring_scores(probabilities, record, rings, kind).argmax(dim=1).cpu().numpy()
 
 
@@ -118,11 +118,12 @@ def evaluate_members(
     keep: int = 3,
     refine_rings: int = 0,
     refine_spectral: float = 0.0,
+    refine_passes: int = 1,
 ) -> tuple[dict, list[dict]]:
     """Metrics of the model (or ensemble) ``members`` (a list of ``(model, checkpoint)``, see
     :func:`~zernet.inference.predict.predict_record`) on the shapes at ``indices`` and the predictions of
-    the first ``keep``. A correspondence is scored after refinement over ``refine_rings`` rings
-    (:mod:`zernet.inference.refine`) and then, if ``refine_spectral`` > 0, by the global step within that
+    the first ``keep``. A correspondence is scored after refinement over ``refine_rings`` rings, repeated
+    ``refine_passes`` times (:mod:`zernet.inference.refine`), and then, if ``refine_spectral`` > 0, by the global step within that
     radius (:mod:`zernet.inference.spectral_refine`); a segmentation after the rings alone; regression ignores
     both. The unrefined scores are kept beside (``unrefined_summary``), and with both steps the ring-refined
     ones (``ring_refined_summary``)."""
@@ -151,7 +152,7 @@ def evaluate_members(
             pred = _refined(torch.from_numpy(probabilities).to(device), record, refine_rings, kind)
         elif refine_rings or refine_spectral:
             unrefined_errors.append(geodesics(pred, target))
-            scores = _ring_scores(torch.from_numpy(probabilities).to(device), record, refine_rings, kind)
+            scores = _ring_scores(torch.from_numpy(probabilities).to(device), record, refine_rings, kind, refine_passes)
             pred = scores.argmax(dim=1).cpu().numpy()
             if refine_spectral:
                 if refine_rings:
@@ -176,6 +177,7 @@ def evaluate_members(
         result["error_curve"] = {"radii": scores["curve_radii"], "fractions": scores["curve_fractions"]}
         result["baseline"] = {"chance_accuracy": 1.0 / float(checkpoint["num_classes"])}
         result["refine_rings"] = refine_rings
+        result["refine_passes"] = refine_passes if refine_rings else 1
         result["refine_spectral"] = refine_spectral
         for key, stage in (("unrefined_summary", unrefined_errors), ("ring_refined_summary", ring_errors)):
             if stage:  # what the refinement changed, on the same split
@@ -202,7 +204,7 @@ def select_refine_rings(
     members: Sequence[tuple], dataset, candidates: Sequence[int], device, progress: bool
 ) -> tuple[int, dict | None]:
     """:func:`select_refinement` over ring counts alone (no global step): ``(rings, choice)``."""
-    rings, _, choice = select_refinement(members, dataset, candidates, [0.0], device, progress)
+    rings, _, _, choice = select_refinement(members, dataset, candidates, [0.0], device, progress)
     return rings, choice
 
 
@@ -213,44 +215,54 @@ def select_refinement(
     spectral_candidates: Sequence[float],
     device,
     progress: bool,
-) -> tuple[int, float, dict | None]:
+    passes_candidates: Sequence[int] = (1,),
+) -> tuple[int, int, float, dict | None]:
     """The refinement to use and how it was chosen, on the ``val`` split (correspondence and segmentation;
-    regression gets none): first the ring count whose exact accuracy is highest (the fewest rings on a tie),
-    then, for a correspondence, after those rings, the global step's radius (:mod:`zernet.inference.spectral_refine`; 0: off) whose exact accuracy is
+    regression gets none): first the ring count, and for a correspondence the number of passes
+    (:func:`~zernet.inference.refine.refine_correspondence`; each candidate count of passes is scored on the
+    way to the largest), whose exact accuracy is highest (the fewest rings, then passes, on a tie), then, for a correspondence, after those rings, the global step's radius (:mod:`zernet.inference.spectral_refine`; 0: off) whose exact accuracy is
     highest (off on a tie, else the widest radius). A single candidate is taken without a look at the data.
     Without a template geometry (older checkpoints) the global step is left off with a warning
     (:func:`global_refinement_unavailable`).
 
-    Returns ``(rings, radius, choice)`` with ``choice`` None when nothing was chosen, else, for
-    ``metrics.json``, ``{"split": "val", "accuracy": {rings: exact accuracy}, "rings": chosen}`` and, when
-    radii were candidates, ``"spectral": chosen radius`` and ``"spectral_accuracy": {radius: exact accuracy
+    Returns ``(rings, passes, radius, choice)`` with ``choice`` None when nothing was chosen, else, for
+    ``metrics.json``, ``{"split": "val", "accuracy": {rings: exact accuracy}, "rings": chosen}`` (with
+    several pass counts: keys ``"RxP"``, rings x passes, and ``"passes": chosen``) and, when radii were
+    candidates, ``"spectral": chosen radius`` and ``"spectral_accuracy": {radius: exact accuracy
     after the chosen rings}`` (radius "0": the rings alone).
     """
     candidates = sorted(set(int(c) for c in rings_candidates))
     if not candidates or candidates[0] < 0:
         raise ConfigError(f"refine rings must be one or more integers >= 0, got {candidates}")
+    passes_list = sorted(set(int(c) for c in passes_candidates))
+    if not passes_list or passes_list[0] < 1:
+        raise ConfigError(f"refine passes must be one or more integers >= 1, got {passes_list}")
     try:
         radii = sorted(set(check_radii(spectral_candidates)))
     except ValueError as error:
         raise ConfigError(str(error)) from None
     kind = _kind(members[0][1])
     if kind == "regression":
-        return 0, 0.0, None
+        return 0, 1, 0.0, None
     if kind == "segmentation":
         radii = [0.0]  # the global step maps onto a template; a segmentation has none
+        passes_list = [1]  # a segmentation averages its unsure vertices once
     unavailable = global_refinement_unavailable(members[0][1]) if any(radii) else None
     if unavailable is not None:
         warnings.warn(unavailable, UserWarning, stacklevel=2)
         radii = [0.0]
-    if len(candidates) == 1 and len(radii) == 1:
-        return candidates[0], radii[0], None
+    if len(candidates) == 1 and len(radii) == 1 and len(passes_list) == 1:
+        return candidates[0], passes_list[0], radii[0], None
     indices = dataset.splits.get("val", [])
     if not indices:
         raise ConfigError(
-            f"eval.refine_rings / eval.refine_spectral list several candidates ({candidates} / {radii}) but the "
-            "data set has no validation split to choose among them: give one number each"
+            f"eval.refine_rings / refine_passes / refine_spectral list several candidates ({candidates} / "
+            f"{passes_list} / {radii}) but the data set has no validation split to choose among them: give one "
+            "number each"
         )
-    hits = {rings: 0 for rings in candidates}
+    # (rings, passes): rings 0 is the prediction itself, whatever the passes
+    combos = [(rings, passes) for rings in candidates for passes in (passes_list if rings else [1])]
+    hits = {combo: 0 for combo in combos}
     spectral_hits = {radius: 0 for radius in radii}
     total = 0
     for i in tqdm(indices, desc="choosing the refinement", unit="shape", leave=False, disable=not progress):
@@ -260,15 +272,25 @@ def select_refinement(
         total += len(target)
         probabilities = torch.from_numpy(probabilities).to(device)  # refined there, once per candidate
         for rings in candidates:
-            refined = pred if rings == 0 else _refined(probabilities, record, rings, kind)
-            hits[rings] += int(np.sum(refined == target))
-    accuracy = {rings: hits[rings] / total for rings in candidates}
-    chosen = max(candidates, key=lambda rings: (accuracy[rings], -rings))
+            if rings == 0:
+                hits[0, 1] += int(np.sum(pred == target))
+                continue
+            scores = probabilities
+            for passes in range(1, passes_list[-1] + 1):  # each pass continues the last one
+                scores = _ring_scores(scores, record, rings, kind)
+                if passes in passes_list:
+                    hits[rings, passes] += int(np.sum(scores.argmax(dim=1).cpu().numpy() == target))
+            del scores
+    accuracy = {combo: hits[combo] / total for combo in combos}
+    chosen, chosen_passes = max(combos, key=lambda combo: (accuracy[combo], -combo[0], -combo[1]))
+    several_passes = len(passes_list) > 1
     choice: dict[str, Any] = {
         "split": "val",
-        "accuracy": {str(k): v for k, v in accuracy.items()},
+        "accuracy": {(f"{r}x{p}" if several_passes else str(r)): v for (r, p), v in accuracy.items()},
         "rings": chosen,
     }
+    if several_passes:
+        choice["passes"] = chosen_passes
     radius = radii[0]
     if len(radii) > 1:
         refiner = _refiner(members[0][1])
@@ -277,7 +299,7 @@ def select_refinement(
             record = dataset[i]
             target = np.asarray(record.target)
             _, probabilities = predict_record(members, record, device)
-            scores = _ring_scores(torch.from_numpy(probabilities).to(device), record, chosen, kind)
+            scores = _ring_scores(torch.from_numpy(probabilities).to(device), record, chosen, kind, chosen_passes)
             for candidate in radii:
                 refined = refiner.refine(scores, record.surface, candidate)
                 spectral_hits[candidate] += int(np.sum(refined == target))
@@ -287,7 +309,7 @@ def select_refinement(
         choice["spectral_accuracy"] = {f"{k:g}": v for k, v in spectral_accuracy.items()}
     if unavailable is not None:
         choice["spectral_unavailable"] = unavailable
-    return chosen, radius, choice
+    return chosen, chosen_passes, radius, choice
 
 
 def _training_mean_baseline(stats: dict, dataset, indices: Sequence[int]) -> dict:
@@ -313,9 +335,10 @@ def summary_line(metrics: dict) -> str:
         radius = metrics.get("refine_spectral", 0.0)
         spectral = f" then globally within {radius:g} of the diameter" if radius else ""
         ring_stage = metrics.get("ring_refined_summary")
+        passes = f" x {metrics['refine_passes']} passes" if metrics.get("refine_passes", 1) > 1 else ""
         rings_only = f", over the rings only {ring_stage['accuracy']:.4f}" if ring_stage else ""
         parts.append(
-            f"(refined over {metrics['refine_rings']} rings{spectral}; unrefined accuracy "
+            f"(refined over {metrics['refine_rings']} rings{passes}{spectral}; unrefined accuracy "
             f"{metrics['unrefined_summary']['accuracy']:.4f}{rings_only})"
         )
     for key, value in metrics.get("baseline", {}).items():
@@ -363,6 +386,7 @@ def evaluate(
     on_error: str | None = None,
     refine_rings: int | Sequence[int] | None = None,
     refine_spectral: float | Sequence[float] | None = None,
+    refine_passes: int | Sequence[int] | None = None,
 ) -> dict:
     """Evaluate a trained model (a run folder's ``best.pt``, or any checkpoint file) on one split; given
     several, evaluate their ensemble.
@@ -384,6 +408,9 @@ def evaluate(
         refine_spectral: the global step after the rings (:mod:`zernet.inference.spectral_refine`): a radius
             (fraction of the template's diameter; 0: off) or candidates, chosen together with the rings on the
             validation split; None: the run's ``eval.refine_spectral`` (off for runs made before it existed).
+        refine_passes: how many times the correspondence refinement by rings is repeated, or candidates
+            chosen with the rings on the validation split; None: the run's ``eval.refine_passes`` (1 for
+            runs made before it existed).
 
     Returns:
         The same metrics dictionary that training writes to ``metrics.json`` (for an ensemble,
@@ -412,16 +439,27 @@ def evaluate(
         refine_rings = config.get("eval", {}).get("refine_rings", (0,))  # older runs: no refinement
     if refine_spectral is None:
         refine_spectral = config.get("eval", {}).get("refine_spectral", (0.0,))
-    rings, radius, choice = select_refinement(
+    if refine_passes is None:
+        refine_passes = config.get("eval", {}).get("refine_passes", (1,))
+    rings, passes, radius, choice = select_refinement(
         members,
         dataset,
         [refine_rings] if isinstance(refine_rings, int) else refine_rings,
         [refine_spectral] if isinstance(refine_spectral, (int, float)) else refine_spectral,
         device,
         progress,
+        [refine_passes] if isinstance(refine_passes, int) else refine_passes,
     )
     metrics, _ = evaluate_members(
-        members, dataset, indices, device, progress, keep=0, refine_rings=rings, refine_spectral=radius
+        members,
+        dataset,
+        indices,
+        device,
+        progress,
+        keep=0,
+        refine_rings=rings,
+        refine_spectral=radius,
+        refine_passes=passes,
     )
     if choice is not None:
         metrics["refine_choice"] = choice

@@ -536,7 +536,7 @@ def _test(
     logger,
 ) -> tuple[dict, list[dict]]:
     """The selected model (best.pt) on the test split (the validation split if there is none); a
-    correspondence refined as ``evaluation.refine_rings`` and ``evaluation.refine_spectral`` say, a
+    correspondence refined as ``evaluation.refine_rings``, ``refine_passes`` and ``refine_spectral`` say, a
     segmentation as ``evaluation.refine_rings`` says."""
     best = load_checkpoint(run_dir / "best.pt")
     model.load_state_dict(best["model"])
@@ -546,7 +546,8 @@ def _test(
         split, indices = "val", splits.val
     members = [(model, best)]
     candidates, radii = list(evaluation.refine_rings), list(evaluation.refine_spectral)
-    for key, values in (("refine_rings", candidates), ("refine_spectral", radii)):
+    passes_candidates = list(evaluation.refine_passes)
+    for key, values in (("refine_rings", candidates), ("refine_passes", passes_candidates), ("refine_spectral", radii)):
         if len(values) > 1 and not splits.val:
             logger.warning(f"no validation split to choose eval.{key} among {values}: using {min(values)}")
             values[:] = [min(values)]
@@ -554,14 +555,20 @@ def _test(
     if unavailable is not None:
         logger.warning(unavailable)
         radii = [0.0]
-    rings, radius, choice = select_refinement(members, dataset, candidates, radii, device, progress)
+    rings, passes, radius, choice = select_refinement(
+        members, dataset, candidates, radii, device, progress, passes_candidates
+    )
     metrics, predictions = evaluate_members(
-        members, dataset, indices, device, progress, refine_rings=rings, refine_spectral=radius
+        members, dataset, indices, device, progress, refine_rings=rings, refine_spectral=radius, refine_passes=passes
     )
     if choice is not None:
         metrics["refine_choice"] = choice
         logger.info(
-            f"refine rings {rings}, chosen on the validation split (exact accuracy by rings: "
+            f"refine rings {rings}"
+            + (f" x {passes} passes" if "passes" in choice else "")
+            + ", chosen on the validation split (exact accuracy by rings"
+            + (" x passes" if "passes" in choice else "")
+            + ": "
             + ", ".join(f"{k}: {v:.4f}" for k, v in choice["accuracy"].items())
             + ")"
         )
@@ -572,8 +579,13 @@ def _test(
                 + ", ".join(f"{k}: {v:.4f}" for k, v in choice["spectral_accuracy"].items())
                 + ")"
             )
-    if best["task"] == "classification" and (best.get("refine_rings"), best.get("refine_spectral")) != (rings, radius):
+    chosen = (rings, passes, radius)
+    if (
+        best["task"] == "classification"
+        and (best.get("refine_rings"), best.get("refine_passes", 1), best.get("refine_spectral")) != chosen
+    ):
         best["refine_rings"] = rings  # what `predict` applies to a new surface
+        best["refine_passes"] = passes
         best["refine_spectral"] = radius
         atomic_save_torch(best, run_dir / "best.pt")
     metrics.update(
