@@ -148,6 +148,14 @@ def parse_args(argv=None) -> argparse.Namespace:
         default=None,
         help="--real: the runs' and the scoring's cache (default: RUNS/cache)",
     )
+    parser.add_argument(
+        "--refine-rings",
+        type=int,
+        default=None,
+        metavar="N",
+        help="--real: score with this refinement (rings averaged where the network is unsure; 0: none) instead "
+        "of what each run chose on its validation meshes",
+    )
     return parser.parse_args(argv)
 
 
@@ -364,7 +372,7 @@ def real_people(args) -> int:
                 tally = tallies[model][form]
                 started = time.perf_counter()
                 try:
-                    prediction = predict(run_dir, surface, cache_dir=cache_dir)
+                    prediction = predict(run_dir, surface, cache_dir=cache_dir, refine_rings=args.refine_rings)
                 except Exception as error:  # a refusal is a result here: count it and say why
                     tally.refused.append(f"tr_reg_{number:03d}: {type(error).__name__}: {error}")
                     continue
@@ -376,8 +384,9 @@ def real_people(args) -> int:
         checkpoint = load_checkpoint(run_dir / "best.pt")
         final = load_checkpoint(run_dir / "last.pt")["state"]  # the whole run, not up to its best epoch
         training[model] = {"seconds": float(final["train_seconds"]), "epochs": int(final["epoch"])}
+        chosen = checkpoint.get("refine_rings", 0) if args.refine_rings is None else args.refine_rings
         for row in results[model].values():
-            row["refine_rings"] = int(checkpoint.get("refine_rings", 0))
+            row["refine_rings"] = int(chosen)
     stored = result_file(args.out, ".json")
     generated = json.loads(stored.read_text())["models"] if stored.is_file() else {}
     write_json(
@@ -386,6 +395,7 @@ def real_people(args) -> int:
             "models": results,
             "training": training,
             "overrides": args.overrides,
+            "refine_rings_override": args.refine_rings,
             "scored_scans": [f"tr_reg_{number:03d}" for number in scored],
             "epochs": args.epochs,
         },
@@ -498,7 +508,9 @@ def real_markdown(results: dict, generated: dict, scored: list[int], args, train
         "many points as vertices, half as many points with 2 mm of noise, one-sided) and the scan's own vertices "
         "as a cloud (*vertices*: denser on the hands and face than a uniform cloud), each point labelled by the "
         "scan vertex it comes from, predicted by "
-        "`zernet.inference.predict` as given (area-normalised, the run's refinement). Accuracy pooled over the "
+        "`zernet.inference.predict` as given (area-normalised, "
+        + ("the run's refinement" if args.refine_rings is None else f"refined over {args.refine_rings} rings")
+        + "). Accuracy pooled over the "
         "points; *drop*: points below the mesh; *head+hands / rest*: accuracy on the points of those parts "
         "(where a cloud's triangulation can bridge fingers or close the mouth) and on the others.",
         "",
