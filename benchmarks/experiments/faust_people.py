@@ -21,7 +21,8 @@ copy of FAUST's training registrations (``tr_reg_000`` ... ``tr_reg_079``: scan 
 A run folder that already holds ``metrics.json`` is read, not trained again: later invocations add recipes.
 ``--rescore`` scores such folders again with their recipe's refinement as the configuration now gives it
 (``eval.refine_rings``, ``refine_passes``, ``refine_spectral``, chosen on the validated person), written beside
-as ``metrics-rescored.json``; the training figures stay those of the run.
+as ``metrics-rescored.json``, which later invocations read in place of the run's own scores; the training
+figures stay those of the run.
 
     .venv/bin/python -m benchmarks.experiments.faust_people --data ~/data/MPI-FAUST --runs ~/runs/faust_people \\
         --cache-dir ~/cache/zernet --recipes shipped scratch-xyz-hks
@@ -128,8 +129,10 @@ def run_recipe(name: str, config: dict, run_dir: Path, rescore: bool = False) ->
         train(config, run_dir, progress=False, overwrite=True)
     seconds = time.perf_counter() - started
     metrics = yaml.safe_load((run_dir / "metrics.json").read_text())
-    if rescore:
-        metrics = {**metrics, **rescored(run_dir, config), "train_seconds": metrics.get("train_seconds", seconds)}
+    scores = run_dir / "metrics-rescored.json"
+    if rescore or scores.is_file():
+        again = rescored(run_dir, config) if rescore else yaml.safe_load(scores.read_text())
+        metrics = {**metrics, **again, "train_seconds": metrics.get("train_seconds", seconds)}
     history = load_checkpoint(run_dir / "last.pt")["state"]["history"]
     refined = metrics["summary"]
     unrefined = metrics.get("unrefined_summary", refined)
