@@ -61,7 +61,7 @@ TODAYS_FORMAT = {
         "keep_epochs": False,
         "init_from": None,
     },
-    "eval": {"renders": 3, "plots": True, "refine_rings": [0], "refine_spectral": [0.0]},
+    "eval": {"renders": 3, "plots": True, "refine_rings": [0], "refine_passes": [1], "refine_spectral": [0.0]},
     "cache_dir": ".zernet-cache",
 }
 
@@ -233,3 +233,9 @@ def test_faust_splits_take_lists_or_quoted_ranges(tmp_path):
         config["data"]["train_indices"] = bad
         with pytest.raises(ConfigError, match=r"data.train_indices must be a list of integers or a quoted range"):
             parse_config(config)
+
+
+def test_a_config_written_before_refinement_passes_loads_with_one_pass():
+    older = copy.deepcopy(TODAYS_FORMAT)
+    del older["eval"]["refine_passes"]
+    assert parse_config(older).eval.refine_passes == [1] and parse_config(older) == parse_config(TODAYS_FORMAT)
