@@ -175,7 +175,7 @@ def markdown(result: dict) -> list[str]:
                 f"{entry['best_epoch']}",
                 f"{100 * s['exact_unrefined']:.1f} %",
                 f"{100 * s['exact_refined']:.1f} %",
-                f"{100 * s['within_1pct_refined']:.1f} %" if s["within_1pct_refined"] is not None else "-",
+                f"{100 * s['within_1pct_refined']:.2f} %" if s["within_1pct_refined"] is not None else "-",
                 f"{100 * s['beyond_10pct_unrefined']:.2f} / {100 * s['beyond_10pct_refined']:.2f} %",
                 f"{entry['refine_rings']} x {entry.get('refine_passes', 1)} / {entry['refine_spectral']}",
                 f"{entry['train_seconds'] / 60:.0f} min",
