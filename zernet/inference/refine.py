@@ -167,11 +167,13 @@ def refine_correspondence(
         raise ValueError(f"rings must be >= 0, got {rings}")
     if passes < 1:
         raise ValueError(f"passes must be >= 1, got {passes}")
-    for _ in range(passes if rings > 0 else 0):
-        n, m = scores.shape
-        floor = AGREEMENT_FLOOR / m
-        shape_rings = ring_tensor(shape_faces, n, rings, scores.device, average=False)
-        template_rings = ring_tensor(template_faces, m, rings, scores.device, average=False)
+    if rings == 0:
+        return scores.cpu().numpy() if as_numpy else scores
+    n, m = scores.shape
+    floor = AGREEMENT_FLOOR / m
+    shape_rings = ring_tensor(shape_faces, n, rings, scores.device, average=False)
+    template_rings = ring_tensor(template_faces, m, rings, scores.device, average=False)
+    for _ in range(passes):
         # mass[k, j]: what vertex k gives the ring of j (the template's rings are symmetric: R·Pᵀ = (P·R)ᵀ).
         agreement = (template_rings @ scores.T.contiguous()).T.add_(floor).log_()
         # Every neighbour's agreement, without the vertex's own (it speaks through its probability).
