@@ -43,6 +43,12 @@ def release_models() -> dict[str, dict]:
     return yaml.safe_load(RELEASE.read_text())["models"]
 
 
+def trainer_commands(recipe: dict) -> list[str]:
+    """The commands of a model made by a trainer of its own, in order (``command``: one, or a list)."""
+    command = recipe["command"]
+    return [command] if isinstance(command, str) else list(command)
+
+
 def run_config(recipe: dict) -> dict:
     """The ``zernet train`` configuration of a model trained by zernet: its base with its overrides, reading
     the correspondence folder of its generated bodies."""
@@ -81,8 +87,9 @@ def run_trainer_and_ship(name: str, recipe: dict) -> None:
     write the provenance stored in it beside it."""
     model = REPO / recipe["model"]
     if not model.is_file():
-        command = shlex.split(recipe["command"])
-        subprocess.run([sys.executable, *command[1:]] if command[0] == "python" else command, cwd=REPO, check=True)
+        for line in trainer_commands(recipe):  # a fine-tune in stages: each starts from the last one's file
+            command = shlex.split(line)
+            subprocess.run([sys.executable, *command[1:]] if command[0] == "python" else command, cwd=REPO, check=True)
     target = PRETRAINED / f"{name}.pt"
     shutil.copyfile(model, target)
     stored = read_model_file(target)
@@ -102,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown model {', '.join(unknown)}; the models are {', '.join(models)}")
     if args.list:
         for name, recipe in models.items():
-            print(f"{name:26} {'trained by ' + recipe['command'] if 'command' in recipe else 'zernet train'}")
+            how = " then ".join(trainer_commands(recipe)) if "command" in recipe else "zernet train"
+            print(f"{name:26} {'trained by ' + how if 'command' in recipe else how}")
         return 0
     for name, recipe in models.items():
         if args.names and name not in args.names:

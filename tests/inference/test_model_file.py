@@ -21,12 +21,14 @@ from zernet.matching.template import PRETRAINED_TEMPLATE_MODEL, load_template_mo
 
 #: Digest (:func:`_contents_digest`) of each shipped file's contents, measured on the files as first
 #: shipped, before they were converted to the one format: the conversion changed nothing but the format
-#: fields, so the models give the same outputs as before.
+#: fields, so the models give the same outputs as before (files shipped later: as shipped).
 SHIPPED = {
     "bodies": ("backbone", "bddb43d85a04c75f7cf473665787052a2830a5c37351edb59723180db90d24b9"),
     "bodies-xyz-hks": ("backbone", "5c208c321aa12e8d981146a814db23f9ff41bd8558b4fbc07e842442ef91b40c"),
     "bodies-faust-template": ("backbone", "d99ea255e159f581967961f161187d18af6ed040f0600d92076d423d24688eb4"),
-    "bodies-match-template": ("template", "da27941060f2544601d7afd8cc570c9eae2ba82417905c99de0e138391205544"),
+    # The first template model, shipped as bodies-match-template until the wide-pose fine-tune replaced it.
+    "bodies-template-part": ("template", "da27941060f2544601d7afd8cc570c9eae2ba82417905c99de0e138391205544"),
+    "bodies-match-template": ("template", "4880a82eab19cbf3324b43704761bc50900b26c8a668797280a78a715927ce1f"),
     "bodies-match-descriptors": ("descriptors", "9845dfdc97550815ecae94fac6f31b36ea14669970a0f2bb5d02d486839bd996"),
 }
 

@@ -15,10 +15,12 @@ from zernet.matching.match import load_matcher
 from zernet.matching.model import DescriptorModel
 from zernet.matching.template import (
     PRETRAINED_TEMPLATE_MODEL,
+    TEMPLATE_PART_MODEL,
     TemplateModel,
     _fitted_rotation,
     candidate_rotations,
     load_template_model,
+    template_shape,
 )
 from zernet.training.augment import random_rotation
 
@@ -215,7 +217,9 @@ def test_the_template_feature_says_where_on_the_body_a_vertex_lies_in_any_pose(t
 
     # A held-out body in the model's own topology: its vertex i lies at template vertex i.
     body = BodyGenerator("coarse-1229", "varied", seed=0, cache_dir=tmp_path).body(0, "test").surface()
-    model = load_template_model()
+    # The part reads its own model, not the matcher's default: models trained on the part learnt its positions.
+    assert TEMPLATE_PART_MODEL != PRETRAINED_TEMPLATE_MODEL
+    model = load_template_model(TEMPLATE_PART_MODEL)
     features = compute_features(body, "xyz+template", cache_dir=tmp_path)
     assert features.shape == (body.n_vertices, feature_channels("xyz+template")) == (body.n_vertices, 6)
     positions = features[:, 3:]
@@ -223,6 +227,8 @@ def test_the_template_feature_says_where_on_the_body_a_vertex_lies_in_any_pose(t
     height = np.ptp(model.template_positions[:, 1])
     errors = np.linalg.norm(positions / scale - model.template_positions, axis=1)
     assert np.median(errors) < 0.02 * height, np.median(errors) / height
+    read_by_the_part_model = template_shape(model, body).positions * scale
+    np.testing.assert_allclose(positions, read_by_the_part_model, rtol=0, atol=1e-3 * height * scale)
     # Turned and moved, the body reads the same positions (unlike its xyz).
     turn = random_rotation(np.random.default_rng(3), "any")
     moved = Surface(body.vertices @ turn.T + [10.0, -4.0, 2.0], body.faces)

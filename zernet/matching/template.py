@@ -66,6 +66,7 @@ from zernet.operators.spectral import heat_smoothed
 
 __all__ = [
     "PRETRAINED_TEMPLATE_MODEL",
+    "TEMPLATE_PART_MODEL",
     "TemplateModel",
     "TemplateShape",
     "save_template_model",
@@ -76,8 +77,14 @@ __all__ = [
     "body_template_positions",
 ]
 
-#: The template model shipped in the package (trained on generated bodies only; provenance beside it).
+#: The template model shipped in the package, the one ``zernet match`` uses (trained on generated bodies
+#: only; provenance beside it).
 PRETRAINED_TEMPLATE_MODEL = pretrained_path("bodies-match-template")
+
+#: The template model the ``template`` input part reads (:func:`body_template_positions`): the first template
+#: model, kept when ``zernet match`` moved to a better one, because models trained on that part (the shipped
+#: ``bodies-faust-template``, users' runs) learnt its positions, and a part must mean what it meant.
+TEMPLATE_PART_MODEL = pretrained_path("bodies-template-part")
 
 #: Rigid refinements of the chosen alignment (each one more pass of the classifier).
 ALIGNMENT_STEPS = 3
@@ -320,23 +327,24 @@ def match_template_shapes(source: TemplateShape, target: TemplateShape, confiden
 
 
 @functools.cache
-def _shipped_model() -> tuple[TemplateModel, str]:
-    """The shipped template model, loaded once per process, and the sha256 of its file (a cache key)."""
-    digest = hashlib.sha256(PRETRAINED_TEMPLATE_MODEL.read_bytes()).hexdigest()
-    return load_template_model(), digest
+def _template_part_model() -> tuple[TemplateModel, str]:
+    """The template part's model (:data:`TEMPLATE_PART_MODEL`), loaded once per process, and the sha256 of its
+    file (a cache key)."""
+    digest = hashlib.sha256(TEMPLATE_PART_MODEL.read_bytes()).hexdigest()
+    return load_template_model(TEMPLATE_PART_MODEL), digest
 
 
 def body_template_positions(surface: Surface, cache_dir: str | os.PathLike | None = None) -> np.ndarray:
     """(N, 3) float32 template position of every vertex of a human body (mesh or cloud, any pose, any
-    scale) read by the shipped template model (:func:`template_shape`), in the surface's units (the
-    template body scaled as the surface is); read from / written to
-    ``cache_dir``/template when given (keyed by the geometry and the model file).
+    scale) read by the template part's model (:data:`TEMPLATE_PART_MODEL`, :func:`template_shape`), in the
+    surface's units (the template body scaled as the surface is); read from / written to ``cache_dir``/template
+    when given (keyed by the geometry and the model file).
 
     Why: the positions are in the template's rest pose, so they are nearly the same for one place on any
     person in any pose (spread 0.7 % of the height across 100 generated bodies): a person-invariant input
     for models trained on a few people (the "template" feature part, :mod:`zernet.data.features`).
     """
-    model, model_digest = _shipped_model()
+    model, model_digest = _template_part_model()
     path = None
     if cache_dir is not None:
         key = hashlib.sha256(f"{surface.geometry_hash()}:{model_digest}".encode()).hexdigest()

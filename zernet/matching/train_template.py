@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import subprocess
 import sys
 from pathlib import Path
@@ -25,7 +26,7 @@ import yaml
 
 from zernet.io_utils import atomic_write_bytes
 
-__all__ = ["FORMS", "rest_positions", "write_training_folder", "template_config", "main"]
+__all__ = ["FORMS", "rest_positions", "write_training_folder", "template_config", "init_provenance", "main"]
 
 #: The forms every training body is also seen in (``zernet bodies --forms``).
 FORMS = ("remeshed", "cloud", "cloud-noisy", "partial")
@@ -70,7 +71,9 @@ def write_training_folder(bodies: Path, out: Path, n_template: int) -> Path:
     return out
 
 
-def template_config(folder: Path, n_template: int, unit_scale: float, epochs: int, init_from: str | None) -> dict:
+def template_config(
+    folder: Path, n_template: int, unit_scale: float, epochs: int, init_from: str | None, lr: float = 0.003
+) -> dict:
     """The run configuration: a per-vertex classifier over the template's vertices, at one fixed scale (so a
     one-sided scan keeps its size), with positions and the heat kernel signature as inputs, seen by the head."""
     return {
@@ -99,8 +102,26 @@ def template_config(folder: Path, n_template: int, unit_scale: float, epochs: in
             ],
         },
         "model": {"name": "zernet", "widths": [64, 128, 256, 512], "norm": "layer", "input_skip": True},
-        "train": {"epochs": epochs, "lr": 0.003, "lr_schedule": "cosine", "init_from": init_from},
+        "train": {"epochs": epochs, "lr": lr, "lr_schedule": "cosine", "init_from": init_from},
         "eval": {"renders": 0, "refine_rings": [0]},
+    }
+
+
+def init_provenance(init_from: str | None) -> dict | None:
+    """What a template model was fine-tuned from: a template model file's name, sha256 and own provenance
+    (so a chain of fine-tunes can be followed back to its first training), or the backbone's name."""
+    if init_from is None:
+        return None
+    path = Path(init_from)
+    if not path.is_file():
+        return {"name": init_from}
+    from zernet.inference.model_file import read_model_file
+
+    payload = read_model_file(path)
+    return {
+        "file": path.name,
+        "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+        "provenance": payload.get("provenance"),
     }
 
 
@@ -112,6 +133,10 @@ def main(argv=None) -> int:
     parser.add_argument("--count", type=int, default=500)
     parser.add_argument("--seed", type=int, default=5)
     parser.add_argument("--epochs", type=int, default=8)
+    parser.add_argument("--lr", type=float, default=0.003, help="peak learning rate (cosine schedule)")
+    parser.add_argument(
+        "--poses", choices=("varied", "wide"), default="varied", help="the generated bodies' poses (zernet bodies)"
+    )
     parser.add_argument("--init-from", default="pretrained:bodies-xyz-hks")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
@@ -122,7 +147,7 @@ def main(argv=None) -> int:
     commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     if not (args.bodies / "forms" / FORMS[-1]).is_dir():
         command = [sys.executable, "-m", "zernet.cli", "bodies", str(args.bodies), "--count", str(args.count)]
-        command += ["--n-test", "10", "--seed", str(args.seed), "--topology", TOPOLOGY]
+        command += ["--n-test", "10", "--seed", str(args.seed), "--topology", TOPOLOGY, "--poses", args.poses]
         subprocess.run([*command, "--forms", ",".join(FORMS), "--forms-split", "all"], check=True)
     positions = rest_positions()
     folder = write_training_folder(args.bodies, args.bodies / "template-training", len(positions))
@@ -133,7 +158,7 @@ def main(argv=None) -> int:
     ]
     training_area = 15000.0  # the area the shipped backbone's patches were learnt at
     unit_scale = round(float(np.median(np.sqrt(training_area / np.asarray(areas)))), 1)
-    config = template_config(folder, len(positions), unit_scale, args.epochs, args.init_from)
+    config = template_config(folder, len(positions), unit_scale, args.epochs, args.init_from, args.lr)
     args.run.mkdir(parents=True, exist_ok=True)
     config_path = args.run / "template.yaml"
     atomic_write_bytes(config_path, yaml.safe_dump(config, sort_keys=False).encode())
@@ -146,6 +171,8 @@ def main(argv=None) -> int:
         "config": config,
         "training_area": training_area,
         "coarse_vertices": COARSE_VERTICES,
+        "poses": args.poses,
+        "init_from": init_provenance(args.init_from),
     }
     save_template_model(load_checkpoint(args.run / "run" / "best.pt"), positions, args.out, provenance)
     print(f"wrote {args.out}")
