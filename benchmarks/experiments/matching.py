@@ -139,8 +139,7 @@ def errors_on_target(
         faces = faces[measurable_faces(faces)]
         kept = np.unique(faces)
         if len(kept) < len(vertices):  # vertices left without a face answer through the nearest kept one
-            renumber = kept[cKDTree(vertices[kept]).query(vertices)[1]]
-            renumber = np.searchsorted(kept, renumber)
+            renumber = cKDTree(vertices[kept]).query(vertices)[1]
             vertices, faces = vertices[kept], np.searchsorted(kept, faces)
             predicted, truth = renumber[np.asarray(predicted)], renumber[np.asarray(truth)]
     relative = geodesic_errors(vertices, predicted, truth, faces=faces, diameter=root_area)
@@ -154,10 +153,9 @@ def measurable_faces(faces: np.ndarray) -> np.ndarray:
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     owner = np.tile(np.arange(len(faces)), 3)
     bad = np.zeros(len(faces), dtype=bool)
-    for edges in (directed, np.sort(directed, axis=1)):
+    for edges, most in ((directed, 1), (np.sort(directed, axis=1), 2)):
         _, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
-        limit = 1 if edges is directed else 2
-        bad[owner[counts[np.asarray(inverse).reshape(-1)] > limit]] = True
+        bad[owner[counts[np.asarray(inverse).reshape(-1)] > most]] = True
     return ~bad
 
 
@@ -570,7 +568,7 @@ def markdown(summary: dict) -> list[str]:
         f"# Matching held-out generated bodies ({summary['topology']} topology, {summary['pairs']} "
         f"{summary['split']} pairs)",
         "",
-        f"{summary.get('threads', 1)} CPU thread(s). Template model: {summary['template']} "
+        f"{summary['threads']} CPU thread(s). Template model: {summary['template']} "
         f"(commit {str(summary['template_provenance'].get('commit'))[:10]}); descriptor model: {summary['model']} "
         f"(commit {str(summary['model_provenance'].get('commit'))[:10]}).",
         "",
@@ -595,14 +593,14 @@ def markdown(summary: dict) -> list[str]:
         lines += [
             "",
             f"Time per pair with the descriptor model (remeshed, {min(min(s) for s in sizes)}-"
-            f"{max(max(s) for s in sizes)} vertices, both shapes prepared from scratch, {summary.get('threads', 1)} thread(s)): mean "
+            f"{max(max(s) for s in sizes)} vertices, both shapes prepared from scratch, {summary['threads']} thread(s)): mean "
             f"{summary['mean_seconds_per_pair']:.1f} s, max {max(s['seconds'] for s in summary['time_per_pair']):.1f} s.",
         ]
     if summary["template_time_per_pair"]:
         lines += [
             "",
             "Time per pair with the template model (remeshed, from the surfaces as a user has them: "
-            f"`match_surfaces`, the functional map included, {summary.get('threads', 1)} thread(s)): mean "
+            f"`match_surfaces`, the functional map included, {summary['threads']} thread(s)): mean "
             f"{summary['template_mean_seconds_per_pair']:.1f} s, "
             f"max {max(s['seconds'] for s in summary['template_time_per_pair']):.1f} s.",
         ]

@@ -109,8 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown model {', '.join(unknown)}; the models are {', '.join(models)}")
     if args.list:
         for name, recipe in models.items():
-            how = " then ".join(trainer_commands(recipe)) if "command" in recipe else "zernet train"
-            print(f"{name:26} {'trained by ' + how if 'command' in recipe else how}")
+            how = "trained by " + " then ".join(trainer_commands(recipe)) if "command" in recipe else "zernet train"
+            print(f"{name:26} {how}")
         return 0
     for name, recipe in models.items():
         if args.names and name not in args.names:

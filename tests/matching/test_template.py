@@ -183,6 +183,25 @@ def test_a_template_model_file_round_trips(tmp_path):
         save_template_model(_tiny_checkpoint(5), positions, tmp_path / "u.pt", provenance)
 
 
+def test_a_fine_tune_records_the_file_it_started_from_and_that_file_s_own_history(tmp_path):
+    import hashlib
+
+    from zernet.matching.template import save_template_model
+    from zernet.matching.train_template import init_provenance
+
+    first = {"command": "first", "commit": "abc", "config": {}, "training_area": 15000.0, "coarse_vertices": 300}
+    path = save_template_model(_tiny_checkpoint(12), np.zeros((12, 3)), tmp_path / "first.pt", first)
+    recorded = init_provenance(str(path))
+    assert recorded["file"] == "first.pt"
+    assert recorded["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert recorded["provenance"]["command"] == "first"
+    assert init_provenance("pretrained:bodies-xyz-hks") == {"name": "pretrained:bodies-xyz-hks"}
+    assert init_provenance(None) is None
+    (tmp_path / "other.pt").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="other.pt"):
+        init_provenance(str(tmp_path / "other.pt"))
+
+
 def test_the_training_folder_and_config_of_the_recipe(tmp_path):
     import trimesh
 
