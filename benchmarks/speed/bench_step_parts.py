@@ -44,7 +44,7 @@ from benchmarks.speed.bench_operator import FAUST_RECIPE
 from zernet.data.features import feature_channels
 from zernet.inference import build_model_from_spec, model_spec
 from zernet.inference.batch import model_basis_orders
-from zernet.inference.runtime import precision_autocast
+from zernet.inference.runtime import flush_denormals, keep_freed_memory, precision_autocast
 from zernet.operators import Geometry, PatchConfig, build_patch_operator
 from zernet.training.config import load_config, parse_config
 
@@ -97,6 +97,7 @@ def main() -> None:
     add_out(parser, SPEED_RESULTS / "bench_step_parts")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    keep_freed_memory()  # as the zernet command does
 
     config = parse_config(load_config(FAUST_RECIPE))
     patch = PatchConfig(**config.patch.scales[0])
@@ -123,11 +124,12 @@ def main() -> None:
         optimizer = torch.optim.Adam(model.parameters(), lr=config.train.lr)
         return step_seconds(model, optimizer, features, geometries[name], target, precision, steps)
 
-    for variant in variants:  # warm-up: kernels compiled, allocator grown, products built once
-        run(variant, 1)
-    for _ in range(args.rounds):
-        for variant in variants:
-            times[variant] += run(variant, args.steps)
+    with flush_denormals():  # as training runs its epochs
+        for variant in variants:  # warm-up: kernels compiled, allocator grown, products built once
+            run(variant, 1)
+        for _ in range(args.rounds):
+            for variant in variants:
+                times[variant] += run(variant, args.steps)
 
     medians = {variant: statistics.median(values) for variant, values in times.items()}
     reference = medians[("float32", "operators")]
