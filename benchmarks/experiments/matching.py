@@ -33,7 +33,8 @@ shipped model): the pairs a model is chosen on, so the test pairs stay unseen by
 
 ``--real DIR`` also scores **real people**, written apart (``STEM_real.json``, ``STEM_real.md``): the FAUST
 training registrations in ``DIR`` (``tr_reg_000.ply`` ... ``tr_reg_079.ply``: people 0-7 only, scan =
-10 x person + pose; people 8 and 9 are never read), ``--real-pairs`` pairs of two different people, each scan
+10 x person + pose; people 8 and 9 are never read), ``--real-pairs`` pairs of two different people (of
+``--real-people`` only, e.g. ``6,7`` for a template model fine-tuned on people 0-5), each scan
 made into forms by the project's own tools (:mod:`zernet.data.bodies.forms`; cached under
 ``--cache-dir``/matching/real-forms, nothing of the data in the repository):
 
@@ -234,12 +235,16 @@ def classifier_reference(run: str, bodies: dict, faces: np.ndarray, indices) -> 
     }
 
 
-def real_pairs(n: int, seed: int = 0) -> list[tuple[int, int]]:
-    """``n`` (source scan, target scan) pairs of two different people among :data:`REAL_SCANS`, drawn once."""
+def real_pairs(n: int, seed: int = 0, people: tuple[int, ...] | None = None) -> list[tuple[int, int]]:
+    """``n`` (source scan, target scan) pairs of two different people among :data:`REAL_SCANS`, drawn once;
+    ``people``: only the scans of these people (scan // 10), e.g. those a fine-tune did not train on."""
+    scans = [scan for scan in REAL_SCANS if people is None or scan // 10 in people]
+    if people is not None and len({scan // 10 for scan in scans}) < 2:
+        raise ValueError(f"pairs of two different people need two of people 0-7, got {sorted(people)}")
     rng = np.random.default_rng(seed)
     pairs = []
     while len(pairs) < n:
-        source, target = (int(scan) for scan in rng.choice(REAL_SCANS, 2))
+        source, target = (int(scan) for scan in rng.choice(scans, 2))
         if source // 10 != target // 10:
             pairs.append((source, target))
     return pairs
@@ -288,12 +293,14 @@ def real_form(directory: Path, scan: int, form: str, cache_dir: Path) -> Located
         return LocatedForm(name, form, scan, surface, stored["face_index"], stored["barycentric"], stored["on_body"])
 
 
-def score_real(directory: Path, n_pairs: int, setting: str, template_model, cache_dir: Path) -> dict:
+def score_real(
+    directory: Path, n_pairs: int, setting: str, template_model, cache_dir: Path, people: tuple[int, ...] | None = None
+) -> dict:
     """One setting's pairs of real people: per pair, the mean error of ``zernet match``'s default and of the
     template map without the repair, the median, the share of points more than 10 away, and the times."""
     source_form_name, target_form_name = REAL_SETTINGS[setting]
     rows = []
-    for source_scan, target_scan in real_pairs(n_pairs):
+    for source_scan, target_scan in real_pairs(n_pairs, people=people):
         source = real_form(directory, source_scan, source_form_name, cache_dir)
         target = real_form(directory, target_scan, target_form_name, cache_dir)
         target_registration = registration(directory, target_scan)
@@ -332,9 +339,12 @@ def score_real(directory: Path, n_pairs: int, setting: str, template_model, cach
     }
 
 
-def real_markdown(results: dict, n_pairs: int, threads: int, template: str) -> list[str]:
+def real_markdown(
+    results: dict, n_pairs: int, threads: int, template: str, people: tuple[int, ...] | None = None
+) -> list[str]:
+    whom = "people 0-7" if people is None else "people " + ", ".join(str(p) for p in sorted(people))
     lines = [
-        f"# Matching real people: FAUST training scans, people 0-7 ({n_pairs} pairs of two different people)",
+        f"# Matching real people: FAUST training scans, {whom} ({n_pairs} pairs of two different people)",
         "",
         "Real scans (not generated bodies; generated pairs: `matching.md`). Mean geodesic error x100 / sqrt(target "
         "area) over the pairs (worst pair in brackets); `zernet match`'s default (the template model and its "
@@ -398,6 +408,12 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--real-pairs", type=int, default=10, help="pairs of real people per setting")
     parser.add_argument("--real-settings", default=",".join(REAL_SETTINGS), help="subset of " + ",".join(REAL_SETTINGS))
+    parser.add_argument(
+        "--real-people",
+        default=None,
+        help="comma-separated people (0-7) whose scans make the real pairs (default: all eight), e.g. 6,7 for a "
+        "template model fine-tuned on people 0-5",
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     model, provenance = load_matching_model(args.model)
@@ -406,17 +422,28 @@ def main(argv=None) -> int:
     template_name += f" (commit {str(template_model.provenance.get('commit'))[:10]})"
     if args.real is not None:
         real_settings = args.real_settings.split(",")
+        real_people = None if args.real_people is None else tuple(int(p) for p in args.real_people.split(","))
+        if real_people is not None and not set(real_people) <= set(range(8)):
+            parser.error(f"--real-people: people 0-7 only (8 and 9 are held out), got {args.real_people}")
         unknown = set(real_settings) - set(REAL_SETTINGS)
         if unknown:
             parser.error(f"--real-settings: unknown {sorted(unknown)}; choose from {sorted(REAL_SETTINGS)}")
         real = {}
         for setting in real_settings:  # the files are written after each setting: a long run keeps what it has
-            real[setting] = score_real(args.real, args.real_pairs, setting, template_model, Path(args.cache_dir))
+            real[setting] = score_real(
+                args.real, args.real_pairs, setting, template_model, Path(args.cache_dir), real_people
+            )
             write_json(
                 result_file(args.out, "_real.json"),
-                {"pairs": args.real_pairs, "threads": args.threads, "template": template_name, "settings": real},
+                {
+                    "pairs": args.real_pairs,
+                    "people": list(real_people or range(8)),
+                    "threads": args.threads,
+                    "template": template_name,
+                    "settings": real,
+                },
             )
-            lines = real_markdown(real, args.real_pairs, args.threads, template_name)
+            lines = real_markdown(real, args.real_pairs, args.threads, template_name, real_people)
             write_markdown(result_file(args.out, "_real.md"), lines)
         print("\n".join(lines))
     if args.pairs == 0:

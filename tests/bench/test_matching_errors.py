@@ -2,9 +2,10 @@
 (benchmarks/experiments/matching.py: ``errors_on_target``, ``measurable_faces``)."""
 
 import numpy as np
+import pytest
 from meshes import icosphere
 
-from benchmarks.experiments.matching import errors_on_target, measurable_faces
+from benchmarks.experiments.matching import errors_on_target, measurable_faces, real_pairs
 from zernet.geometry import Surface
 
 
@@ -32,3 +33,14 @@ def test_a_target_with_a_flipped_duplicate_face_and_a_loose_vertex_is_measured_a
     # The loose vertex answers through its nearest kept vertex.
     loose = errors_on_target(broken, np.array([len(sphere.vertices)]), np.array([0]), 1.0)[0]
     assert loose[0] < 0.01 * 100
+
+
+def test_real_pairs_join_two_different_people_and_only_the_people_asked_for():
+    every = real_pairs(40)
+    assert all(source // 10 != target // 10 for source, target in every)
+    assert {scan // 10 for pair in every for scan in pair} <= set(range(8))  # people 8-9 are never read
+    held = real_pairs(12, people=(6, 7))
+    assert {scan // 10 for pair in held for scan in pair} == {6, 7}
+    assert all(source // 10 != target // 10 for source, target in held)
+    with pytest.raises(ValueError, match="two different people"):
+        real_pairs(2, people=(6,))

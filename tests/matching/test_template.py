@@ -256,3 +256,77 @@ def test_the_template_feature_says_where_on_the_body_a_vertex_lies_in_any_pose(t
     # Read back from the cache: the same values.
     np.testing.assert_array_equal(compute_features(body, "template", cache_dir=tmp_path), positions)
     assert len(list((tmp_path / "template").glob("*.npz"))) == 1
+
+
+@needs_bodies
+def test_registered_scans_are_labelled_by_the_consensus_of_their_template_reads(tmp_path, one_torch_thread):
+    from zernet.data.bodies import BodyGenerator
+    from zernet.matching.train_template import consensus_labels, write_registration_folder
+
+    # Bodies in the model's own topology share one triangulation, and vertex i lies at template vertex i.
+    generator = BodyGenerator("coarse-1229", "varied", seed=0, cache_dir=tmp_path)
+    bodies = [generator.body(i, "test").surface() for i in range(3)]
+    for i, body in enumerate(bodies):
+        body.name = f"body_{i}.ply"
+    model = load_template_model()
+    consensus = consensus_labels(model, bodies, cache_dir=tmp_path)
+    template = model.template_positions
+    miss = np.linalg.norm(template[consensus["labels"]] - template, axis=1)
+    spacing = np.median(np.linalg.norm(template[1:] - template[:-1], axis=1))
+    assert np.median(miss) <= spacing and np.mean(miss < 0.1) > 0.97  # at most a template vertex off; no limb
+    assert consensus["rotations"].shape == (3, 3, 3) and consensus["spread"].shape == (3,)
+
+    folder = write_registration_folder(model, bodies, consensus["labels"], consensus["rotations"], tmp_path / "f")
+    import trimesh
+
+    for i, body in enumerate(bodies):
+        mesh = trimesh.load(folder / "meshes" / "train" / f"body_{i}.ply", process=False)
+        labels = np.loadtxt(folder / "labels" / "train" / f"body_{i}.txt", dtype=int)
+        assert len(labels) == len(mesh.vertices) and abs(mesh.area - model.area) < 1e-6 * model.area
+        # Turned back out of the model's frame and scaled down, each vertex is where its body vertex was.
+        back = mesh.vertices @ consensus["rotations"][i] / np.sqrt(model.area / body.area)
+        nearest = np.linalg.norm(back[:, None] - body.vertices[None], axis=2).argmin(axis=1)
+        np.testing.assert_array_equal(labels, consensus["labels"][nearest])
+
+
+def test_a_consensus_needs_scans_that_share_one_triangulation():
+    import trimesh
+
+    from zernet.matching.train_template import consensus_labels
+
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    sphere = Surface(mesh.vertices, mesh.faces, name="sphere.ply")
+    other = Surface(mesh.vertices, mesh.faces[:, ::-1], name="flipped.ply")
+    with pytest.raises(ValueError, match="flipped.ply.*share one triangulation"):
+        consensus_labels(None, [sphere, sphere, other])
+    with pytest.raises(ValueError, match="at least 3"):
+        consensus_labels(None, [sphere, sphere])
+
+
+@needs_bodies
+def test_a_fine_tune_on_registered_scans_writes_a_template_model_with_its_provenance(tmp_path, one_torch_thread):
+    import json
+
+    import trimesh
+
+    from zernet.data.bodies import BodyGenerator
+    from zernet.matching.train_template import main
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    generator = BodyGenerator("coarse-1229", "varied", seed=1, cache_dir=tmp_path)
+    for i in range(3):
+        body = generator.body(i, "test").surface()
+        trimesh.Trimesh(body.vertices, body.faces, process=False).export(scans / f"scan_{i}.ply")
+    out = tmp_path / "fine_tuned.pt"
+    argv = [str(scans), str(tmp_path / "run"), "--registrations", "--out", str(out), "--epochs", "1", "--threads", "1"]
+    assert main(argv) == 0
+    model = load_template_model(out)
+    shipped = load_template_model()
+    np.testing.assert_array_equal(model.template_positions, shipped.template_positions)
+    assert model.area == shipped.area and model.coarse_vertices == shipped.coarse_vertices
+    provenance = model.provenance
+    assert provenance["registrations"]["scans"] == 3 and provenance["init_from"]["file"] == "bodies-match-template.pt"
+    assert provenance["config"]["data"]["forms"] and provenance["config"]["train"]["init_from"].endswith(".pt")
+    spread = json.loads((tmp_path / "run" / "consensus.json").read_text())["spread_p95"]
+    assert sorted(spread) == ["scan_0.ply", "scan_1.ply", "scan_2.ply"]
