@@ -330,3 +330,27 @@ def test_a_fine_tune_on_registered_scans_writes_a_template_model_with_its_proven
     assert provenance["config"]["data"]["forms"] and provenance["config"]["train"]["init_from"].endswith(".pt")
     spread = json.loads((tmp_path / "run" / "consensus.json").read_text())["spread_p95"]
     assert sorted(spread) == ["scan_0.ply", "scan_1.ply", "scan_2.ply"]
+
+
+def test_registrations_that_do_not_share_a_triangulation_are_refused_by_name(tmp_path):
+    import trimesh
+
+    from zernet.matching.train_template import main
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    for i in range(2):
+        mesh.export(scans / f"scan_{i}.ply")
+    trimesh.Trimesh(mesh.vertices, np.roll(mesh.faces, 1, axis=0), process=False).export(scans / "scan_2.ply")
+    argv = [str(scans), str(tmp_path / "run"), "--registrations", "--out", str(tmp_path / "m.pt")]
+    with pytest.raises(SystemExit, match="scan_2.ply.*share one triangulation"):
+        main(argv)
+    (scans / "scan_2.ply").write_text("not a mesh")
+    with pytest.raises(SystemExit, match="scan_2.ply"):
+        main(argv)
+    with pytest.raises(SystemExit, match="no such folder"):
+        main([str(tmp_path / "none"), str(tmp_path / "run2"), "--registrations", "--out", str(tmp_path / "m.pt")])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit, match="no registered scans"):
+        main([str(tmp_path / "empty"), str(tmp_path / "run2"), "--registrations", "--out", str(tmp_path / "m.pt")])

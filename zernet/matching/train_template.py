@@ -318,16 +318,21 @@ def _registration_config(
     """Registered scans labelled by consensus (module docstring): (run config, template positions, provenance)."""
     import json
 
-    from zernet.geometry import read_surface
+    from zernet.geometry import SurfaceError, read_surface
     from zernet.matching.template import load_template_model
 
+    if not scans.is_dir():
+        raise SystemExit(f"{scans}: no such folder of registered scans")
     files = sorted(path for path in scans.iterdir() if path.suffix.lower() in REGISTRATION_SUFFIXES)
     if not files:
         raise SystemExit(f"{scans}: no registered scans ({', '.join(REGISTRATION_SUFFIXES)}) in this folder")
-    model = load_template_model(init_from)  # a fine-tune starts from, and is labelled by, a template model file
-    surfaces = [read_surface(path) for path in files]
-    print(f"reading {len(surfaces)} registered scans with {init_from} for their consensus labels", flush=True)
-    consensus = consensus_labels(model, surfaces, cache_dir=run / "cache")
+    try:  # what is wrong with a scan or the model file is the user's to fix: said by name, not as a traceback
+        model = load_template_model(init_from)  # a fine-tune starts from, and is labelled by, a template model
+        surfaces = [read_surface(path) for path in files]
+        print(f"reading {len(surfaces)} registered scans with {init_from} for their consensus labels", flush=True)
+        consensus = consensus_labels(model, surfaces, cache_dir=run / "cache")
+    except (ValueError, SurfaceError) as error:
+        raise SystemExit(f"train_template --registrations {scans}: {error}") from None
     spread = {path.name: round(float(value), 4) for path, value in zip(files, consensus["spread"])}
     run.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(run / "consensus.json", json.dumps({"spread_p95": spread}, indent=1).encode())
